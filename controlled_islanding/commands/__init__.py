@@ -1,0 +1,1 @@
+"""Subcommands of `controlled-islanding`, one module each (see controlled_islanding/cli.py)."""
