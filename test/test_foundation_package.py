@@ -1,0 +1,89 @@
+"""Static checks of the package: lint as ROS packages do, package.xml, and the launch file that cannot run here."""
+
+from __future__ import annotations
+
+import ast
+import re
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+LAUNCH = REPO / 'launch' / 'islanding.launch.py'
+
+
+def console_scripts() -> set[str]:
+    """Names of the console scripts setup.py declares, read from the installed distribution."""
+    from importlib.metadata import distribution
+
+    return {ep.name for ep in distribution('controlled_islanding').entry_points if ep.group == 'console_scripts'}
+
+
+def test_lint_flake8_and_pep257_rules_pass():
+    """The ament_flake8 / ament_pep257 rule families, through ruff (config in ruff.toml)."""
+    paths = [p for p in ('controlled_islanding', 'test', 'launch', 'tools', 'setup.py') if (REPO / p).exists()]
+    result = subprocess.run([sys.executable, '-m', 'ruff', 'check', '--no-cache', *paths],
+                            cwd=REPO, capture_output=True, text=True)
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_package_xml_is_format_3_ament_python_with_runtime_depends():
+    root = ET.parse(REPO / 'package.xml').getroot()
+    assert root.get('format') == '3'
+    assert root.findtext('name') == 'controlled_islanding'
+    assert root.find('export/build_type').text == 'ament_python'
+    exec_depends = {e.text for e in root.findall('exec_depend')}
+    assert {'rclpy', 'controlled_islanding_msgs', 'diagnostic_msgs', 'python3-numpy', 'python3-scipy'} <= exec_depends
+    msgs = ET.parse(REPO / 'msg_schemas' / 'package.xml').getroot()
+    assert msgs.findtext('name') == 'controlled_islanding_msgs'
+    assert msgs.findtext('member_of_group') == 'rosidl_interface_packages'
+
+
+def test_every_msg_file_is_listed_in_cmakelists():
+    cmake = (REPO / 'msg_schemas' / 'CMakeLists.txt').read_text()
+    files = sorted(p.relative_to(REPO / 'msg_schemas').as_posix()
+                   for p in (REPO / 'msg_schemas').glob('*/*') if p.suffix in ('.msg', '.srv'))
+    listed = sorted(re.findall(r'"((?:msg|srv)/\w+\.(?:msg|srv))"', cmake))
+    assert listed == files
+
+
+def test_every_node_has_a_console_script_and_the_cli_too():
+    scripts = console_scripts()
+    nodes = {p.stem for p in (REPO / 'controlled_islanding' / 'nodes').glob('*.py') if p.stem != '__init__'}
+    assert nodes, 'no node modules found'
+    assert nodes <= scripts
+    assert 'controlled-islanding' in scripts
+
+
+def _launch_nodes() -> list[dict[str, object]]:
+    """Keyword arguments of every Node(...) call in the launch file, as far as they are literals."""
+    tree = ast.parse(LAUNCH.read_text())
+    found = []
+    for call in ast.walk(tree):
+        if isinstance(call, ast.Call) and getattr(call.func, 'id', getattr(call.func, 'attr', None)) == 'Node':
+            kwargs = {}
+            for kw in call.keywords:
+                kwargs[kw.arg] = [n.value for n in ast.walk(kw.value)
+                                  if isinstance(n, ast.Constant) and isinstance(n.value, str)]
+            found.append(kwargs)
+    return found
+
+
+def test_launch_file_starts_only_console_scripts_with_parameter_files_that_exist():
+    """`launch` is not installable here, so check statically what `ros2 launch` would start."""
+    compile(LAUNCH.read_text(), str(LAUNCH), 'exec')
+    nodes = _launch_nodes()
+    assert nodes, 'the launch file starts no Node'
+    scripts = console_scripts()
+    for kwargs in nodes:
+        assert kwargs.get('package') == ['controlled_islanding'], kwargs
+        (executable,) = kwargs['executable']
+        assert executable in scripts, f'{executable} is not a console script'
+        yaml_files = [s for s in kwargs.get('parameters', []) if s.endswith('.yaml')]
+        assert yaml_files, f'{executable} names no parameter file'
+        for name in yaml_files:
+            assert (REPO / 'config' / Path(name).name).is_file(), f'{executable}: config/{Path(name).name} missing'
+    launched = {kwargs['executable'][0] for kwargs in nodes}
+    pipeline = {'pmu_ingestion', 'coherency', 'partitioning', 'breaker_command'}
+    assert pipeline <= launched
