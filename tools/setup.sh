@@ -57,11 +57,19 @@ if [[ ! -f $WHEELS_STAMP || "$(cat "$WHEELS_STAMP")" != "$wheels_hash" ]]; then
 fi
 
 echo "setup: compiling msg_schemas/ into $VENV"
+step="find a C compiler and cmake"
+command -v cc >/dev/null || command -v gcc >/dev/null \
+  || { echo "setup: no C compiler; the rosidl generators compile C (Debian: apt-get install build-essential)." >&2; false; }
+CMAKE=$(command -v cmake || true)
+if [[ -z $CMAKE ]]; then
+  "$VENV/bin/python" -m pip install --quiet cmake >>"$BUILD/pip.log" 2>&1
+  CMAKE=$VENV/bin/cmake
+fi
 build_msgs() {
-  cmake -S msg_schemas -B "$BUILD/msg_schemas" -DCMAKE_PREFIX_PATH="$VENV" -DCMAKE_INSTALL_PREFIX="$VENV" \
+  "$CMAKE" -S msg_schemas -B "$BUILD/msg_schemas" -DCMAKE_PREFIX_PATH="$VENV" -DCMAKE_INSTALL_PREFIX="$VENV" \
     -DPython3_EXECUTABLE="$VENV/bin/python" -DBUILD_TESTING=OFF \
-  && cmake --build "$BUILD/msg_schemas" -j 2 \
-  && cmake --install "$BUILD/msg_schemas"
+  && "$CMAKE" --build "$BUILD/msg_schemas" -j 2 \
+  && "$CMAKE" --install "$BUILD/msg_schemas"
 }
 step="compile msg_schemas (cmake configure, build, install)"
 rm -rf "$BUILD/msg_schemas"
