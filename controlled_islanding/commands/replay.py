@@ -1,0 +1,383 @@
+"""`controlled-islanding replay BAG`: run a bag through the node graph, as separate processes over DDS."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+
+from controlled_islanding.cli import CliError
+
+HELP = 'replay a bag through the ROS 2 node graph and print its islanding decision'
+DESCRIPTION = """\
+Start pmu_ingestion, coherency, partitioning and breaker_command (each its own process, with its
+config/*.yaml, on a private ROS_DOMAIN_ID confined to loopback), plus a recorder; arm the breaker node;
+play BAG with bag_player (ground truth withheld); then print the decision: coherent groups, islands
+with their buses, cut lines, disrupted MW, generation/load/shed per island, breaker commands, and the
+latency from the islanding request to the breaker command, measured by one observer across processes.
+
+The results folder holds the recorded output bag (output_bag/), the breaker audit log, every node's
+log, rotor_angles.png (estimated angles coloured by group), network.png (islands and cut lines) and
+summary.json. Every child process is stopped on exit, Ctrl-C or error.
+
+Examples:
+  controlled-islanding replay bags/ieee39_case1            real time
+  controlled-islanding replay bags/ieee39_case1 --fast --json
+  controlled-islanding replay bags/ieee39_case1 --probe-hz 20   extra requests: a latency benchmark
+"""
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the replay options."""
+    parser.add_argument('bag', type=Path, help='rosbag2 bag directory (see bags/index.yaml)')
+    parser.add_argument('--json', action='store_true', help='print one JSON decision on stdout and nothing else')
+    parser.add_argument('--fast', action='store_true', help='play as fast as possible (lockstep at requests)')
+    parser.add_argument('--rate', type=float, default=1.0, help='playback speed factor (default 1 = real time)')
+    parser.add_argument('--results', type=Path, default=None,
+                        help='results folder to create (default results/replay-<bag>-<UTC time>)')
+    parser.add_argument('--probe-hz', type=float, default=0.0,
+                        help='also send islanding requests at this rate once the first decision is out, '
+                             'to measure latency over many requests (a benchmark; default 0 = none)')
+    parser.add_argument('--no-figures', action='store_true', help='skip the figures')
+    parser.add_argument('--timeout', type=float, default=120.0, help='give up after this many wall seconds')
+
+
+@dataclass
+class Observation:
+    """What the observer saw, with wall arrival times (time.monotonic, s) in this one process."""
+
+    requests: dict[str, float] = field(default_factory=dict)
+    decisions: dict[str, tuple[float, object]] = field(default_factory=dict)  # request id -> (t, msg)
+    commands: list[tuple[float, object]] = field(default_factory=list)
+    groups: object | None = None
+    diagnostics: dict[str, dict[str, str]] = field(default_factory=dict)
+
+
+def _say(quiet: bool, text: str) -> None:
+    if not quiet:
+        print(text, file=sys.stderr, flush=True)
+
+
+def _bag_requests(bag: Path) -> int:
+    from rosbags.highlevel import AnyReader
+
+    from controlled_islanding import topics
+    from controlled_islanding.interfaces import typestore
+
+    try:
+        with AnyReader([bag], default_typestore=typestore()) as reader:
+            return sum(c.msgcount for c in reader.connections if c.topic == topics.ISLANDING_REQUEST)
+    except Exception as exc:  # rosbags raises many error types for an unreadable bag
+        raise CliError(f'bag {bag}: cannot read it as a rosbag2 bag: {exc}') from exc
+
+
+def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: float, timeout_s: float,
+              quiet: bool) -> tuple[Observation, dict]:
+    """Run the node graph on a bag; return what the observer saw and the player's speed report.
+
+    Raises:
+        CliError: The bag is unreadable, a node died, or no decision came in time.
+
+    """
+    import rclpy
+    from controlled_islanding_msgs.msg import BreakerCommand, CoherentGroups, IslandingDecision, IslandingRequest
+    from controlled_islanding_msgs.srv import SetArmed
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.signals import SignalHandlerOptions
+
+    from controlled_islanding import topics
+    from controlled_islanding.node_common import qos_for
+    from controlled_islanding.rosenv import isolated_ros_environment
+    from controlled_islanding.supervisor import GRAPH, PLAYER, RECORDER, Supervisor, SupervisorError
+
+    n_requests = _bag_requests(bag)
+    obs = Observation()
+    logs = results / 'logs'
+    with isolated_ros_environment(REPO / 'build' / 'ros_log' / results.name) as env:
+        saved = dict(os.environ)
+        os.environ.update(env)
+        context = rclpy.Context()
+        rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+        node = rclpy.create_node('replay_observer', context=context)
+        executor = rclpy.executors.SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+
+        def spin_for(seconds: float, done=lambda: False) -> bool:
+            end = time.monotonic() + seconds
+            while not done() and time.monotonic() < end:
+                executor.spin_once(timeout_sec=min(0.05, max(0.0, end - time.monotonic())))
+            return done()
+
+        def on_request(msg: IslandingRequest) -> None:
+            obs.requests.setdefault(msg.request_id, time.monotonic())
+
+        def on_decision(msg: IslandingDecision) -> None:
+            obs.decisions.setdefault(msg.request_id, (time.monotonic(), msg))
+
+        def on_groups(msg: CoherentGroups) -> None:
+            obs.groups = msg
+
+        def on_diag(msg: DiagnosticArray) -> None:
+            for status in msg.status:
+                obs.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
+
+        node.create_subscription(IslandingRequest, topics.ISLANDING_REQUEST, on_request,
+                                 qos_for(topics.ISLANDING_REQUEST))
+        node.create_subscription(IslandingDecision, topics.ISLANDING_DECISION, on_decision,
+                                 qos_for(topics.ISLANDING_DECISION))
+        node.create_subscription(BreakerCommand, topics.BREAKER_COMMANDS,
+                                 lambda m: obs.commands.append((time.monotonic(), m)), qos_for(topics.BREAKER_COMMANDS))
+        node.create_subscription(CoherentGroups, topics.COHERENT_GROUPS, on_groups, qos_for(topics.COHERENT_GROUPS))
+        node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, on_diag, qos_for(topics.DIAGNOSTICS))
+        probe_pub = node.create_publisher(IslandingRequest, topics.ISLANDING_REQUEST, qos_for(topics.ISLANDING_REQUEST))
+        report_file = results / 'player_report.json'
+        try:
+            with Supervisor(env, logs) as sup:
+                sim = {'use_sim_time': True}
+                for spec in GRAPH:
+                    audit = {'audit_log': results / 'breaker_audit.jsonl'}
+                    sup.start(spec, {**sim, **(audit if spec.executable == 'breaker_command' else {})})
+                sup.start(RECORDER, {**sim, 'output': results / 'output_bag'})
+                _say(quiet, f'replay: started {len(GRAPH)} nodes and the recorder (logs in {logs})')
+                arm = node.create_client(SetArmed, '/breaker_command/set_armed')
+                if not arm.wait_for_service(timeout_sec=20.0):
+                    sup.check_alive()
+                    raise CliError('breaker_command did not offer /breaker_command/set_armed within 20 s')
+                future = arm.call_async(SetArmed.Request(armed=True))
+                if not spin_for(10.0, future.done) or not future.result().armed:
+                    raise CliError('breaker_command refused to arm')
+                _say(quiet, 'replay: breaker_command armed; playing the bag')
+                player = sup.start(PLAYER, {'bag': bag.resolve(), 'as_fast_as_possible': fast, 'rate': rate,
+                                            'report_file': report_file, 'wait_for_subscriber_count': 2})
+                deadline = time.monotonic() + timeout_s
+                probe_period = 1.0 / probe_hz if probe_hz > 0 else None
+                next_probe = None
+                while time.monotonic() < deadline:
+                    spin_for(0.01)
+                    sup.check_alive([s.executable for s in GRAPH])
+                    bag_done = player.poll() is not None
+                    if bag_done and player.returncode != 0:
+                        raise CliError(f'bag_player failed:\n{sup.log_tail("bag_player")}')
+                    answered = sum(1 for r in obs.requests if r in obs.decisions)
+                    if probe_period and obs.decisions and not bag_done:
+                        now = time.monotonic()
+                        next_probe = next_probe or now
+                        if now >= next_probe:
+                            probe = IslandingRequest(request_id=f'probe-{len(obs.requests)}', reason='latency probe')
+                            clock_s = obs.groups.header.stamp if obs.groups is not None else None
+                            if clock_s is not None:
+                                probe.header.stamp = clock_s
+                                obs.requests[probe.request_id] = time.monotonic()
+                                probe_pub.publish(probe)
+                            next_probe += probe_period
+                    if bag_done and answered >= n_requests and all(r in obs.decisions for r in obs.requests):
+                        spin_for(0.3)  # let the last commands and diagnostics arrive
+                        break
+                else:
+                    raise CliError(f'no decision for every request within --timeout {timeout_s} s; '
+                                   f'logs in {logs}')
+        except SupervisorError as exc:
+            raise CliError(str(exc)) from exc
+        finally:
+            node.destroy_node()
+            context.try_shutdown()
+            os.environ.clear()
+            os.environ.update(saved)
+    report = json.loads(report_file.read_text()) if report_file.exists() else {}
+    return obs, report
+
+
+def _decision_dict(request_id: str, obs: Observation) -> dict:
+    t_req = obs.requests.get(request_id)
+    t_dec, msg = obs.decisions[request_id]
+    commands = [(t, c) for t, c in obs.commands if c.decision_id == msg.decision_id]
+    islands = []
+    for i in range(len(msg.island_generation_mw)):
+        islands.append({
+            'island': i, 'buses': [int(b) for b, k in zip(msg.bus_numbers, msg.bus_island, strict=True) if k == i],
+            'generation_mw': msg.island_generation_mw[i], 'load_mw': msg.island_load_mw[i],
+            'imbalance_mw': msg.island_imbalance_mw[i], 'shed_mw': msg.island_shed_mw[i]})
+    latency_cmd = (commands[-1][0] - t_req) * 1e3 if commands and t_req is not None else None
+    return {
+        'request_id': request_id, 'decision_id': msg.decision_id, 'method': msg.method, 'split': bool(msg.split),
+        'n_islands': len(islands), 'islands': islands, 'cut_branch_ids': list(msg.cut_branch_ids),
+        'disrupted_mw': msg.disrupted_mw,
+        'breaker_commands': [{'command_id': c.command_id, 'breaker_id': c.breaker_id, 'branch_id': c.branch_id,
+                              'action': 'open' if c.action == c.ACTION_OPEN else 'close'} for _, c in commands],
+        'latency_request_to_command_ms': latency_cmd,
+        'latency_request_to_decision_ms': (t_dec - t_req) * 1e3 if t_req is not None else None,
+        'partitioning_compute_ms': msg.compute_time_s * 1e3,
+    }
+
+
+def _groups_dict(obs: Observation) -> dict:
+    g = obs.groups
+    if g is None:
+        return {}
+    return {'method': g.method, 'k': int(g.k), 'window_s': g.window_s,
+            'groups': [[n for n, k in zip(g.generator_names, g.group, strict=True) if k == i] for i in range(g.k)]}
+
+
+def percentile(values: list[float], q: float) -> float:
+    """Return the q-th percentile (0..100) by linear interpolation."""
+    data = sorted(values)
+    pos = (len(data) - 1) * q / 100.0
+    lo = int(pos)
+    hi = min(lo + 1, len(data) - 1)
+    return data[lo] + (data[hi] - data[lo]) * (pos - lo)
+
+
+def summarize(bag: Path, results: Path, obs: Observation, report: dict) -> dict:
+    """Return the machine-readable result: the bag's decision(s), groups, latency figures and replay speed."""
+    bag_requests = [r for r in obs.requests if not r.startswith('probe-')]
+    decisions = [_decision_dict(r, obs) for r in bag_requests if r in obs.decisions]
+    latencies = [d['latency_request_to_command_ms'] if d['latency_request_to_command_ms'] is not None
+                 else d['latency_request_to_decision_ms']
+                 for d in (_decision_dict(r, obs) for r in obs.requests if r in obs.decisions)]
+    latencies = [x for x in latencies if x is not None]
+    rejects = {name: {k: v for k, v in values.items() if k.startswith('rejected')}
+               for name, values in obs.diagnostics.items()}
+    out = decisions[-1] if decisions else {'split': None}
+    out.update({
+        'bag': str(bag), 'results_dir': str(results), 'coherent_groups': _groups_dict(obs),
+        'decisions': decisions, 'latency_ms': {
+            'n': len(latencies), 'median': statistics.median(latencies) if latencies else None,
+            'p99': percentile(latencies, 99) if latencies else None, 'max': max(latencies) if latencies else None},
+        'replay': report,
+        'diagnostics_rejects': {k: v for k, v in rejects.items() if any(x != '0' for x in v.values())},
+    })
+    return out
+
+
+def render(summary: dict) -> str:
+    """Return the readable decision."""
+    lines = [f'bag: {summary["bag"]}']
+    groups = summary['coherent_groups']
+    if groups:
+        lines.append(f'coherent groups ({groups["method"]}, k={groups["k"]}, window {groups["window_s"]:.2f} s):')
+        lines += [f'  group {i}: {", ".join(names)}' for i, names in enumerate(groups['groups'])]
+    if summary.get('split') is None:
+        lines.append('no decision')
+        return '\n'.join(lines)
+    split = f'SPLIT into {summary["n_islands"]} islands' if summary['split'] else 'no split'
+    lines.append(f'decision: {split}')
+    for isl in summary['islands']:
+        lines.append(f'  island {isl["island"]}: generation {isl["generation_mw"]:.1f} MW, '
+                     f'load {isl["load_mw"]:.1f} MW, shed {isl["shed_mw"]:.1f} MW; '
+                     f'buses {", ".join(map(str, isl["buses"]))}')
+    lines.append(f'cut lines: {", ".join(summary["cut_branch_ids"]) or "none"}')
+    lines.append(f'disrupted power flow: {summary["disrupted_mw"]:.2f} MW')
+    cmds = summary['breaker_commands']
+    lines.append('breaker commands: ' + (', '.join(f'{c["action"]} {c["breaker_id"]}' for c in cmds) or 'none'))
+    if summary['latency_request_to_command_ms'] is not None:
+        lines.append(f'latency request -> breaker command: {summary["latency_request_to_command_ms"]:.1f} ms')
+    else:
+        lines.append(f'latency request -> decision: {summary["latency_request_to_decision_ms"]:.1f} ms '
+                     '(nothing to command)')
+    lat = summary['latency_ms']
+    if lat['n'] > 1:
+        lines.append(f'latency over {lat["n"]} requests: median {lat["median"]:.1f} ms, p99 {lat["p99"]:.1f} ms')
+    rep = summary['replay']
+    if rep:
+        lines.append(f'replay: {rep["bag_duration_s"]:.2f} s of bag in {rep["wall_s"]:.2f} s '
+                     f'({rep["speed_vs_real_time"]:.1f}x real time)')
+    for name, rejects in summary['diagnostics_rejects'].items():
+        lines.append(f'dropped inputs at {name}: ' + ', '.join(f'{k}={v}' for k, v in rejects.items()))
+    lines.append(f'results: {summary["results_dir"]}')
+    return '\n'.join(lines)
+
+
+def write_figures(bag: Path, results: Path, summary: dict) -> list[Path]:
+    """Draw rotor angles (estimated, from the output bag) by group and the network by island."""
+    import numpy as np
+    from rosbags.highlevel import AnyReader
+
+    from controlled_islanding import plots, topics
+    from controlled_islanding.interfaces import typestore
+    from controlled_islanding.messages import grid_from_snapshot, stamp_s
+
+    out_bag = results / 'output_bag'
+    t, rows, names, grid, trips = [], [], None, None, []
+    with AnyReader([out_bag], default_typestore=typestore()) as reader:
+        for conn, _, raw in reader.messages():
+            if conn.topic == topics.ROTOR_ANGLES:
+                msg = reader.deserialize(raw, conn.msgtype)
+                names = list(msg.generator_names)
+                t.append(stamp_s(msg.header.stamp))
+                rows.append(np.where(np.asarray(msg.valid, bool), np.asarray(msg.angle_rad, float), np.nan))
+            elif conn.topic == topics.NETWORK_SNAPSHOT and grid is None:
+                grid = grid_from_snapshot(reader.deserialize(raw, conn.msgtype))
+            elif conn.topic == topics.BRANCH_STATUS:
+                msg = reader.deserialize(raw, conn.msgtype)
+                if not msg.in_service:
+                    trips.append(msg.branch_id)
+    written = []
+    group_of = {}
+    for i, members in enumerate(summary['coherent_groups'].get('groups', [])):
+        group_of.update(dict.fromkeys(members, i))
+    if rows and names:
+        order = np.argsort(t)
+        t_arr = np.asarray(t)[order]
+        angles = np.vstack(rows)[order].T
+        angles = angles - angles[:, :1]
+        written.append(plots.plot_rotor_angles(
+            t_arr - t_arr[0], angles, names, [group_of.get(n, 0) for n in names], results / 'rotor_angles.png',
+            title=f'estimated rotor angles, {bag.name}'))
+    if grid is not None and summary.get('split') is not None:
+        grid = grid.with_outages(b for b in dict.fromkeys(trips) if b in {x.branch_id for x in grid.branches})
+        bus_island = {b: isl['island'] for isl in summary['islands'] for b in isl['buses']}
+        written.append(plots.plot_network(grid, bus_island, summary['cut_branch_ids'], results / 'network.png',
+                                          title=f'islands and cut lines, {bag.name}'))
+    return written
+
+
+def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float = 1.0, probe_hz: float = 0.0,
+           timeout_s: float = 120.0, figures: bool = True, quiet: bool = False) -> dict:
+    """Replay a bag through the graph; write the results folder; return the summary.
+
+    Raises:
+        CliError: Bad arguments, an unreadable bag, a failed node or a missing decision.
+
+    """
+    if not bag.exists():
+        raise CliError(f'bag {bag} does not exist')
+    if rate <= 0:
+        raise CliError(f'--rate {rate} must be positive')
+    if results is None:
+        stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
+        results = REPO / 'results' / f'replay-{bag.name}-{stamp}'
+    if results.exists():
+        raise CliError(f'results folder {results} exists; name a new one')
+    results.mkdir(parents=True)
+    obs, report = run_graph(bag, results, fast=fast, rate=rate, probe_hz=probe_hz, timeout_s=timeout_s,
+                            quiet=quiet)
+    summary = summarize(bag, results, obs, report)
+    if figures:
+        try:
+            summary['figures'] = [str(p) for p in write_figures(bag, results, summary)]
+        except Exception as exc:  # a figure must never hide the decision
+            _say(quiet, f'replay: figures failed: {exc}')
+    tmp = results / 'summary.json.tmp'
+    tmp.write_text(json.dumps(summary, indent=2, default=str))
+    os.replace(tmp, results / 'summary.json')
+    (results / 'summary.txt').write_text(render(summary) + '\n')
+    return summary
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the replay subcommand."""
+    summary = replay(args.bag, args.results, fast=args.fast, rate=args.rate, probe_hz=args.probe_hz,
+                     timeout_s=args.timeout, figures=not args.no_figures, quiet=args.json)
+    if args.json:
+        print(json.dumps(summary, default=str))
+    else:
+        print(render(summary))
+    return 0

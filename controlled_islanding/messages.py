@@ -1,0 +1,133 @@
+"""Decode and check messages into core data; works on rclpy and on rosbags message objects alike (no rclpy).
+
+Every decoder raises MessageError with a `reason` key the nodes count in /diagnostics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from controlled_islanding.core.grid import Branch, Generator, Grid, GridError, Load
+
+
+class MessageError(ValueError):
+    """A message that cannot be used; `reason` is a short stable key such as 'array_length'."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
+
+
+def stamp_s(stamp: object) -> float:
+    """Return a builtin_interfaces/Time as seconds."""
+    return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
+
+
+def split_stamp(t_s: float) -> tuple[int, int]:
+    """Return (sec, nanosec) of a builtin_interfaces/Time for a time in s."""
+    total_ns = int(round(t_s * 1e9))
+    return total_ns // 1_000_000_000, total_ns % 1_000_000_000
+
+
+def _parallel(msg: object, what: str, fields: tuple[str, ...]) -> int:
+    lengths = {f: len(getattr(msg, f)) for f in fields}
+    if len(set(lengths.values())) > 1:
+        detail = ', '.join(f'{f}={n}' for f, n in lengths.items())
+        raise MessageError('array_length', f'{what}: parallel arrays differ in length ({detail})')
+    return next(iter(lengths.values()))
+
+
+def _finite(values: object, what: str) -> np.ndarray:
+    arr = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(arr)):
+        raise MessageError('nan_value', f'{what} holds NaN or inf')
+    return arr
+
+
+def grid_from_snapshot(msg: object) -> Grid:
+    """Build a core Grid (with flows) from a NetworkSnapshot message.
+
+    Raises:
+        MessageError: Empty, arrays of unequal length, NaN/inf values, or an inconsistent network.
+
+    """
+    if not len(msg.bus_numbers) or not len(msg.branch_ids) or not len(msg.generator_names):
+        raise MessageError('empty_message', 'network snapshot has no buses, branches or generators')
+    _parallel(msg, 'snapshot branches', ('branch_ids', 'branch_from_bus', 'branch_to_bus', 'branch_in_service',
+                                         'branch_p_from_mw', 'branch_p_to_mw'))
+    _parallel(msg, 'snapshot generators', ('generator_names', 'generator_bus', 'generator_p_mw',
+                                           'generator_p_max_mw', 'generator_xq_pu', 'generator_ra_pu'))
+    _parallel(msg, 'snapshot loads', ('load_bus', 'load_p_mw', 'load_q_mvar'))
+    p_from = _finite(msg.branch_p_from_mw, 'branch_p_from_mw')
+    p_to = _finite(msg.branch_p_to_mw, 'branch_p_to_mw')
+    gen_p = _finite(msg.generator_p_mw, 'generator_p_mw')
+    load_p = _finite(msg.load_p_mw, 'load_p_mw')
+    base = float(msg.base_mva)
+    if not np.isfinite(base) or base <= 0:
+        raise MessageError('nan_value', f'base_mva={base} is not a positive number')
+    try:
+        return Grid(
+            name=str(msg.case_name), base_mva=base, buses=tuple(int(b) for b in msg.bus_numbers),
+            branches=tuple(Branch(str(i), int(f), int(t), bool(s)) for i, f, t, s in zip(
+                msg.branch_ids, msg.branch_from_bus, msg.branch_to_bus, msg.branch_in_service, strict=True)),
+            generators=tuple(Generator(str(n), int(b), float(p), float(pm), float(x), float(r)) for n, b, p, pm, x, r in
+                             zip(msg.generator_names, msg.generator_bus, gen_p, msg.generator_p_max_mw,
+                                 msg.generator_xq_pu, msg.generator_ra_pu, strict=True)),
+            loads=tuple(Load(int(b), float(p), float(q))
+                        for b, p, q in zip(msg.load_bus, load_p, msg.load_q_mvar, strict=True)),
+            p_from_mw=p_from, p_to_mw=p_to)
+    except GridError as exc:
+        raise MessageError('unknown_id', str(exc)) from exc
+
+
+@dataclass(frozen=True)
+class Groups:
+    """Coherent groups decoded from a CoherentGroups message, labels renumbered canonically.
+
+    Attributes:
+        names: Generator names.
+        labels: Group of each generator, renumbered 0.. in order of first appearance, so the same partition
+            always has the same labels.
+        k: Number of groups.
+        stamp_s: Time tag of the newest sample in the window, s.
+        method: Coherency method.
+
+    """
+
+    names: tuple[str, ...]
+    labels: tuple[int, ...]
+    k: int
+    stamp_s: float
+    method: str
+
+    def as_mapping(self) -> dict[str, int]:
+        """Return generator name -> group."""
+        return dict(zip(self.names, self.labels, strict=True))
+
+
+def groups_from_msg(msg: object) -> Groups:
+    """Decode and check a CoherentGroups message.
+
+    Raises:
+        MessageError: Empty, arrays of unequal length, duplicate names, or k not matching the labels.
+
+    """
+    n = _parallel(msg, 'coherent groups', ('generator_names', 'generator_buses', 'group'))
+    if n == 0:
+        raise MessageError('empty_message', 'coherent groups name no generator')
+    names = tuple(str(x) for x in msg.generator_names)
+    if len(set(names)) != n:
+        raise MessageError('unknown_id', 'coherent groups name a generator twice')
+    if len(msg.distance) not in (0, n * n):
+        raise MessageError('array_length', f'distance has {len(msg.distance)} values, expected 0 or {n * n}')
+    raw = [int(g) for g in msg.group]
+    if int(msg.k) != len(set(raw)) or max(raw) >= int(msg.k):
+        raise MessageError('bad_value', f'k={msg.k} does not match the group labels {sorted(set(raw))}')
+    order: dict[int, int] = {}
+    labels = tuple(order.setdefault(g, len(order)) for g in raw)
+    stamp = stamp_s(msg.header.stamp)
+    if stamp <= 0:
+        raise MessageError('missing_stamp', 'coherent groups header.stamp is zero')
+    return Groups(names=names, labels=labels, k=len(order), stamp_s=stamp, method=str(msg.method))

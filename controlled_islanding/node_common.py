@@ -1,0 +1,184 @@
+"""What every node shares: per-topic QoS, bad-input accounting with /diagnostics, and the process main loop.
+
+QoS per topic (reliable everywhere: a lost request, decision or command is a lost control action):
+- /pmu/frames, /rotor_angles: KEEP_LAST 1000, volatile. Deep enough that an as-fast-as-possible replay
+  of a whole window never drops a frame; live, a late frame is useless, so nothing is latched.
+- /network/snapshot, /coherent_groups: KEEP_LAST 1, transient local: a late joiner gets the latest state.
+- /network/branch_status: KEEP_LAST 100, transient local: a late partitioning node still learns every trip.
+- /islanding/request, /islanding/decision, /breaker/commands: KEEP_LAST 100, volatile. Never latched: a
+  breaker node that starts late must not execute a decision made before it existed.
+- /diagnostics: KEEP_LAST 10, volatile (the diagnostic_aggregator convention).
+- /clock: KEEP_LAST 1, volatile; rclpy's time source subscribes best effort, which a reliable writer serves.
+"""
+
+from __future__ import annotations
+
+import importlib
+import time
+from collections import Counter, deque
+from collections.abc import Callable
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from controlled_islanding import topics
+
+
+class NodeSetupError(ValueError):
+    """A node's parameters or message types are unusable."""
+
+
+def _qos(depth: int, latched: bool = False) -> QoSProfile:
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+
+TOPIC_QOS: dict[str, QoSProfile] = {
+    topics.PMU_FRAMES: _qos(1000),
+    topics.ROTOR_ANGLES: _qos(1000),
+    topics.NETWORK_SNAPSHOT: _qos(1, latched=True),
+    topics.COHERENT_GROUPS: _qos(1, latched=True),
+    topics.BRANCH_STATUS: _qos(100, latched=True),
+    topics.ISLANDING_REQUEST: _qos(100),
+    topics.ISLANDING_DECISION: _qos(100),
+    topics.BREAKER_COMMANDS: _qos(100),
+    topics.DIAGNOSTICS: _qos(10),
+    topics.CLOCK: _qos(1),
+    topics.TRUTH_ROTOR_ANGLES: _qos(1000),
+    topics.TRUTH_COHERENT_GROUPS: _qos(1, latched=True),
+}
+
+
+def qos_for(topic: str) -> QoSProfile:
+    """Return the documented QoS of a topic; unknown topics get reliable, volatile, depth 100."""
+    return TOPIC_QOS.get(topic, _qos(100))
+
+
+def message_class(type_name: str) -> type:
+    """Return the rclpy message class of a full ROS 2 type name such as 'std_msgs/msg/String'.
+
+    Raises:
+        NodeSetupError: The type name is malformed or its package is not installed.
+
+    """
+    parts = type_name.split('/')
+    if len(parts) != 3:
+        raise NodeSetupError(f'message type {type_name!r} is not of the form package/msg/Name')
+    try:
+        return getattr(importlib.import_module(f'{parts[0]}.{parts[1]}'), parts[2])
+    except (ImportError, AttributeError) as exc:
+        raise NodeSetupError(f'message type {type_name!r} is not installed: {exc}') from exc
+
+
+class Diagnostics:
+    """Counts inputs, rejects, compute time and extra figures, and publishes them on /diagnostics.
+
+    The publish timer runs on the steady clock, so an as-fast-as-possible replay with a racing /clock
+    does not multiply the diagnostics traffic.
+    """
+
+    def __init__(self, node: Node, period_s: float = 1.0) -> None:
+        self._node = node
+        self._pub = node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos_for(topics.DIAGNOSTICS))
+        self._arrivals_s: deque[float] = deque(maxlen=4096)
+        self.rejects: Counter[str] = Counter()
+        self.received = 0
+        self.compute_last_s = 0.0
+        self.compute_max_s = 0.0
+        self.values: dict[str, str] = {}
+        self._last_log_s: dict[str, float] = {}
+        self._last_publish_s = 0.0
+        self._timer = node.create_timer(period_s, self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def arrived(self) -> None:
+        """Count one input message."""
+        self.received += 1
+        self._arrivals_s.append(time.monotonic())
+
+    def reject(self, reason: str, detail: str) -> None:
+        """Log a dropped input, count it under its reason, and publish the counts at once.
+
+        Args:
+            reason: Short stable key, e.g. 'nan_value'; the diagnostics key is 'rejected.<reason>'.
+            detail: What exactly was wrong, for the log.
+
+        """
+        self.rejects[reason] += 1
+        now = time.monotonic()
+        # At 60 frames/s one broken PMU would flood the log and the topic: at most one line per reason per
+        # second (the count says how many), and at most ten early diagnostics per second.
+        if now - self._last_log_s.get(reason, -1e9) >= 1.0:
+            self._last_log_s[reason] = now
+            self._node.get_logger().warning(f'dropped input ({reason}, {self.rejects[reason]} so far): {detail}')
+        if now - self._last_publish_s >= 0.1:
+            self.publish()
+
+    def computed(self, seconds: float) -> None:
+        """Record one compute time in s."""
+        self.compute_last_s = seconds
+        self.compute_max_s = max(self.compute_max_s, seconds)
+
+    def input_rate_hz(self) -> float:
+        """Return the input rate over the last 2 s of wall time, Hz."""
+        now = time.monotonic()
+        return sum(1 for t in self._arrivals_s if now - t <= 2.0) / 2.0
+
+    def publish(self) -> None:
+        """Publish one DiagnosticStatus for this node."""
+        self._last_publish_s = time.monotonic()
+        level = DiagnosticStatus.WARN if self.rejects else DiagnosticStatus.OK
+        pairs = {
+            'input_rate_hz': f'{self.input_rate_hz():.1f}',
+            'received': str(self.received),
+            'rejected': str(sum(self.rejects.values())),
+            'compute_time_last_ms': f'{self.compute_last_s * 1e3:.3f}',
+            'compute_time_max_ms': f'{self.compute_max_s * 1e3:.3f}',
+        }
+        pairs.update({f'rejected.{k}': str(v) for k, v in sorted(self.rejects.items())})
+        pairs.update(self.values)
+        status = DiagnosticStatus(
+            level=level, name=self._node.get_fully_qualified_name(), hardware_id='controlled_islanding',
+            message=f'{sum(self.rejects.values())} inputs rejected' if self.rejects else 'ok',
+            values=[KeyValue(key=k, value=v) for k, v in pairs.items()])
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = self._node.get_clock().now().to_msg()
+        self._pub.publish(array)
+
+
+def spin_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
+    """Init rclpy, build the node, spin it single-threaded until Ctrl-C or shutdown, then clean up.
+
+    Args:
+        factory: Builds the node; called after rclpy.init.
+        args: Command line arguments (for --ros-args).
+
+    Returns:
+        Process exit status: 0 after a clean stop, 1 when the node failed to start.
+
+    """
+    rclpy.init(args=args)
+    node = None
+    status = 0
+    try:
+        node = factory()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except NodeSetupError as exc:
+        print(f'error: {exc}', flush=True)
+        status = 1
+    finally:
+        if node is not None:
+            close = getattr(node, 'close', None)
+            if close is not None:
+                close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return status

@@ -1,0 +1,162 @@
+"""bag_player: publish a rosbag2 bag's messages as they were recorded, as serialized CDR bytes.
+
+Timing follows the bag's log times divided by `rate`; `as_fast_as_possible` drops the waits. /clock carries
+the bag time of every message, for nodes running with use_sim_time. Ground-truth topics (/truth/...) are never
+published unless `publish_truth` is set, so the graph under test cannot see the answer.
+
+In as-fast-as-possible mode with `lockstep_on_requests` (the default), the player holds after each islanding
+request until an islanding decision appears (or `lockstep_timeout_s` passes): bag time stops while the graph
+decides, so the decision sees exactly the data a real-time replay would, and is not refused as stale.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import rclpy
+from builtin_interfaces.msg import Time
+from controlled_islanding_msgs.msg import IslandingDecision
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rosbags.highlevel import AnyReader
+from rosgraph_msgs.msg import Clock
+
+from controlled_islanding import topics
+from controlled_islanding.interfaces import typestore
+from controlled_islanding.node_common import Diagnostics, NodeSetupError, message_class, qos_for
+
+
+class BagPlayerNode(Node):
+    """Loads a bag into memory and plays it onto its topics."""
+
+    def __init__(self) -> None:
+        super().__init__('bag_player')
+        self.declare_parameter('bag', '')
+        self.declare_parameter('rate', 1.0)
+        self.declare_parameter('as_fast_as_possible', False)
+        self.declare_parameter('publish_truth', False)
+        self.declare_parameter('publish_clock', True)
+        self.declare_parameter('wait_for_subscribers_s', 10.0)
+        self.declare_parameter('wait_for_subscriber_count', 1)
+        self.declare_parameter('lockstep_on_requests', True)
+        self.declare_parameter('lockstep_timeout_s', 5.0)
+        self.declare_parameter('report_file', '')
+        bag = self.get_parameter('bag').value
+        self.rate = float(self.get_parameter('rate').value)
+        if not bag:
+            raise NodeSetupError('parameter bag is empty; it must name a rosbag2 bag directory or .mcap file')
+        if self.rate <= 0.0:
+            raise NodeSetupError(f'parameter rate={self.rate} must be positive')
+        self.afap = bool(self.get_parameter('as_fast_as_possible').value)
+        self.lockstep = self.afap and bool(self.get_parameter('lockstep_on_requests').value)
+        self.lockstep_timeout_s = float(self.get_parameter('lockstep_timeout_s').value)
+        self.report_file = self.get_parameter('report_file').value
+        publish_truth = bool(self.get_parameter('publish_truth').value)
+        self.messages: list[tuple[str, int, bytes]] = []
+        self.pubs = {}
+        try:
+            with AnyReader([Path(bag)], default_typestore=typestore()) as reader:
+                chosen = [c for c in reader.connections if publish_truth or c.topic not in topics.TRUTH_TOPICS]
+                for conn in chosen:
+                    if conn.topic not in self.pubs:
+                        self.pubs[conn.topic] = self.create_publisher(
+                            message_class(conn.msgtype), conn.topic, qos_for(conn.topic))
+                self.messages = [(c.topic, t, bytes(raw)) for c, t, raw in reader.messages(connections=chosen)]
+        except NodeSetupError:
+            raise
+        except Exception as exc:  # rosbags raises many reader error types; all mean the bag is unusable
+            raise NodeSetupError(f'bag {bag}: cannot read: {exc}') from exc
+        if not self.messages:
+            raise NodeSetupError(f'bag {bag}: no messages on any topic to play')
+        self.clock_pub = (self.create_publisher(Clock, topics.CLOCK, qos_for(topics.CLOCK))
+                          if self.get_parameter('publish_clock').value else None)
+        self.decisions = 0
+        if self.lockstep:
+            self.create_subscription(IslandingDecision, topics.ISLANDING_DECISION, self._on_decision,
+                                     qos_for(topics.ISLANDING_DECISION))
+        self.diag = Diagnostics(self)
+        self.get_logger().info(f'{len(self.messages)} messages on {len(self.pubs)} topics from {bag}')
+
+    def _on_decision(self, _msg: IslandingDecision) -> None:
+        self.decisions += 1
+
+    def _spin_until(self, executor: SingleThreadedExecutor, deadline: float, done=lambda: False) -> None:
+        while not done():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return
+            executor.spin_once(timeout_sec=left)
+
+    def wait_for_subscribers(self, executor: SingleThreadedExecutor) -> None:
+        """Wait until every played topic has `wait_for_subscriber_count` subscribers, or the time passes."""
+        deadline = time.monotonic() + float(self.get_parameter('wait_for_subscribers_s').value)
+        want = int(self.get_parameter('wait_for_subscriber_count').value)
+        self._spin_until(executor, deadline, lambda: all(p.get_subscription_count() >= want
+                                                         for p in self.pubs.values()))
+        lonely = [t for t, p in self.pubs.items() if p.get_subscription_count() < want]
+        if lonely:
+            self.get_logger().warning(f'playing although fewer than {want} subscribers match {", ".join(lonely)}')
+
+    def play(self, executor: SingleThreadedExecutor) -> dict:
+        """Publish every message at its time; return a report with the speed against real time."""
+        t0_ns = self.messages[0][1]
+        start = time.monotonic()
+        held_s = 0.0
+        for topic, t_ns, raw in self.messages:
+            if not self.afap:
+                self._spin_until(executor, start + held_s + (t_ns - t0_ns) * 1e-9 / self.rate)
+            if self.clock_pub is not None:
+                self.clock_pub.publish(Clock(clock=Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)))
+            self.pubs[topic].publish(raw)
+            self.diag.arrived()
+            if self.lockstep and topic == topics.ISLANDING_REQUEST:
+                before, hold_start = self.decisions, time.monotonic()
+                self._spin_until(executor, hold_start + self.lockstep_timeout_s, lambda b=before: self.decisions > b)
+                if self.decisions == before:
+                    self.get_logger().warning(f'no decision within lockstep_timeout_s={self.lockstep_timeout_s}')
+            elif self.afap:
+                executor.spin_once(timeout_sec=0.0)
+        wall_s = time.monotonic() - start
+        bag_s = (self.messages[-1][1] - t0_ns) * 1e-9
+        report = {'messages': len(self.messages), 'bag_duration_s': bag_s, 'wall_s': wall_s,
+                  'speed_vs_real_time': bag_s / wall_s if wall_s > 0 else float('inf'),
+                  'as_fast_as_possible': self.afap, 'rate': self.rate}
+        self.get_logger().info(f'played {len(self.messages)} messages: {bag_s:.2f} s of bag in {wall_s:.2f} s '
+                               f'({report["speed_vs_real_time"]:.1f}x real time)')
+        if self.report_file:
+            tmp = Path(f'{self.report_file}.tmp')
+            tmp.write_text(json.dumps(report))
+            os.replace(tmp, self.report_file)
+        return report
+
+
+def main(args: list[str] | None = None) -> int:
+    """Run the bag_player: wait for subscribers, play the bag once, linger briefly so reliable writers flush."""
+    rclpy.init(args=args)
+    node = None
+    status = 0
+    try:
+        node = BagPlayerNode()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        node.wait_for_subscribers(executor)
+        node.play(executor)
+        node._spin_until(executor, time.monotonic() + 0.5)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except NodeSetupError as exc:
+        print(f'error: {exc}', flush=True)
+        status = 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return status
+
+
+if __name__ == '__main__':
+    sys.exit(main())

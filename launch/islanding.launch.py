@@ -1,0 +1,33 @@
+"""Start the islanding node graph with native ROS 2 (`ros2 launch controlled_islanding islanding.launch.py`).
+
+It mirrors controlled_islanding.supervisor.GRAPH (same executables, same parameter files), which is what the
+pip-only path (`controlled-islanding replay/demo`) starts; test_nodes_launch checks the two agree.
+Play a bag into it with: ros2 run controlled_islanding bag_player --ros-args -p bag:=BAG
+"""
+
+import os
+
+from ament_index_python.packages import get_package_share_directory
+from launch.actions import DeclareLaunchArgument
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+
+from launch import LaunchDescription
+
+
+def generate_launch_description():
+    """Return the four pipeline nodes, each with its config/<executable>.yaml."""
+    config = os.path.join(get_package_share_directory('controlled_islanding'), 'config')
+    use_sim_time = LaunchConfiguration('use_sim_time')
+    sim = {'use_sim_time': use_sim_time}
+    return LaunchDescription([
+        DeclareLaunchArgument('use_sim_time', default_value='false', description='follow /clock from a bag player'),
+        Node(package='controlled_islanding', executable='pmu_ingestion', name='pmu_ingestion', output='screen',
+             parameters=[os.path.join(config, 'pmu_ingestion.yaml'), sim]),
+        Node(package='controlled_islanding', executable='coherency', name='coherency', output='screen',
+             parameters=[os.path.join(config, 'coherency.yaml'), sim]),
+        Node(package='controlled_islanding', executable='partitioning', name='partitioning', output='screen',
+             parameters=[os.path.join(config, 'partitioning.yaml'), sim]),
+        Node(package='controlled_islanding', executable='breaker_command', name='breaker_command', output='screen',
+             parameters=[os.path.join(config, 'breaker_command.yaml'), sim]),
+    ])
