@@ -1,0 +1,330 @@
+"""Run a scenario's time-domain simulation in ANDES and return plain arrays.
+
+ANDES generates code on first use; it goes to `build/andes_pycode` in the source tree (or
+`$CONTROLLED_ISLANDING_BUILD/andes_pycode`), never to the home directory.
+
+What is returned, on ANDES' own non-uniform time grid:
+- bus voltage magnitude (pu) and angle (rad, against the nominal-frequency reference) at every case bus;
+- every synchronous generator's rotor angle delta (rad) and terminal P and Q (pu on the system base);
+- the pre-fault power flow as a core Grid: branch flows at both ends (MW), generator dispatch, loads.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from controlled_islanding.core.grid import Branch, Generator, Grid, Load
+from controlled_islanding.sim.scenario import Scenario, ScenarioError
+
+# Synchronous machine models whose devices are the generators (ANDES group SynGen).
+_SYNGEN_GROUP = 'SynGen'
+_PROGRESS_CHUNK_S = 1.0
+_FAULT_REACTANCE_PU = 1e-4
+
+
+class SimulationError(RuntimeError):
+    """ANDES failed: the power flow did not converge or the time-domain run stopped early."""
+
+
+@dataclass(frozen=True)
+class Simulation:
+    """Raw results of one ANDES run.
+
+    Attributes:
+        t_s: Simulation times, s, non-uniform, strictly increasing, shape (nt,).
+        freq_hz: System nominal frequency, Hz.
+        bus_numbers: Case buses, in case order (helper buses for mid-line faults excluded).
+        bus_v_pu: Voltage magnitude, pu, shape (nt, n_bus).
+        bus_angle_rad: Voltage angle, rad, continuous, shape (nt, n_bus).
+        generator_names: Synchronous generator names from the case.
+        generator_buses: Terminal bus of each generator.
+        delta_rad: Rotor angles, rad, continuous, shape (nt, n_gen).
+        p_pu: Electrical power out of each generator, pu on the system base, shape (nt, n_gen).
+        q_pu: Reactive power out of each generator, pu on the system base, shape (nt, n_gen).
+        grid: Pre-fault power flow as a Grid (branch ids and bus numbers from the case).
+        branch_ends: Branch id -> (from bus, to bus), for every case branch.
+        trip_branch_ids: Branch id of each of the scenario's trips, in the scenario's order.
+        wall_s: Wall time of the time-domain run, s.
+
+    """
+
+    t_s: np.ndarray
+    freq_hz: float
+    bus_numbers: tuple[int, ...]
+    bus_v_pu: np.ndarray
+    bus_angle_rad: np.ndarray
+    generator_names: tuple[str, ...]
+    generator_buses: tuple[int, ...]
+    delta_rad: np.ndarray
+    p_pu: np.ndarray
+    q_pu: np.ndarray
+    grid: Grid
+    branch_ends: dict[str, tuple[int, int]]
+    trip_branch_ids: tuple[str, ...]
+    wall_s: float
+
+
+def pycode_dir() -> Path:
+    """Return the directory for ANDES' generated code, inside the build tree."""
+    root = os.environ.get('CONTROLLED_ISLANDING_BUILD')
+    if root:
+        return Path(root) / 'andes_pycode'
+    checkout = Path(__file__).resolve().parents[2]
+    base = checkout if (checkout / 'msg_schemas').is_dir() else Path.cwd()
+    return base / 'build' / 'andes_pycode'
+
+
+def branch_ids(pairs: list[tuple[int, int]]) -> list[str]:
+    """Name branches `"<from>-<to>"`, and `"<from>-<to>#<n>"` for the n-th parallel one (n >= 2).
+
+    Args:
+        pairs: (from bus, to bus) of every branch, in case order.
+
+    Returns:
+        One id per branch.
+
+    """
+    seen: dict[frozenset[int], int] = {}
+    out = []
+    for f, t in pairs:
+        key = frozenset((f, t))
+        seen[key] = seen.get(key, 0) + 1
+        out.append(f'{f}-{t}' if seen[key] == 1 else f'{f}-{t}#{seen[key]}')
+    return out
+
+
+def _find_branch(where: str, ref: str, ids: list[str], pairs: list[tuple[int, int]]) -> int:
+    if ref in ids:
+        return ids.index(ref)
+    head, _, parallel = ref.partition('#')
+    try:
+        a, b = (int(x) for x in head.split('-'))
+    except ValueError:
+        raise ScenarioError(f'{where}: {ref!r} is not a branch id "<from>-<to>"') from None
+    if parallel:
+        flipped = f'{b}-{a}#{parallel}'
+        if flipped in ids:
+            return ids.index(flipped)
+    else:
+        hits = [i for i, (f, t) in enumerate(pairs) if {f, t} == {a, b} and '#' not in ids[i]]
+        if hits:
+            return hits[0]
+    raise ScenarioError(f'{where}: unknown branch {ref!r}; no line joins buses {a} and {b} in the case')
+
+
+def _load_case(scenario: Scenario) -> Any:
+    import andes
+
+    andes.config_logger(stream_level=logging.ERROR)
+    pycode = pycode_dir()
+    pycode.mkdir(parents=True, exist_ok=True)
+    try:
+        return andes.load(str(scenario.case), setup=False, no_output=True, default_config=True,
+                          pycode_path=str(pycode))
+    except Exception as exc:  # ANDES raises assorted parser errors for a file it cannot read
+        raise ScenarioError(f'{scenario.path}: case: ANDES cannot read {scenario.case}: {exc}') from exc
+
+
+def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
+    """Run the scenario's power flow and time-domain simulation.
+
+    Args:
+        scenario: The scenario.
+        progress: Print simulated time / end time on stderr as the run goes.
+
+    Returns:
+        The results.
+
+    Raises:
+        ScenarioError: The scenario names a bus or branch the case does not have.
+        SimulationError: The power flow or the time-domain simulation failed.
+
+    """
+    ss = _load_case(scenario)
+    where = f'{scenario.path}'
+    bus_numbers = [int(b) for b in ss.Bus.idx.v]
+    line_idx = list(ss.Line.idx.v)
+    pairs = [(int(a), int(b)) for a, b in zip(ss.Line.bus1.v, ss.Line.bus2.v, strict=True)]
+    ids = branch_ids(pairs)
+    syn_models = [m for m in ss.groups[_SYNGEN_GROUP].models.values() if m.n > 0]
+    gen_buses_all = [int(b) for m in syn_models for b in m.bus.v]
+
+    def check_bus(field: str, bus: int) -> None:
+        if bus not in bus_numbers:
+            raise ScenarioError(f'{where}: {field}: unknown bus {bus}; the case has buses '
+                                f'{min(bus_numbers)}..{max(bus_numbers)} ({len(bus_numbers)} buses)')
+
+    for i, fault in enumerate(scenario.faults):
+        if fault.bus is not None:
+            check_bus(f'fault {i} bus', fault.bus)
+    if scenario.pmu_buses is not None:
+        for b in scenario.pmu_buses:
+            check_bus('pmu.buses', b)
+    if scenario.impairments.silent_pmu_bus is not None:
+        check_bus('impairments.silent_pmu_bus', scenario.impairments.silent_pmu_bus)
+        pmu_buses = scenario.pmu_buses if scenario.pmu_buses is not None else gen_buses_all
+        if scenario.impairments.silent_pmu_bus not in pmu_buses:
+            raise ScenarioError(f'{where}: impairments.silent_pmu_bus: bus {scenario.impairments.silent_pmu_bus} '
+                                f'carries no PMU')
+    trip_rows = [_find_branch(f'{where}: trip of {t.branch}', t.branch, ids, pairs) for t in scenario.trips]
+
+    # A mid-line fault needs a bus part way along the line: split it into two sections before setup.
+    midline_off: list[int] = []
+    next_bus = max(bus_numbers) + 1
+    fault_buses: list[int] = []
+    for i, fault in enumerate(scenario.faults):
+        if fault.bus is not None:
+            fault_buses.append(fault.bus)
+            continue
+        row = _find_branch(f'{where}: fault {i} branch', fault.branch or '', ids, pairs)
+        if row in trip_rows:
+            raise ScenarioError(f'{where}: fault {i}: a mid-line fault on a branch that is also tripped is not '
+                                'supported; use a bus fault at one end with the trip')
+        if float(ss.Line.tap.v[row]) != 1.0 or float(ss.Line.phi.v[row]) != 0.0:
+            raise ScenarioError(f'{where}: fault {i}: branch {ids[row]} is a transformer; mid-line faults need a line')
+        fault_buses.append(_split_line(ss, row, next_bus, fault.position))
+        midline_off.append(row)
+        next_bus += 1
+    for i, (fault, bus) in enumerate(zip(scenario.faults, fault_buses, strict=True)):
+        ss.add('Fault', dict(idx=f'ScenarioFault_{i}', name=f'ScenarioFault_{i}', bus=bus, tf=fault.start_s,
+                             tc=fault.clear_s, xf=_FAULT_REACTANCE_PU, rf=0.0))
+    for i, (trip, row) in enumerate(zip(scenario.trips, trip_rows, strict=True)):
+        ss.add('Toggle', dict(idx=f'ScenarioTrip_{i}', name=f'ScenarioTrip_{i}', model='Line', dev=line_idx[row],
+                              t=trip.t_s))
+    ss.setup()
+    for row in midline_off:
+        ss.Line.alter('u', line_idx[row], 0)
+    if scenario.load_scale != 1.0:
+        for model, params in ((ss.PQ, ('p0', 'q0')), (ss.PV, ('p0',))):
+            for name in params:
+                values = np.array(getattr(model, name).v, dtype=float) * scenario.load_scale
+                for idx, value in zip(model.idx.v, values, strict=True):
+                    model.alter(name, idx, float(value))
+
+    if not ss.PFlow.run() or not ss.PFlow.converged:
+        raise SimulationError(f'{where}: the ANDES power flow of {scenario.case.name} did not converge')
+    grid = _snapshot(ss, scenario, bus_numbers, ids, pairs, midline_off)
+
+    tds = ss.TDS
+    tds.config.tstep = scenario.step_s
+    tds.config.criteria = 0  # the default stops at 180 deg of angle spread: the loss of synchronism we record
+    tds.config.no_tqdm = 1
+    start = time.monotonic()
+    next_report = [_PROGRESS_CHUNK_S]
+
+    def report(t: float, _system: Any) -> None:
+        if progress and t >= next_report[0]:
+            print(f'simulate {scenario.name}: t = {t:5.2f} / {scenario.end_s:.2f} s '
+                  f'({time.monotonic() - start:.1f} s wall)', file=sys.stderr, flush=True)
+            next_report[0] += _PROGRESS_CHUNK_S
+
+    tds.config.tf = scenario.end_s
+    tds.callpert = report
+    tds.run()
+    reached = float(ss.dae.ts.t[-1]) if len(ss.dae.ts.t) else 0.0
+    if reached < scenario.end_s - 1e-6:
+        raise SimulationError(f'{where}: ANDES stopped at t = {reached:.3f} s before end_s = '
+                              f'{scenario.end_s} s (the solver did not converge)')
+    wall = time.monotonic() - start
+
+    ts = ss.dae.ts
+    t = np.asarray(ts.t, dtype=float)
+    # ANDES records both sides of a switching instant at the same time; keep the later (post-switching) one.
+    keep = np.append(np.diff(t) > 0, True)
+    n_case_bus = len(bus_numbers)
+    bus_v = np.asarray(ts.get_data(ss.Bus.v))[keep][:, :n_case_bus]
+    bus_a = np.asarray(ts.get_data(ss.Bus.a))[keep][:, :n_case_bus]
+    names, gbus, delta, pe, qe = [], [], [], [], []
+    for model in syn_models:
+        names += [str(n) for n in model.name.v]
+        gbus += [int(b) for b in model.bus.v]
+        delta.append(np.asarray(ts.get_data(model.delta))[keep])
+        pe.append(np.asarray(ts.get_data(model.Pe))[keep])
+        qe.append(np.asarray(ts.get_data(model.Qe))[keep])
+    return Simulation(
+        t_s=t[keep], freq_hz=float(ss.config.freq), bus_numbers=tuple(bus_numbers), bus_v_pu=bus_v,
+        bus_angle_rad=bus_a, generator_names=tuple(names), generator_buses=tuple(gbus),
+        delta_rad=np.hstack(delta), p_pu=np.hstack(pe), q_pu=np.hstack(qe), grid=grid,
+        branch_ends=dict(zip(ids, pairs, strict=True)), trip_branch_ids=tuple(ids[r] for r in trip_rows),
+        wall_s=wall)
+
+
+def _split_line(ss: Any, row: int, new_bus: int, position: float) -> int:
+    line = ss.Line
+    bus1 = line.bus1.v[row]
+    bus_row = list(ss.Bus.idx.v).index(bus1)
+    ss.add('Bus', dict(idx=new_bus, name=f'MIDLINE_{new_bus}', Vn=ss.Bus.Vn.v[bus_row], v0=ss.Bus.v0.v[bus_row],
+                       a0=ss.Bus.a0.v[bus_row], area=ss.Bus.area.v[bus_row], zone=ss.Bus.zone.v[bus_row],
+                       owner=ss.Bus.owner.v[bus_row]))
+    common = dict(Vn1=line.Vn1.v[row], Vn2=line.Vn2.v[row], fn=line.fn.v[row])
+    for k, (a, b, share) in enumerate(((bus1, new_bus, position), (new_bus, line.bus2.v[row], 1.0 - position))):
+        ss.add('Line', dict(idx=f'{line.idx.v[row]}_section{k + 1}', name=f'{line.name.v[row]}_section{k + 1}',
+                            bus1=a, bus2=b, r=line.r.v[row] * share, x=line.x.v[row] * share,
+                            b=line.b.v[row] * share, g=line.g.v[row] * share, **common))
+    return new_bus
+
+
+def _snapshot(ss: Any, scenario: Scenario, bus_numbers: list[int], ids: list[str], pairs: list[tuple[int, int]],
+              midline_off: list[int]) -> Grid:
+    mva = float(ss.config.mva)
+    line = ss.Line
+    v = dict(zip(ss.Bus.idx.v, ss.Bus.v.v, strict=True))
+    a = dict(zip(ss.Bus.idx.v, ss.Bus.a.v, strict=True))
+
+    def flows(k: int) -> tuple[float, float]:
+        # ANDES' Line power equations (andes/models/line/line.py): power leaving each end into the line.
+        v1, v2 = v[line.bus1.v[k]], v[line.bus2.v[k]]
+        a1, a2 = a[line.bus1.v[k]], a[line.bus2.v[k]]
+        gh, ghk, bhk = line.gh.v[k], line.ghk.v[k], line.bhk.v[k]
+        itap, itap2, phi = line.itap.v[k], line.itap2.v[k], line.phi.v[k]
+        u = float(line.u.v[k])
+        p1 = u * (v1 ** 2 * (gh + ghk) * itap2 - v1 * v2 * (ghk * np.cos(a1 - a2 - phi) + bhk * np.sin(a1 - a2 - phi))
+                  * itap)
+        p2 = u * (v2 ** 2 * (gh + ghk) - v1 * v2 * (ghk * np.cos(a1 - a2 - phi) - bhk * np.sin(a1 - a2 - phi)) * itap)
+        return float(p1) * mva, float(p2) * mva
+
+    n_case = len(ids)
+    p_from = np.zeros(n_case)
+    p_to = np.zeros(n_case)
+    all_idx = list(line.idx.v)
+    for k in range(n_case):
+        if k in midline_off:
+            # The faulted line is two sections in the simulation; the network still sees one line.
+            s1 = all_idx.index(f'{all_idx[k]}_section1')
+            s2 = all_idx.index(f'{all_idx[k]}_section2')
+            p_from[k], p_to[k] = flows(s1)[0], flows(s2)[1]
+        else:
+            p_from[k], p_to[k] = flows(k)
+    branches = tuple(Branch(branch_id=bid, from_bus=f, to_bus=t, in_service=bool(line.u.v[k]) or k in midline_off,
+                            x_pu=float(line.x.v[k]))
+                     for k, (bid, (f, t)) in enumerate(zip(ids, pairs, strict=True)))
+
+    static_p: dict[Any, float] = {}
+    static_pmax: dict[Any, float] = {}
+    for model in (m for m in ss.groups['StaticGen'].models.values() if m.n > 0):
+        p_values = model.p.v if hasattr(model, 'p') else model.p0.v
+        for idx, p, pmax in zip(model.idx.v, p_values, model.pmax.v, strict=True):
+            static_p[idx] = float(p) * mva
+            static_pmax[idx] = float(pmax) * mva
+    generators = []
+    for model in (m for m in ss.groups[_SYNGEN_GROUP].models.values() if m.n > 0):
+        xq = model.xq.v if hasattr(model, 'xq') else model.xd1.v
+        for name, bus, gen, x, r in zip(model.name.v, model.bus.v, model.gen.v, xq, model.ra.v, strict=True):
+            generators.append(Generator(name=str(name), bus=int(bus), p_mw=static_p.get(gen, float('nan')),
+                                        p_max_mw=static_pmax.get(gen, float('nan')), xq_pu=float(x),
+                                        ra_pu=float(r)))
+    loads = tuple(Load(bus=int(b), p_mw=float(p) * mva, q_mvar=float(q) * mva)
+                  for b, p, q, u in zip(ss.PQ.bus.v, ss.PQ.p0.v, ss.PQ.q0.v, ss.PQ.u.v, strict=True) if u)
+    name = scenario.case.name
+    for suffix in ('.xlsx', '.json', '.raw', '.m'):
+        name = name.removesuffix(suffix)
+    return Grid(name=name, base_mva=mva, buses=tuple(bus_numbers), branches=branches,
+                generators=tuple(generators), loads=loads, p_from_mw=p_from, p_to_mw=p_to)

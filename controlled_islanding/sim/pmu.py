@@ -1,0 +1,136 @@
+"""PMU measurements from a simulation: resampling, C37.118-style noise, and impairments.
+
+Measurement model (all seeded, independent streams per quantity so that turning an impairment on
+changes nothing else):
+- Time tags k / rate_fps from 0 to end_s. Simulated quantities are linearly interpolated from ANDES'
+  non-uniform grid; angles are continuous and the current angle is unwrapped.
+- The voltage phasor is the bus voltage; the current phasor is the sum of the currents out of the
+  generators at the bus, I = conj((P + jQ) / V), pu on the system base (zero at a bus with no generator).
+- Each phasor is multiplied by (1 + e) with e complex Gaussian, |e| clipped to noise_tve, so the total
+  vector error never exceeds noise_tve (<= 1 %).
+- Frequency is f0 + (d angle / dt) / (2 pi) of the noise-free voltage angle plus 1 mHz rms noise;
+  ROCOF is its time derivative plus 10 mHz/s rms noise.
+
+Impairments and how lost data appears:
+- A lost measurement stays in its frame with STAT = STAT_DATA_INVALID and NaN values.
+- A frame in which every PMU's data is lost (for example during the initial gap) is absent from the bag.
+- Delivery time = time tag + max(0, N(delay_mean_s, delay_jitter_s)); frames are recorded in delivery
+  order, so jitter above one frame period reorders them. Without delay, delivery time = time tag.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from controlled_islanding.sim.andes_sim import Simulation
+from controlled_islanding.sim.scenario import Scenario
+
+STAT_DATA_INVALID = 0x8000
+FREQUENCY_NOISE_HZ = 0.001
+ROCOF_NOISE_HZ_PER_S = 0.01
+
+
+@dataclass(frozen=True)
+class PmuData:
+    """Every PMU's measurements on the time-tag grid.
+
+    Attributes:
+        tag_s: Time tags, s, shape (n,).
+        delivery_s: Delivery time of each frame, s, shape (n,).
+        station_ids: Station id of each PMU.
+        buses: Bus of each PMU.
+        v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, frequency_hz, rocof_hz_per_s: shape (n, n_pmu); NaN where lost.
+        stat: STAT word, shape (n, n_pmu).
+        frame_present: Whether the frame is recorded at all, shape (n,).
+        truth_delta_rad: Simulated rotor angles at the time tags, rad, shape (n, n_gen).
+
+    """
+
+    tag_s: np.ndarray
+    delivery_s: np.ndarray
+    station_ids: tuple[str, ...]
+    buses: tuple[int, ...]
+    v_mag_pu: np.ndarray
+    v_angle_rad: np.ndarray
+    i_mag_pu: np.ndarray
+    i_angle_rad: np.ndarray
+    frequency_hz: np.ndarray
+    rocof_hz_per_s: np.ndarray
+    stat: np.ndarray
+    frame_present: np.ndarray
+    truth_delta_rad: np.ndarray
+
+
+def time_tags(end_s: float, rate_fps: int) -> np.ndarray:
+    """Return the time tags k / rate_fps, s, from 0 up to and including end_s."""
+    return np.arange(int(np.floor(end_s * rate_fps + 1e-9)) + 1) / rate_fps
+
+
+def _interp(t_new: np.ndarray, t: np.ndarray, values: np.ndarray) -> np.ndarray:
+    return np.column_stack([np.interp(t_new, t, values[:, j]) for j in range(values.shape[1])])
+
+
+def _noisy(rng: np.random.Generator, mag: np.ndarray, ang: np.ndarray, tve: float) -> tuple[np.ndarray, np.ndarray]:
+    e = (rng.standard_normal(mag.shape) + 1j * rng.standard_normal(mag.shape)) * (tve / 3.0)
+    size = np.abs(e)
+    e = np.where(size > tve, e * (tve / np.maximum(size, 1e-300)), e)
+    factor = 1.0 + e
+    return mag * np.abs(factor), ang + np.angle(factor)
+
+
+def measure(sim: Simulation, scenario: Scenario) -> PmuData:
+    """Turn a simulation into the scenario's PMU data.
+
+    Args:
+        sim: The ANDES results.
+        scenario: Gives the PMU rate and buses, noise, seed and impairments.
+
+    Returns:
+        The PMU data.
+
+    """
+    tags = time_tags(scenario.end_s, scenario.rate_fps)
+    if scenario.pmu_buses is None:
+        buses = tuple(dict.fromkeys(sim.generator_buses))
+    else:
+        buses = scenario.pmu_buses
+    columns = [sim.bus_numbers.index(b) for b in buses]
+    v = _interp(tags, sim.t_s, sim.bus_v_pu[:, columns])
+    a = _interp(tags, sim.t_s, sim.bus_angle_rad[:, columns])
+    p = _interp(tags, sim.t_s, sim.p_pu)
+    q = _interp(tags, sim.t_s, sim.q_pu)
+    current = np.zeros_like(v, dtype=complex)
+    for g, bus in enumerate(sim.generator_buses):
+        if bus in buses:
+            j = buses.index(bus)
+            current[:, j] += np.conj((p[:, g] + 1j * q[:, g]) / (v[:, j] * np.exp(1j * a[:, j])))
+    i_mag = np.abs(current)
+    i_ang = np.unwrap(np.angle(current), axis=0)
+
+    streams = [np.random.default_rng(s) for s in np.random.SeedSequence(scenario.seed).spawn(6)]
+    v_mag, v_ang = _noisy(streams[0], v, a, scenario.noise_tve)
+    i_mag, i_ang = _noisy(streams[1], i_mag, i_ang, scenario.noise_tve)
+    f_clean = sim.freq_hz + np.gradient(a, tags, axis=0) / (2 * np.pi)
+    freq = f_clean + streams[2].normal(0.0, FREQUENCY_NOISE_HZ, f_clean.shape)
+    rocof = np.gradient(f_clean, tags, axis=0) + streams[3].normal(0.0, ROCOF_NOISE_HZ_PER_S, f_clean.shape)
+
+    imp = scenario.impairments
+    lost = streams[4].random(v.shape) < imp.frame_loss_rate
+    lost[tags < imp.initial_gap_s, :] = True
+    if imp.silent_pmu_bus is not None:
+        lost[tags >= imp.silent_from_s, buses.index(imp.silent_pmu_bus)] = True
+    delay = np.maximum(0.0, streams[5].normal(imp.delay_mean_s, imp.delay_jitter_s, tags.shape)) \
+        if imp.delay_mean_s > 0 or imp.delay_jitter_s > 0 else np.zeros_like(tags)
+    stat = np.where(lost, STAT_DATA_INVALID, 0).astype(np.uint16)
+    out = []
+    for arr in (v_mag, v_ang, i_mag, i_ang, freq, rocof):
+        arr = arr.copy()
+        arr[lost] = np.nan
+        out.append(arr)
+    return PmuData(
+        tag_s=tags, delivery_s=tags + delay, station_ids=tuple(f'PMU_{b}' for b in buses), buses=tuple(buses),
+        v_mag_pu=out[0], v_angle_rad=out[1], i_mag_pu=out[2], i_angle_rad=out[3], frequency_hz=out[4],
+        rocof_hz_per_s=out[5], stat=stat, frame_present=~lost.all(axis=1),
+        truth_delta_rad=_interp(tags, sim.t_s, sim.delta_rad))
