@@ -300,7 +300,7 @@ def plot_shedding(decisions: Mapping[str, IslandBalance], path: str | Path, *, t
     if not decisions:
         raise PlotError('plot_shedding: no decisions to draw')
     n_panels = len(decisions)
-    fig = Figure(figsize=(min(4.2 * n_panels, 16.0), 4.4))
+    fig = Figure(figsize=(min(4.2 * n_panels, 16.0), 4.6), layout='constrained')
     axes = fig.subplots(1, n_panels, sharey=True, squeeze=False)[0]
     for ax, (label, decision) in zip(axes, decisions.items(), strict=True):
         gen = np.asarray(decision.island_generation_mw, dtype=float)
@@ -318,7 +318,7 @@ def plot_shedding(decisions: Mapping[str, IslandBalance], path: str | Path, *, t
                 ax.annotate(f'{s:.1f} MW', xy=(xi + 0.2, load[xi]), xytext=(0, 2), textcoords='offset points',
                             ha='center', va='bottom', fontsize=8, color='tab:red')
         ax.set_xticks(x, [f'island {i}' for i in x])
-        ax.set_title(_wrap(f'{label}: shed {shed.sum():.1f} MW', 40), fontsize=10)
+        ax.set_title(f'{_wrap(label, 36)}\nload to shed {shed.sum():.1f} MW', fontsize=10)
         ax.grid(True, axis='y', alpha=0.3)
         ax.margins(y=0.12)
     axes[0].set_ylabel('active power (MW)')

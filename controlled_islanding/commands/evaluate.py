@@ -1,0 +1,550 @@
+"""`controlled-islanding evaluate`: every islanding method on every bag, tables in the shape of Tables IV/VIII."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from controlled_islanding.cli import CliError
+
+if TYPE_CHECKING:
+    from controlled_islanding.core.grid import Grid
+    from controlled_islanding.core.islanding import IslandingDecision
+
+HELP = 'compare DTW islanding with the correlation and community baselines and the exact MILP optimum'
+DESCRIPTION = """\
+Run every islanding method on every scenario bag and print one table per bag, one row per method,
+in the shape of the paper's Tables IV and VIII: lines cut, islands formed, load/generation imbalance
+(sum over islands of |generation - load|, MW), load to shed (MW), power flow disrupted (eq. 9, MW),
+gap to the exact optimum (%) and compute time (ms).
+
+Methods (coherent groups -> islands):
+  dtw + spectral           the paper: DTW coherency on PMU-estimated rotor angles, constrained spectral clustering
+  correlation + spectral   baseline [24]: correlation coefficients split on their average, same spectral clustering
+  community detection      baseline [2]: modularity communities of the network; groups fall out of the islands
+  dtw + MILP optimum       exact minimum of eq. 9 under the DTW groups, connected islands (HiGHS)
+The gap of a row is its disruption against the exact optimum under that row's own groups, so it measures
+how far the bus partitioning is from optimal, not how good the groups are. A MILP that stops at its time
+limit says so in the notes with its optimality gap.
+
+Coherency uses the PMU frames of the window (--window-s) that ends at the bag's first islanding request,
+as the coherency node does; the grid is the bag's network snapshot with the branches tripped before the
+request taken out. Figures (rotor angles by DTW group, DTW distance heatmap, network by island for each
+method, load-shedding bars) go to --out/<case>/.
+
+Examples:
+  controlled-islanding evaluate bags/ieee39_g6g7_unstable
+  controlled-islanding evaluate --paper-cases                  the paper's two IEEE 39 cases, its own groups
+  controlled-islanding evaluate --paper-cases bags/* --json > results/evaluate.json
+"""
+
+_DEFAULT_OUT = Path('results/evaluate')
+
+# The paper's cascades on IEEE 39 (MATPOWER case39) and the groups it published, by generator name
+# (G<k> = k-th generator row, G1 at bus 30 ... G10 at bus 39). The paper's text leaves G10 out of its DTW
+# groups; its Tables I and V put bus 39 with G2-G7 in case 1 and with G1-G3, G8, G9 in case 2.
+PAPER_CASES: dict[str, dict[str, Any]] = {
+    'paper_case1': {
+        'description': 'Section IV-A: line 16-17 then line 2-1 tripped; islanding at 9 s',
+        'outages': ('16-17', '1-2'),
+        'groups': {
+            'dtw': [['G1', 'G8', 'G9'], ['G2', 'G3', 'G4', 'G5', 'G6', 'G7', 'G10']],
+            'correlation': [['G2', 'G3', 'G10'], ['G4', 'G5', 'G6', 'G7'], ['G1', 'G8', 'G9']],
+        },
+    },
+    'paper_case2': {
+        'description': 'Section IV-B: line 13-14 then line 16-17 tripped',
+        'outages': ('13-14', '16-17'),
+        'groups': {
+            'dtw': [['G1', 'G2', 'G3', 'G8', 'G9', 'G10'], ['G4', 'G5', 'G6', 'G7']],
+        },
+    },
+}
+
+
+class EvaluateError(ValueError):
+    """A case that cannot be evaluated (no usable rotor angles, groups that do not fit the grid)."""
+
+
+@dataclass
+class MethodResult:
+    """One row of a table.
+
+    Attributes:
+        method: Row label.
+        groups: Generator name -> coherent group used (None if the method failed before grouping).
+        decision: The islanding decision (None if the method failed).
+        compute_time_s: Wall time of coherency plus partitioning, s.
+        coherency_time_s: Wall time of the coherency part alone, s.
+        optimum_mw: Exact minimum of eq. 9 under this row's groups, MW (None if unknown).
+        note: What went wrong or what to know (MILP status and gap, failures).
+
+    """
+
+    method: str
+    groups: dict[str, int] | None
+    decision: IslandingDecision | None
+    compute_time_s: float
+    coherency_time_s: float = 0.0
+    optimum_mw: float | None = None
+    note: str = ''
+
+    @property
+    def gap_pct(self) -> float | None:
+        """Disruption above the exact optimum under the same groups, % of the optimum (None if unknown)."""
+        if self.decision is None or self.optimum_mw is None:
+            return None
+        if self.optimum_mw <= 1e-9:
+            return 0.0 if self.decision.disrupted_mw <= 1e-6 else math.inf
+        return 100.0 * (self.decision.disrupted_mw - self.optimum_mw) / self.optimum_mw
+
+
+@dataclass
+class CaseReport:
+    """All methods on one case.
+
+    Attributes:
+        name: Case name (bag directory name or paper case id).
+        source: Where the case came from.
+        grid: The grid the methods split.
+        truth_groups: The bag's true groups (None for paper cases).
+        rows: One result per method.
+        figures: Figure name -> path.
+
+    """
+
+    name: str
+    source: str
+    grid: Grid
+    truth_groups: dict[str, int] | None
+    rows: list[MethodResult]
+    figures: dict[str, Path] = field(default_factory=dict)
+
+
+def add_arguments(parser) -> None:
+    """Add the evaluate options."""
+    parser.add_argument('bags', nargs='*', metavar='BAG', help='scenario bag directories (from simulate)')
+    parser.add_argument('--paper-cases', action='store_true',
+                        help="also evaluate the paper's two IEEE 39 cases (MATPOWER case39) with its published groups")
+    parser.add_argument('--json', action='store_true', help='print one JSON document instead of the tables')
+    parser.add_argument('--out', type=Path, default=_DEFAULT_OUT,
+                        help=f'folder for the figures, one sub-folder per case (default: {_DEFAULT_OUT})')
+    parser.add_argument('--window-s', type=float, default=3.0,
+                        help='rotor-angle window before the islanding request, s (default: 3.0, as the node)')
+    parser.add_argument('--max-groups', type=int, default=4, help='most coherent groups considered (default: 4)')
+    parser.add_argument('--time-limit-s', type=float, default=60.0,
+                        help='MILP time limit per solve, s (default: 60)')
+    parser.add_argument('--report', type=Path, metavar='FILE.md',
+                        help='also write a Markdown page with the tables and figures (for docs/evaluation.md)')
+
+
+def run(args) -> int:
+    """Evaluate every case; print tables or JSON; write figures."""
+    if not args.bags and not args.paper_cases:
+        raise CliError('give at least one BAG directory, or --paper-cases')
+    if args.window_s <= 0 or args.time_limit_s <= 0 or args.max_groups < 2:
+        raise CliError(f'--window-s ({args.window_s}) and --time-limit-s ({args.time_limit_s}) must be positive '
+                       f'and --max-groups ({args.max_groups}) at least 2')
+    from controlled_islanding.bagdata import BagDataError, load_bag
+
+    bags = []
+    for path in args.bags:
+        try:
+            bags.append(load_bag(path))
+        except BagDataError as exc:
+            raise CliError(str(exc)) from exc
+    cases: list[CaseReport] = []
+    if args.paper_cases:
+        for name in PAPER_CASES:
+            _progress(f'{name}: running every method')
+            cases.append(evaluate_paper_case(name, time_limit_s=args.time_limit_s))
+    for bag in bags:
+        _progress(f'{bag.path.name}: running every method')
+        try:
+            cases.append(evaluate_bag(bag, window_s=args.window_s, max_groups=args.max_groups,
+                                      time_limit_s=args.time_limit_s))
+        except EvaluateError as exc:
+            raise CliError(f'{bag.path}: {exc}') from exc
+    for case in cases:
+        _progress(f'{case.name}: figures')
+        case.figures.update(write_figures(case, args.out / case.name, bag=next(
+            (b for b in bags if b.path.name == case.name), None), window_s=args.window_s))
+    if args.json:
+        print(json.dumps([case_to_json(c) for c in cases], indent=2))
+    else:
+        for case in cases:
+            print(format_case(case))
+    print(f'figures: {args.out}', file=sys.stderr)
+    if args.report:
+        write_report(cases, args.report)
+        print(f'report: {args.report}', file=sys.stderr)
+    return 0
+
+
+def _progress(text: str) -> None:
+    print(f'evaluate: {text}', file=sys.stderr, flush=True)
+
+
+def _groups_from_lists(lists: Sequence[Sequence[str]]) -> dict[str, int]:
+    return {name: k for k, names in enumerate(lists) for name in names}
+
+
+def evaluate_paper_case(name: str, *, time_limit_s: float = 60.0) -> CaseReport:
+    """Run every method on one of the paper's cases, using the groups the paper published.
+
+    The grid is MATPOWER case39 with its pre-fault AC flows (the paper islands with pre-fault power-flow
+    conditions) and the case's two tripped lines taken out. DTW and correlation groups are the paper's;
+    community detection computes its own. A method the paper gives no groups for is a row saying so.
+
+    Args:
+        name: A key of PAPER_CASES.
+        time_limit_s: MILP time limit per solve, s.
+
+    Returns:
+        The case report.
+
+    Raises:
+        EvaluateError: Unknown case name.
+
+    """
+    from controlled_islanding.core.grid import Grid
+
+    if name not in PAPER_CASES:
+        raise EvaluateError(f'unknown paper case {name!r}; known: {sorted(PAPER_CASES)}')
+    spec = PAPER_CASES[name]
+    grid = Grid.from_matpower('case39').with_flows().with_outages(spec['outages'])
+    published = {m: _groups_from_lists(g) for m, g in spec['groups'].items()}
+    methods: list[tuple[str, Callable[[], dict[str, int]] | None, str]] = []
+    for label, key in (('dtw (paper groups) + spectral', 'dtw'), ('correlation (paper groups) + spectral',
+                                                                    'correlation')):
+        groups = published.get(key)
+        methods.append((label, (lambda g=groups: g) if groups else None,
+                        '' if groups else f'the paper publishes no {key} groups for this case'))
+    rows = run_methods(grid, methods, exact_for='dtw (paper groups)', time_limit_s=time_limit_s)
+    return CaseReport(name=name, source=f"MATPOWER case39, {spec['description']}", grid=grid, truth_groups=None,
+                      rows=rows)
+
+
+def generator_series(bag, window_s: float) -> tuple[np.ndarray, list[str], np.ndarray, float]:
+    """PMU-estimated rotor angles of every generator over the window ending at the first islanding request.
+
+    Args:
+        bag: A BagData.
+        window_s: Window length, s.
+
+    Returns:
+        (time tags s, generator names, angles rad shaped (n_generators, n_samples) with NaN where lost,
+        window end s).
+
+    Raises:
+        EvaluateError: A generator without a PMU at its bus, or no valid samples in the window.
+
+    """
+    from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
+
+    end_s = float(bag.request_t_s[0]) if len(bag.request_t_s) else float(bag.frame_t_s[-1])
+    grid = bag.grid
+    column = {int(b): j for j, b in enumerate(bag.pmu_buses)}
+    missing = [g.name for g in grid.generators if g.bus not in column]
+    if missing:
+        raise EvaluateError(f'generators {missing} have no PMU at their bus; coherency needs every generator')
+    rows = (bag.frame_t_s >= end_s - window_s - 1e-9) & (bag.frame_t_s <= end_s + 1e-9)
+    angles = []
+    for g in grid.generators:
+        j = column[g.bus]
+        angle = np.asarray(estimate_rotor_angle_rad(
+            bag.v_mag_pu[rows, j], bag.v_angle_rad[rows, j], bag.i_mag_pu[rows, j], bag.i_angle_rad[rows, j],
+            g.xq_pu, g.ra_pu), dtype=float)
+        ok = np.isfinite(angle)
+        if ok.sum() < 2:
+            raise EvaluateError(f'generator {g.name} (PMU at bus {g.bus}) has fewer than 2 valid samples in the '
+                                f'{window_s} s window ending at {end_s:.3f} s')
+        # The estimate comes back wrapped to (-pi, pi]; a pole slip must show as a growing angle.
+        angle[ok] = np.unwrap(angle[ok])
+        angles.append(angle)
+    return bag.frame_t_s[rows], [g.name for g in grid.generators], np.vstack(angles), end_s
+
+
+def evaluate_bag(bag, *, window_s: float = 3.0, max_groups: int = 4, time_limit_s: float = 60.0) -> CaseReport:
+    """Run every method on one scenario bag.
+
+    Args:
+        bag: A BagData (controlled_islanding.bagdata.load_bag).
+        window_s: Rotor-angle window before the islanding request, s.
+        max_groups: Most coherent groups considered.
+        time_limit_s: MILP time limit per solve, s.
+
+    Returns:
+        The case report.
+
+    Raises:
+        EvaluateError: The bag's PMU data cannot give rotor angles for every generator.
+
+    """
+    from controlled_islanding.core.coherency import DTWCoherency
+    from controlled_islanding.core.correlation import CorrelationCoherency
+
+    _, names, angles, end_s = generator_series(bag, window_s)
+    grid = bag.grid_at(end_s + 1e-9)
+    series = list(angles)
+
+    def coherency(model) -> dict[str, int]:
+        labels = model.fit(series).labels_
+        return {n: int(k) for n, k in zip(names, labels, strict=True)}
+
+    methods = [('dtw + spectral', lambda: coherency(DTWCoherency(max_groups=max_groups)), ''),
+               ('correlation + spectral', lambda: coherency(CorrelationCoherency()), '')]
+    rows = run_methods(grid, methods, exact_for='dtw', time_limit_s=time_limit_s)
+    return CaseReport(name=bag.path.name, source=str(bag.path), grid=grid, truth_groups=bag.truth_groups, rows=rows)
+
+
+def run_methods(grid: Grid, coherency_methods: Sequence[tuple[str, Callable[[], dict[str, int]] | None, str]], *,
+                exact_for: str, time_limit_s: float) -> list[MethodResult]:
+    """Run the coherency methods through the spectral partitioning, then community detection and the MILP.
+
+    Args:
+        grid: Grid with flows and the outages applied.
+        coherency_methods: (row label ending in ' + spectral', groups factory or None, note) per method.
+        exact_for: Label prefix of the row whose groups the MILP row uses.
+        time_limit_s: MILP time limit per solve, s.
+
+    Returns:
+        The rows, each with the exact optimum under its own groups.
+
+    """
+    from controlled_islanding.core import spectral  # noqa: F401  imported here so no row's time includes it
+    from controlled_islanding.core.community import CommunityPartition
+    from controlled_islanding.core.islanding import decide, evaluate_partition
+
+    rows: list[MethodResult] = []
+    for label, factory, note in coherency_methods:
+        if factory is None:
+            rows.append(MethodResult(label, None, None, 0.0, note=note))
+            continue
+        start = time.perf_counter()
+        try:
+            groups = factory()
+            grouped = time.perf_counter()
+            decision = decide(grid, groups)
+        except ValueError as exc:
+            rows.append(MethodResult(label, None, None, time.perf_counter() - start, note=f'failed: {exc}'))
+            continue
+        rows.append(MethodResult(label, groups, decision, time.perf_counter() - start, grouped - start, note=note))
+
+    start = time.perf_counter()
+    community = CommunityPartition().fit(grid)
+    decision = evaluate_partition(grid, dict(zip(grid.buses, community.labels_.tolist(), strict=True)))
+    rows.append(MethodResult('community detection', dict(community.generator_groups_), decision,
+                             time.perf_counter() - start))
+
+    base = next((r for r in rows if r.method.startswith(exact_for)), None)
+    exact = _exact_row(grid, base, exact_for, time_limit_s)
+    optimum_cache: dict[tuple, tuple[float | None, str]] = {}
+    for row in rows:
+        if row.groups is None:
+            continue
+        key = tuple(sorted(row.groups.items()))
+        if key not in optimum_cache:
+            optimum_cache[key] = _optimum(grid, row.groups, time_limit_s)
+        row.optimum_mw, extra = optimum_cache[key]
+        row.note = '; '.join(x for x in (row.note, extra) if x)
+    if exact is not None:
+        rows.append(exact)
+    return rows
+
+
+def _optimum(grid: Grid, groups: Mapping[str, int], time_limit_s: float) -> tuple[float | None, str]:
+    from controlled_islanding.core.milp import ExactPartition, MilpError
+
+    try:
+        model = ExactPartition(time_limit_s=time_limit_s).fit(grid, groups)
+    except MilpError as exc:
+        return None, f'no exact optimum: {exc}'
+    if not model.optimal_:
+        # The bound, not the incumbent, is what the row's disruption can honestly be compared with.
+        return model.bound_mw_, f'MILP hit its {time_limit_s:g} s limit: gap to bound {100 * model.gap_:.2f} %'
+    return model.disruption_mw_, ''
+
+
+def _exact_row(grid: Grid, base: MethodResult | None, exact_for: str, time_limit_s: float) -> MethodResult | None:
+    from controlled_islanding.core.islanding import evaluate_partition
+    from controlled_islanding.core.milp import ExactPartition, MilpError
+
+    label = f'{exact_for} + MILP optimum'
+    if base is None or base.groups is None:
+        return MethodResult(label, None, None, 0.0, note=f'no {exact_for} groups to optimise for')
+    start = time.perf_counter()
+    try:
+        model = ExactPartition(time_limit_s=time_limit_s).fit(grid, base.groups)
+    except MilpError as exc:
+        return MethodResult(label, dict(base.groups), None, time.perf_counter() - start, note=f'failed: {exc}')
+    decision = evaluate_partition(grid, dict(zip(grid.buses, model.labels_.tolist(), strict=True)))
+    note = '' if model.optimal_ else (f'TIME LIMIT {time_limit_s:g} s hit: not proven optimal, '
+                                      f'gap {100 * model.gap_:.2f} % to bound {model.bound_mw_:.2f} MW')
+    # The groups cost what they cost the base row; count them so compute times compare like with like.
+    return MethodResult(label, dict(base.groups), decision, base.coherency_time_s + model.solve_time_s_,
+                        base.coherency_time_s,
+                        optimum_mw=model.bound_mw_ if not model.optimal_ else model.disruption_mw_, note=note)
+
+
+def _group_text(groups: Mapping[str, int] | None) -> str:
+    if groups is None:
+        return '-'
+    out: dict[int, list[str]] = {}
+    for name, k in groups.items():
+        out.setdefault(k, []).append(name)
+    return ' '.join('(' + ', '.join(out[k]) + ')' for k in sorted(out))
+
+
+def _num(value: float | None, fmt: str = '.2f') -> str:
+    if value is None:
+        return '-'
+    if math.isinf(value):
+        return 'inf'
+    return format(value, fmt)
+
+
+TABLE_COLUMNS = ('method', 'lines cut', 'islands formed', 'load/generation imbalance (MW)', 'load to shed (MW)',
+                 'power flow disrupted (MW)', 'gap to MILP optimum (%)', 'compute time (ms)')
+
+
+def table_rows(case: CaseReport) -> list[list[str]]:
+    """Return the table cells of a case, one list per method, in TABLE_COLUMNS order."""
+    out = []
+    for row in case.rows:
+        d = row.decision
+        if d is None:
+            out.append([row.method] + ['-'] * 6 + [_num(1e3 * row.compute_time_s, '.1f') if row.groups else '-'])
+            continue
+        out.append([row.method, str(len(d.cut_branches)), str(d.n_islands),
+                    _num(float(np.abs(d.island_imbalance_mw).sum())), _num(float(sum(d.island_shed_mw))),
+                    _num(d.disrupted_mw), _num(row.gap_pct), _num(1e3 * row.compute_time_s, '.1f')])
+    return out
+
+
+def format_case(case: CaseReport) -> str:
+    """Render a case as a Markdown table (readable in a terminal too), then its groups, cut lines and notes."""
+    cells = [list(TABLE_COLUMNS)] + table_rows(case)
+    widths = [max(len(r[i]) for r in cells) for i in range(len(TABLE_COLUMNS))]
+    lines = [f'### {case.name}', '', f'{case.source}', '']
+    if case.truth_groups is not None:
+        lines += [f'True coherent groups: {_group_text(case.truth_groups)}', '']
+    for n, r in enumerate(cells):
+        lines.append('| ' + ' | '.join(c.ljust(w) if i == 0 else c.rjust(w)
+                                        for i, (c, w) in enumerate(zip(r, widths, strict=True))) + ' |')
+        if n == 0:
+            lines.append('|' + '|'.join('-' * (w + 1) + (':' if i else '-') for i, w in enumerate(widths)) + '|')
+    lines.append('')
+    for row in case.rows:
+        cut = ', '.join(row.decision.cut_branch_ids) if row.decision is not None else '-'
+        detail = f'- {row.method}: groups {_group_text(row.groups)}; cut {cut or "nothing"}'
+        lines.append(detail + (f'; note: {row.note}' if row.note else ''))
+    return '\n'.join(lines) + '\n'
+
+
+def case_to_json(case: CaseReport) -> dict[str, Any]:
+    """Return a case as plain JSON data."""
+    rows = []
+    for row in case.rows:
+        d = row.decision
+        rows.append({
+            'method': row.method, 'groups': row.groups, 'note': row.note,
+            'compute_time_s': row.compute_time_s, 'optimum_mw': row.optimum_mw,
+            'gap_pct': None if row.gap_pct is None or math.isinf(row.gap_pct) else row.gap_pct,
+            'decision': None if d is None else {
+                'split': d.split, 'n_islands': d.n_islands, 'cut_branch_ids': list(d.cut_branch_ids),
+                'lines_cut': len(d.cut_branches),
+                'imbalance_mw': float(np.abs(d.island_imbalance_mw).sum()), 'shed_mw': float(sum(d.island_shed_mw)),
+                'disrupted_mw': d.disrupted_mw, 'island_generation_mw': list(d.island_generation_mw),
+                'island_load_mw': list(d.island_load_mw), 'island_shed_mw': list(d.island_shed_mw),
+                'bus_island': {str(b): i for b, i in sorted(d.bus_island.items())}},
+        })
+    return {'case': case.name, 'source': case.source, 'truth_groups': case.truth_groups, 'rows': rows,
+            'figures': {k: str(v) for k, v in case.figures.items()}}
+
+
+def _slug(text: str) -> str:
+    return re.sub(r'[^0-9A-Za-z]+', '_', text).strip('_')
+
+
+def write_figures(case: CaseReport, folder: Path, *, bag=None, window_s: float = 3.0) -> dict[str, Path]:
+    """Write the case's figures.
+
+    Args:
+        case: The evaluated case.
+        folder: Output folder (created).
+        bag: The case's BagData, for the rotor-angle and distance figures (None for paper cases).
+        window_s: Window used for coherency, s (marked on the rotor-angle figure).
+
+    Returns:
+        Figure name -> path.
+
+    """
+    from controlled_islanding import plots
+
+    out: dict[str, Path] = {}
+    dtw = next((r for r in case.rows if r.method.startswith('dtw') and r.groups is not None), None)
+    if bag is not None:
+        from controlled_islanding.core.coherency import DTWCoherency
+
+        t_s, names, angles, end_s = generator_series(bag, bag.frame_t_s[-1] + 1.0)
+        first = np.array([row[np.isfinite(row)][0] for row in angles])
+        groups = [dtw.groups[n] for n in names] if dtw else None
+        events = {f'trip {e.branch_id}': e.t_s for e in bag.branch_events if not e.in_service}
+        out['rotor_angles'] = plots.plot_rotor_angles(
+            t_s, angles - first[:, None], names, groups, folder / 'rotor_angles.png',
+            title=f'{case.name}: PMU-estimated rotor angles, coloured by DTW group',
+            marks_s=events | {'islanding request': float(bag.request_t_s[0])} if len(bag.request_t_s) else events)
+        _, _, window, _ = generator_series(bag, window_s)
+        model = DTWCoherency().fit(list(window))
+        out['dtw_distance'] = plots.plot_distance_matrix(
+            model.distance_matrix_, names, groups, folder / 'dtw_distance.png',
+            title=f'{case.name}: DTW distances over the {window_s:g} s window')
+    for row in case.rows:
+        if row.decision is None:
+            continue
+        slug = _slug(row.method)
+        out[f'network_{slug}'] = plots.plot_network(
+            case.grid, row.decision.bus_island, row.decision.cut_branch_ids, folder / f'network_{slug}.png',
+            title=f'{case.name}, {row.method}: {row.decision.disrupted_mw:.1f} MW disrupted')
+    decided = {r.method: r.decision for r in case.rows if r.decision is not None}
+    if decided:
+        out['shedding'] = plots.plot_shedding(decided, folder / 'shedding.png',
+                                              title=f'{case.name}: generation, load and load to shed per island')
+    return out
+
+
+def write_report(cases: Sequence[CaseReport], path: Path) -> None:
+    """Write a Markdown page with every table and, per case, the network and shedding figures.
+
+    Args:
+        cases: Evaluated cases with their figures.
+        path: The .md file; figure links are relative to its folder.
+
+    """
+    lines = ['# Evaluation', '',
+             'Generated by `controlled-islanding evaluate` (see `controlled-islanding evaluate --help` for the '
+             'methods and columns); do not edit by hand.', '']
+    for case in cases:
+        lines.append(format_case(case))
+        for key in ('rotor_angles', 'network_dtw_paper_groups_spectral', 'network_dtw_spectral', 'shedding'):
+            if key in case.figures:
+                rel = os.path.relpath(case.figures[key], path.parent)
+                lines += [f'![{case.name}: {key.replace("_", " ")}]({rel})', '']
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', dir=path.parent)
+    with os.fdopen(fd, 'w') as handle:
+        handle.write('\n'.join(lines))
+    os.chmod(tmp, 0o644)
+    os.replace(tmp, path)
