@@ -95,9 +95,11 @@ class BagPlayerNode(Node):
         """Wait until every played topic has `wait_for_subscriber_count` subscribers, or the time passes."""
         deadline = time.monotonic() + float(self.get_parameter('wait_for_subscribers_s').value)
         want = int(self.get_parameter('wait_for_subscriber_count').value)
+        # /clock too: nodes on use_sim_time must see the clock from the first message on.
+        waited = dict(self.pubs, **({topics.CLOCK: self.clock_pub} if self.clock_pub is not None else {}))
         self._spin_until(executor, deadline, lambda: all(p.get_subscription_count() >= want
-                                                         for p in self.pubs.values()))
-        lonely = [t for t, p in self.pubs.items() if p.get_subscription_count() < want]
+                                                         for p in waited.values()))
+        lonely = [t for t, p in waited.items() if p.get_subscription_count() < want]
         if lonely:
             self.get_logger().warning(f'playing although fewer than {want} subscribers match {", ".join(lonely)}')
 

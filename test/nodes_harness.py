@@ -1,0 +1,109 @@
+"""A probe for node tests: real node processes (via the supervisor) and an rclpy node in the test process."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
+
+from controlled_islanding import topics
+from controlled_islanding.node_common import qos_for
+from controlled_islanding.rosenv import isolated_ros_environment
+from controlled_islanding.supervisor import Supervisor
+
+BUILD = Path(__file__).resolve().parents[1] / 'build'
+
+
+class Probe:
+    """Publishes, collects and calls services on the graph under test; reads /diagnostics."""
+
+    def __init__(self, domain_id: int) -> None:
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain_id, signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node('test_probe', context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.pubs = {}
+        self.received: dict[str, list] = {}
+        self.diagnostics: dict[str, dict[str, str]] = {}
+        self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diag, qos_for(topics.DIAGNOSTICS))
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            self.diagnostics[status.name.lstrip('/')] = {kv.key: kv.value for kv in status.values}
+
+    def publisher(self, msg_type: type, topic: str):
+        """Return (and keep) a publisher with the topic's documented QoS."""
+        if topic not in self.pubs:
+            self.pubs[topic] = self.node.create_publisher(msg_type, topic, qos_for(topic))
+        return self.pubs[topic]
+
+    def collect(self, msg_type: type, topic: str) -> list:
+        """Start collecting a topic; return the list messages are appended to."""
+        bucket = self.received.setdefault(topic, [])
+        self.node.create_subscription(msg_type, topic, bucket.append, qos_for(topic))
+        return bucket
+
+    def spin_until(self, predicate: Callable[[], bool], timeout_s: float = 10.0) -> bool:
+        """Spin until predicate() is true or the time passes; return predicate()."""
+        end = time.monotonic() + timeout_s
+        while not predicate() and time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.02)
+        return predicate()
+
+    def spin_for(self, seconds: float) -> None:
+        """Spin for a while."""
+        self.spin_until(lambda: False, seconds)
+
+    def wait_matched(self, topic: str, count: int = 1, timeout_s: float = 20.0) -> None:
+        """Wait until our publisher on topic has at least count subscribers."""
+        assert self.spin_until(lambda: self.pubs[topic].get_subscription_count() >= count, timeout_s), \
+            f'no subscriber matched {topic} within {timeout_s} s'
+
+    def counter(self, node: str, key: str) -> int:
+        """Return a diagnostics counter of a node (0 if not reported yet)."""
+        return int(float(self.diagnostics.get(node, {}).get(key, '0')))
+
+    def wait_counter(self, node: str, key: str, at_least: int, timeout_s: float = 10.0) -> int:
+        """Wait until a node's diagnostics counter reaches a value; return it."""
+        self.spin_until(lambda: self.counter(node, key) >= at_least, timeout_s)
+        return self.counter(node, key)
+
+    def call(self, srv_type: type, name: str, request, timeout_s: float = 20.0):
+        """Call a service and return its response."""
+        client = self.node.create_client(srv_type, name)
+        assert client.wait_for_service(timeout_sec=timeout_s), f'service {name} not offered'
+        future = client.call_async(request)
+        assert self.spin_until(future.done, timeout_s), f'service {name} did not answer'
+        return future.result()
+
+    def close(self) -> None:
+        """Destroy the node and shut the context down."""
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+@contextmanager
+def graph(name: str, specs_and_overrides: list) -> Iterator[tuple[Supervisor, Probe]]:
+    """Start nodes on a private domain and yield (supervisor, probe); stop everything afterwards.
+
+    Args:
+        name: Run name, for the log directory under build/.
+        specs_and_overrides: (NodeSpec, parameter overrides) pairs to start.
+
+    """
+    with isolated_ros_environment(BUILD / 'ros_log' / name) as env:
+        with Supervisor(env, BUILD / 'test_nodes' / name / f'{time.time_ns()}') as sup:
+            for spec, overrides in specs_and_overrides:
+                sup.start(spec, overrides)
+            probe = Probe(int(env['ROS_DOMAIN_ID']))
+            try:
+                yield sup, probe
+            finally:
+                probe.close()
