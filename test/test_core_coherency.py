@@ -1,0 +1,141 @@
+"""DTW coherency: known groups from synthetic swings and from the scenario bags, also with lost data."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from controlled_islanding.core.coherency import CoherencyError, DTWCoherency
+from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
+
+REPO = Path(__file__).resolve().parents[1]
+RATE_FPS = 60.0
+
+
+def partition(labels: np.ndarray | list[int]) -> set[frozenset[int]]:
+    groups: dict[int, set[int]] = {}
+    for i, g in enumerate(labels):
+        groups.setdefault(int(g), set()).add(i)
+    return {frozenset(s) for s in groups.values()}
+
+
+def swings(group_of: list[int], slipping: set[int], seed: int, duration_s: float = 4.0) -> np.ndarray:
+    """Rotor angles (rad), frames by generators: groups share an inter-area mode; slipping groups run away.
+
+    Each generator has its own constant offset and a small local mode, and every group its own inter-area
+    amplitude and phase, so only the runaway separates the groups when they slip. Odd groups accelerate,
+    even ones decelerate, so two slipping groups also drift more than pi rad apart (the truth rule).
+    """
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, duration_s, 1.0 / RATE_FPS)
+    k = max(group_of) + 1
+    amp, phase = rng.uniform(0.2, 0.5, k), rng.uniform(0, 2 * np.pi, k)
+    out = np.empty((len(t), len(group_of)))
+    for i, g in enumerate(group_of):
+        common = amp[g] * np.sin(2 * np.pi * 0.7 * t + phase[g]) * np.exp(-0.2 * t)
+        local = rng.uniform(0.02, 0.06) * np.sin(2 * np.pi * rng.uniform(1.2, 2.0) * t + rng.uniform(0, 6))
+        runaway = (-1) ** (g + 1) * np.maximum(t - 1.0, 0.0) ** 2 if g in slipping else 0.0
+        out[:, i] = rng.uniform(-1, 1) + common + local + runaway + rng.normal(0, 0.003, len(t))
+    return out
+
+
+CASES = [
+    ([0, 0, 0, 1, 1, 0, 0, 0, 0, 0], {1}),
+    ([0, 1, 1, 0, 0, 0, 0, 0, 0, 2], {1, 2}),
+    ([0, 0, 0, 0, 1, 1, 1, 1, 0, 0], {0}),
+]
+
+
+def impaired(angles: np.ndarray, how: str, seed: int) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    cols = [angles[:, i].copy() for i in range(angles.shape[1])]
+    if how == 'first second lost':
+        for c in cols:
+            c[:int(RATE_FPS)] = np.nan
+    elif how == '20% frames dropped':
+        for c in cols:
+            c[rng.random(len(c)) < 0.2] = np.nan
+    elif how == 'unequal lengths':
+        cols = [c[:len(c) - int(rng.integers(0, 40))] for c in cols]
+    return cols
+
+
+@pytest.mark.parametrize('how', ['complete', 'first second lost', '20% frames dropped', 'unequal lengths'])
+@pytest.mark.parametrize('case', range(len(CASES)))
+def test_synthetic_groups_are_recovered(case: int, how: str) -> None:
+    group_of, slipping = CASES[case]
+    angles = swings(group_of, slipping, seed=case)
+    est = DTWCoherency().fit(impaired(angles, how, seed=case))
+    assert partition(est.labels_) == partition(group_of)
+    assert est.n_groups_ == max(group_of) + 1
+
+
+@pytest.mark.parametrize('how', ['complete', 'first second lost', '20% frames dropped', 'unequal lengths'])
+def test_stable_swings_are_one_group(how: str) -> None:
+    # Distinct inter-area modes per "group" but nobody slips: the machines stay in synchronism.
+    angles = swings([0, 0, 1, 1, 1, 2, 2, 0, 0, 1], slipping=set(), seed=11)
+    est = DTWCoherency().fit(impaired(angles, how, seed=3))
+    assert est.n_groups_ == 1 and set(est.labels_.tolist()) == {0}
+    assert est.silhouette_ == {}
+
+
+def test_fixed_k_and_outputs() -> None:
+    angles = swings([0, 0, 1, 1, 1], {1}, seed=5)
+    est = DTWCoherency(n_groups=2).fit(list(angles.T))
+    assert est.labels_.tolist() == [0, 0, 1, 1, 1]
+    assert est.distance_matrix_.shape == (5, 5) and np.allclose(est.distance_matrix_, est.distance_matrix_.T)
+    assert est.rms_distance_rad_[0, 2] > est.coherence_threshold_rad > est.rms_distance_rad_[0, 1]
+
+
+def test_constant_offset_is_not_incoherence() -> None:
+    base = swings([0, 0], set(), seed=2)[:, 0]
+    est = DTWCoherency().fit([base, base + 2.5, base - 1.0])
+    assert est.n_groups_ == 1
+    assert np.allclose(est.distance_matrix_, 0.0)
+
+
+@pytest.mark.parametrize(('kwargs', 'series', 'message'), [
+    ({}, [], 'no rotor angle'),
+    ({'n_groups': 4}, [np.zeros(5)] * 3, 'n_groups'),
+    ({'max_groups': 1}, [np.zeros(5)] * 3, 'max_groups'),
+])
+def test_bad_input(kwargs: dict, series: list, message: str) -> None:
+    with pytest.raises(CoherencyError, match=message):
+        DTWCoherency(**kwargs).fit(series)
+
+
+def _bag_entries() -> list[dict]:
+    index = REPO / 'bags' / 'index.yaml'
+    if not index.exists():
+        return []
+    return [e for e in yaml.safe_load(index.read_text())['bags'] if (REPO / 'bags' / e['bag']).exists()]
+
+
+def bag_rotor_angles(bag, window_s: float = 4.0) -> tuple[list[str], np.ndarray]:
+    """Estimate every generator's rotor angle from its terminal PMU over the window before the first request."""
+    col = {int(b): k for k, b in enumerate(bag.pmu_buses)}
+    t = bag.frame_t_s
+    request = float(bag.request_t_s[0])
+    rows = (t >= request - window_s) & (t < request)
+    names, series = [], []
+    for g in bag.grid.generators:
+        c = col[g.bus]
+        series.append(estimate_rotor_angle_rad(bag.v_mag_pu[rows, c], bag.v_angle_rad[rows, c],
+                                               bag.i_mag_pu[rows, c], bag.i_angle_rad[rows, c], g.xq_pu, g.ra_pu))
+        names.append(g.name)
+    return names, np.array(series).T
+
+
+@pytest.mark.parametrize('entry', _bag_entries(), ids=lambda e: e['name'])
+def test_scenario_bags_truth_groups(entry: dict) -> None:
+    from controlled_islanding.bagdata import load_bag
+
+    bag = load_bag(REPO / 'bags' / entry['bag'])
+    names, angles = bag_rotor_angles(bag)
+    truth = [bag.truth_groups[n] for n in names]
+    for how in ('complete', 'first second lost', '20% frames dropped', 'unequal lengths'):
+        est = DTWCoherency().fit(impaired(angles, how, seed=1))
+        assert partition(est.labels_) == partition(truth), how
