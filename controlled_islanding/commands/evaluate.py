@@ -236,44 +236,44 @@ def evaluate_paper_case(name: str, *, time_limit_s: float = 60.0) -> CaseReport:
                       rows=rows)
 
 
-def generator_series(bag, window_s: float) -> tuple[np.ndarray, list[str], np.ndarray, float]:
-    """PMU-estimated rotor angles of every generator over the window ending at the first islanding request.
+def request_time_s(bag) -> float:
+    """Return the time the bag's first islanding request is stamped with (the bag's end if none), s after t0."""
+    return float(bag.request_t_s[0]) if len(bag.request_t_s) else float(bag.frame_t_s[-1])
+
+
+def generator_series(bag, start_s: float, end_s: float) -> tuple[np.ndarray, list[str], np.ndarray]:
+    """PMU-estimated rotor angles of every generator between two times.
 
     Args:
         bag: A BagData.
-        window_s: Window length, s.
+        start_s: First time tag, s after t0.
+        end_s: Last time tag, s after t0.
 
     Returns:
-        (time tags s, generator names, angles rad shaped (n_generators, n_samples) with NaN where lost,
-        window end s).
+        (time tags s, generator names, angles rad shaped (n_generators, n_samples), NaN where lost).
 
     Raises:
-        EvaluateError: A generator without a PMU at its bus, or no valid samples in the window.
+        EvaluateError: A generator without a PMU at its bus, or fewer than 2 valid samples for one.
 
     """
     from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
 
-    end_s = float(bag.request_t_s[0]) if len(bag.request_t_s) else float(bag.frame_t_s[-1])
     grid = bag.grid
     column = {int(b): j for j, b in enumerate(bag.pmu_buses)}
     missing = [g.name for g in grid.generators if g.bus not in column]
     if missing:
         raise EvaluateError(f'generators {missing} have no PMU at their bus; coherency needs every generator')
-    rows = (bag.frame_t_s >= end_s - window_s - 1e-9) & (bag.frame_t_s <= end_s + 1e-9)
-    angles = []
-    for g in grid.generators:
-        j = column[g.bus]
-        angle = np.asarray(estimate_rotor_angle_rad(
-            bag.v_mag_pu[rows, j], bag.v_angle_rad[rows, j], bag.i_mag_pu[rows, j], bag.i_angle_rad[rows, j],
-            g.xq_pu, g.ra_pu), dtype=float)
-        ok = np.isfinite(angle)
-        if ok.sum() < 2:
-            raise EvaluateError(f'generator {g.name} (PMU at bus {g.bus}) has fewer than 2 valid samples in the '
-                                f'{window_s} s window ending at {end_s:.3f} s')
-        # The estimate comes back wrapped to (-pi, pi]; a pole slip must show as a growing angle.
-        angle[ok] = np.unwrap(angle[ok])
-        angles.append(angle)
-    return bag.frame_t_s[rows], [g.name for g in grid.generators], np.vstack(angles), end_s
+    rows = (bag.frame_t_s >= start_s - 1e-9) & (bag.frame_t_s <= end_s + 1e-9)
+    cols = [column[g.bus] for g in grid.generators]
+    angles = np.asarray(estimate_rotor_angle_rad(
+        bag.v_mag_pu[np.ix_(rows, cols)], bag.v_angle_rad[np.ix_(rows, cols)], bag.i_mag_pu[np.ix_(rows, cols)],
+        bag.i_angle_rad[np.ix_(rows, cols)], np.array([g.xq_pu for g in grid.generators]),
+        np.array([g.ra_pu for g in grid.generators])), dtype=float).T
+    for g, angle in zip(grid.generators, angles, strict=True):
+        if np.isfinite(angle).sum() < 2:
+            raise EvaluateError(f'generator {g.name} (PMU at bus {g.bus}) has fewer than 2 valid samples between '
+                                f'{start_s:.3f} s and {end_s:.3f} s')
+    return bag.frame_t_s[rows], [g.name for g in grid.generators], angles
 
 
 def evaluate_bag(bag, *, window_s: float = 3.0, max_groups: int = 4, time_limit_s: float = 60.0) -> CaseReport:
@@ -295,7 +295,8 @@ def evaluate_bag(bag, *, window_s: float = 3.0, max_groups: int = 4, time_limit_
     from controlled_islanding.core.coherency import DTWCoherency
     from controlled_islanding.core.correlation import CorrelationCoherency
 
-    _, names, angles, end_s = generator_series(bag, window_s)
+    end_s = request_time_s(bag)
+    _, names, angles = generator_series(bag, end_s - window_s, end_s)
     grid = bag.grid_at(end_s + 1e-9)
     series = list(angles)
 
@@ -498,15 +499,16 @@ def write_figures(case: CaseReport, folder: Path, *, bag=None, window_s: float =
     if bag is not None:
         from controlled_islanding.core.coherency import DTWCoherency
 
-        t_s, names, angles, end_s = generator_series(bag, bag.frame_t_s[-1] + 1.0)
+        end_s = request_time_s(bag)
+        t_s, names, angles = generator_series(bag, 0.0, float(bag.frame_t_s[-1]))
         first = np.array([row[np.isfinite(row)][0] for row in angles])
         groups = [dtw.groups[n] for n in names] if dtw else None
         events = {f'trip {e.branch_id}': e.t_s for e in bag.branch_events if not e.in_service}
         out['rotor_angles'] = plots.plot_rotor_angles(
             t_s, angles - first[:, None], names, groups, folder / 'rotor_angles.png',
             title=f'{case.name}: PMU-estimated rotor angles, coloured by DTW group',
-            marks_s=events | {'islanding request': float(bag.request_t_s[0])} if len(bag.request_t_s) else events)
-        _, _, window, _ = generator_series(bag, window_s)
+            marks_s=events | {'islanding request': end_s})
+        _, _, window = generator_series(bag, end_s - window_s, end_s)
         model = DTWCoherency().fit(list(window))
         out['dtw_distance'] = plots.plot_distance_matrix(
             model.distance_matrix_, names, groups, folder / 'dtw_distance.png',
@@ -525,26 +527,45 @@ def write_figures(case: CaseReport, folder: Path, *, bag=None, window_s: float =
     return out
 
 
-def write_report(cases: Sequence[CaseReport], path: Path) -> None:
-    """Write a Markdown page with every table and, per case, the network and shedding figures.
+def write_report(cases: Sequence[CaseReport], path: Path) -> list[Path]:
+    """Write a Markdown page with every table and, per case, its rotor-angle, DTW network and shedding figures.
+
+    The figures it shows are copied into a folder named after the page (docs/evaluation.md ->
+    docs/evaluation/), so the page stands alone however scratch the --out folder is.
 
     Args:
         cases: Evaluated cases with their figures.
-        path: The .md file; figure links are relative to its folder.
+        path: The .md file.
+
+    Returns:
+        The page and the figures copied beside it.
 
     """
+    folder = path.parent / path.stem
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
     lines = ['# Evaluation', '',
-             'Generated by `controlled-islanding evaluate` (see `controlled-islanding evaluate --help` for the '
-             'methods and columns); do not edit by hand.', '']
+             'Generated by `controlled-islanding evaluate ... --report` (see `controlled-islanding evaluate --help` '
+             'for the methods and columns); do not edit by hand.', '']
     for case in cases:
         lines.append(format_case(case))
         for key in ('rotor_angles', 'network_dtw_paper_groups_spectral', 'network_dtw_spectral', 'shedding'):
             if key in case.figures:
-                rel = os.path.relpath(case.figures[key], path.parent)
-                lines += [f'![{case.name}: {key.replace("_", " ")}]({rel})', '']
-    path.parent.mkdir(parents=True, exist_ok=True)
+                target = folder / f'{case.name}_{key}.png'
+                _atomic_write(target, case.figures[key].read_bytes())
+                written.append(target)
+                lines += [f'![{case.name}: {key.replace("_", " ")}]({path.stem}/{target.name})', '']
+    _atomic_write(path, '\n'.join(lines).encode())
+    return [path, *written]
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', dir=path.parent)
-    with os.fdopen(fd, 'w') as handle:
-        handle.write('\n'.join(lines))
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
+    try:
+        with os.fdopen(fd, 'wb') as handle:
+            handle.write(data)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
