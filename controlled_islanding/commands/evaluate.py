@@ -334,12 +334,13 @@ def run_methods(grid: Grid, coherency_methods: Sequence[tuple[str, Callable[[], 
             rows.append(MethodResult(label, None, None, 0.0, note=note))
             continue
         start = time.perf_counter()
+        groups = None
         try:
             groups = factory()
             grouped = time.perf_counter()
             decision = decide(grid, groups)
         except ValueError as exc:
-            rows.append(MethodResult(label, None, None, time.perf_counter() - start, note=f'failed: {exc}'))
+            rows.append(MethodResult(label, groups, None, time.perf_counter() - start, note=f'failed: {exc}'))
             continue
         rows.append(MethodResult(label, groups, decision, time.perf_counter() - start, grouped - start, note=note))
 
@@ -408,6 +409,13 @@ def _group_text(groups: Mapping[str, int] | None) -> str:
     return ' '.join('(' + ', '.join(out[k]) + ')' for k in sorted(out))
 
 
+def _same_partition(a: Mapping[str, int], b: Mapping[str, int]) -> bool:
+    def blocks(groups: Mapping[str, int]) -> set[frozenset[str]]:
+        return {frozenset(n for n, k in groups.items() if k == g) for g in set(groups.values())}
+
+    return blocks(a) == blocks(b)
+
+
 def _num(value: float | None, fmt: str = '.2f') -> str:
     if value is None:
         return '-'
@@ -449,7 +457,10 @@ def format_case(case: CaseReport) -> str:
     lines.append('')
     for row in case.rows:
         cut = ', '.join(row.decision.cut_branch_ids) if row.decision is not None else '-'
-        detail = f'- {row.method}: groups {_group_text(row.groups)}; cut {cut or "nothing"}'
+        detail = f'- {row.method}: groups {_group_text(row.groups)}'
+        if case.truth_groups is not None and row.groups is not None:
+            detail += ' (= truth)' if _same_partition(row.groups, case.truth_groups) else ' (differ from truth)'
+        detail += f'; cut {cut or "nothing"}'
         lines.append(detail + (f'; note: {row.note}' if row.note else ''))
     return '\n'.join(lines) + '\n'
 
@@ -507,7 +518,7 @@ def write_figures(case: CaseReport, folder: Path, *, bag=None, window_s: float =
         out['rotor_angles'] = plots.plot_rotor_angles(
             t_s, angles - first[:, None], names, groups, folder / 'rotor_angles.png',
             title=f'{case.name}: PMU-estimated rotor angles, coloured by DTW group',
-            marks_s=events | {'islanding request': end_s})
+            marks_s=events | {'coherency window start': end_s - window_s, 'islanding request': end_s})
         _, _, window = generator_series(bag, end_s - window_s, end_s)
         model = DTWCoherency().fit(list(window))
         out['dtw_distance'] = plots.plot_distance_matrix(
