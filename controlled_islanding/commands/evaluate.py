@@ -140,22 +140,38 @@ def add_arguments(parser) -> None:
     parser.add_argument('--json', action='store_true', help='print one JSON document instead of the tables')
     parser.add_argument('--out', type=Path, default=_DEFAULT_OUT,
                         help=f'folder for the figures, one sub-folder per case (default: {_DEFAULT_OUT})')
-    parser.add_argument('--window-s', type=float, default=3.0,
-                        help='rotor-angle window before the islanding request, s (default: 3.0, as the node)')
-    parser.add_argument('--max-groups', type=int, default=4, help='most coherent groups considered (default: 4)')
+    node = _coherency_node_parameters()
+    parser.add_argument('--window-s', type=float, default=float(node.get('window_s', 3.0)),
+                        help='rotor-angle window before the islanding request, s (default: %(default)s, '
+                             'from config/coherency.yaml like the node)')
+    parser.add_argument('--max-groups', type=int, default=int(node.get('max_groups', 4)),
+                        help='most coherent groups considered (default: %(default)s)')
+    parser.add_argument('--dtw-band-samples', type=int, default=int(node.get('dtw_band_samples', 0)),
+                        help='Sakoe-Chiba half-width of the DTW path, samples, 0 = none (default: %(default)s)')
     parser.add_argument('--time-limit-s', type=float, default=60.0,
                         help='MILP time limit per solve, s (default: 60)')
     parser.add_argument('--report', type=Path, metavar='FILE.md',
                         help='also write a Markdown page with the tables and figures (for docs/evaluation.md)')
 
 
+def _coherency_node_parameters() -> dict[str, Any]:
+    """Return the coherency node's parameters from config/coherency.yaml, so evaluate groups as the node does."""
+    path = Path(__file__).resolve().parents[2] / 'config' / 'coherency.yaml'
+    if not path.is_file():
+        return {}
+    import yaml
+
+    return dict(((yaml.safe_load(path.read_text()) or {}).get('coherency') or {}).get('ros__parameters') or {})
+
+
 def run(args) -> int:
     """Evaluate every case; print tables or JSON; write figures."""
     if not args.bags and not args.paper_cases:
         raise CliError('give at least one BAG directory, or --paper-cases')
-    if args.window_s <= 0 or args.time_limit_s <= 0 or args.max_groups < 2:
+    if args.window_s <= 0 or args.time_limit_s <= 0 or args.max_groups < 2 or args.dtw_band_samples < 0:
         raise CliError(f'--window-s ({args.window_s}) and --time-limit-s ({args.time_limit_s}) must be positive '
-                       f'and --max-groups ({args.max_groups}) at least 2')
+                       f'and --max-groups ({args.max_groups}) at least 2, --dtw-band-samples '
+                       f'({args.dtw_band_samples}) not negative')
     from controlled_islanding.bagdata import BagDataError, load_bag
 
     bags = []
@@ -173,13 +189,14 @@ def run(args) -> int:
         _progress(f'{bag.path.name}: running every method')
         try:
             cases.append(evaluate_bag(bag, window_s=args.window_s, max_groups=args.max_groups,
-                                      time_limit_s=args.time_limit_s))
+                                      dtw_band=args.dtw_band_samples or None, time_limit_s=args.time_limit_s))
         except EvaluateError as exc:
             raise CliError(f'{bag.path}: {exc}') from exc
     for case in cases:
         _progress(f'{case.name}: figures')
         case.figures.update(write_figures(case, args.out / case.name, bag=next(
-            (b for b in bags if b.path.name == case.name), None), window_s=args.window_s))
+            (b for b in bags if b.path.name == case.name), None), window_s=args.window_s,
+            dtw_band=args.dtw_band_samples or None))
     if args.json:
         print(json.dumps([case_to_json(c) for c in cases], indent=2))
     else:
@@ -276,13 +293,15 @@ def generator_series(bag, start_s: float, end_s: float) -> tuple[np.ndarray, lis
     return bag.frame_t_s[rows], [g.name for g in grid.generators], angles
 
 
-def evaluate_bag(bag, *, window_s: float = 3.0, max_groups: int = 4, time_limit_s: float = 60.0) -> CaseReport:
+def evaluate_bag(bag, *, window_s: float = 3.0, max_groups: int = 4, dtw_band: int | None = None,
+                 time_limit_s: float = 60.0) -> CaseReport:
     """Run every method on one scenario bag.
 
     Args:
         bag: A BagData (controlled_islanding.bagdata.load_bag).
         window_s: Rotor-angle window before the islanding request, s.
         max_groups: Most coherent groups considered.
+        dtw_band: Sakoe-Chiba half-width of the DTW path, samples (None = none).
         time_limit_s: MILP time limit per solve, s.
 
     Returns:
@@ -304,7 +323,7 @@ def evaluate_bag(bag, *, window_s: float = 3.0, max_groups: int = 4, time_limit_
         labels = model.fit(series).labels_
         return {n: int(k) for n, k in zip(names, labels, strict=True)}
 
-    methods = [('dtw + spectral', lambda: coherency(DTWCoherency(max_groups=max_groups)), ''),
+    methods = [('dtw + spectral', lambda: coherency(DTWCoherency(max_groups=max_groups, window=dtw_band)), ''),
                ('correlation + spectral', lambda: coherency(CorrelationCoherency()), '')]
     rows = run_methods(grid, methods, exact_for='dtw', time_limit_s=time_limit_s)
     return CaseReport(name=bag.path.name, source=str(bag.path), grid=grid, truth_groups=bag.truth_groups, rows=rows)
@@ -490,7 +509,8 @@ def _slug(text: str) -> str:
     return re.sub(r'[^0-9A-Za-z]+', '_', text).strip('_')
 
 
-def write_figures(case: CaseReport, folder: Path, *, bag=None, window_s: float = 3.0) -> dict[str, Path]:
+def write_figures(case: CaseReport, folder: Path, *, bag=None, window_s: float = 3.0,
+                  dtw_band: int | None = None) -> dict[str, Path]:
     """Write the case's figures.
 
     Args:
@@ -498,6 +518,7 @@ def write_figures(case: CaseReport, folder: Path, *, bag=None, window_s: float =
         folder: Output folder (created).
         bag: The case's BagData, for the rotor-angle and distance figures (None for paper cases).
         window_s: Window used for coherency, s (marked on the rotor-angle figure).
+        dtw_band: Sakoe-Chiba half-width used for the DTW distances, samples (None = none).
 
     Returns:
         Figure name -> path.
@@ -520,7 +541,7 @@ def write_figures(case: CaseReport, folder: Path, *, bag=None, window_s: float =
             title=f'{case.name}: PMU-estimated rotor angles, coloured by DTW group',
             marks_s=events | {'coherency window start': end_s - window_s, 'islanding request': end_s})
         _, _, window = generator_series(bag, end_s - window_s, end_s)
-        model = DTWCoherency().fit(list(window))
+        model = DTWCoherency(window=dtw_band).fit(list(window))
         out['dtw_distance'] = plots.plot_distance_matrix(
             model.distance_matrix_, names, groups, folder / 'dtw_distance.png',
             title=f'{case.name}: DTW distances over the {window_s:g} s window')
