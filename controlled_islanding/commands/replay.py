@@ -245,7 +245,7 @@ def summarize(bag: Path, results: Path, obs: Observation, report: dict) -> dict:
     latencies = [x for x in latencies if x is not None]
     rejects = {name: {k: v for k, v in values.items() if k.startswith('rejected')}
                for name, values in obs.diagnostics.items()}
-    out = decisions[-1] if decisions else {'split': None}
+    out = dict(decisions[-1]) if decisions else {'split': None}
     out.update({
         'bag': str(bag), 'results_dir': str(results), 'coherent_groups': _groups_dict(obs),
         'decisions': decisions, 'latency_ms': {
@@ -354,6 +354,7 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
     if results is None:
         stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
         results = REPO / 'results' / f'replay-{bag.name}-{stamp}'
+    results = results.resolve()
     if results.exists():
         raise CliError(f'results folder {results} exists; name a new one')
     results.mkdir(parents=True)

@@ -20,6 +20,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from controlled_islanding import topics
+from controlled_islanding.core.coherency import DTWCoherency
 from controlled_islanding.messages import split_stamp, stamp_s
 from controlled_islanding.node_common import Diagnostics, NodeSetupError, qos_for, spin_node
 
@@ -36,12 +37,15 @@ class CoherencyNode(Node):
         self.declare_parameter('sample_tolerance_s', 0.02)
         self.declare_parameter('max_groups', 4)
         self.declare_parameter('max_sample_age_s', 10.0)
+        self.declare_parameter('dtw_band_samples', 30)
         self.window_s = float(self.get_parameter('window_s').value)
         self.min_samples = int(self.get_parameter('min_samples').value)
         self.request_wait_s = float(self.get_parameter('request_wait_s').value)
         self.tolerance_s = float(self.get_parameter('sample_tolerance_s').value)
         self.max_groups = int(self.get_parameter('max_groups').value)
         self.max_sample_age_s = float(self.get_parameter('max_sample_age_s').value)
+        band = int(self.get_parameter('dtw_band_samples').value)
+        self.band = band if band > 0 else None
         if self.window_s <= 0 or self.min_samples < 2:
             raise NodeSetupError(f'window_s={self.window_s} must be positive and min_samples={self.min_samples} >= 2')
         self.names: tuple[str, ...] | None = None
@@ -131,8 +135,6 @@ class CoherencyNode(Node):
             self._compute(self.t_s[-1])
 
     def _compute(self, end_s: float) -> None:
-        from controlled_islanding.core.coherency import DTWCoherency
-
         hi = bisect.bisect_right(self.t_s, end_s)
         lo = bisect.bisect_left(self.t_s, end_s - self.window_s)
         if hi - lo < self.min_samples:
@@ -141,7 +143,7 @@ class CoherencyNode(Node):
         t0 = time.perf_counter()
         block = np.vstack(self.angles[lo:hi])
         try:
-            model = DTWCoherency(max_groups=self.max_groups).fit([block[:, j] for j in range(block.shape[1])])
+            model = DTWCoherency(max_groups=self.max_groups, window=self.band).fit(list(block.T))
         except Exception as exc:  # the core names what was wrong; the node keeps running
             self.diag.reject('compute_failed', f'coherency over {hi - lo} samples: {exc}')
             return

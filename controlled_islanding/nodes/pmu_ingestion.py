@@ -47,6 +47,7 @@ class PmuIngestionNode(Node):
         self.first_s = math.inf
         self.newest_s = -math.inf
         self.last_valid_s: dict[str, float] = {}
+        self.last_angle_rad: dict[str, float] = {}
         self.diag = Diagnostics(self)
         self.pub = self.create_publisher(RotorAngles, topics.ROTOR_ANGLES, qos_for(topics.ROTOR_ANGLES))
         self.create_subscription(NetworkSnapshot, topics.NETWORK_SNAPSHOT, self.on_snapshot,
@@ -124,10 +125,17 @@ class PmuIngestionNode(Node):
         if valid.any():
             idx = np.flatnonzero(valid)
             cols = np.array([[getattr(by_bus[gens[i].bus], f) for f in _FIELDS] for i in idx])
-            angles[idx] = estimate_rotor_angle_rad(
-                cols[:, 0], cols[:, 1], cols[:, 2], cols[:, 3],
-                np.array([gens[i].xq_pu for i in idx]), np.array([gens[i].ra_pu for i in idx]))
+            # One row = one time tag: the estimator unwraps along rows, never across generators.
+            raw = estimate_rotor_angle_rad(
+                cols[None, :, 0], cols[None, :, 1], cols[None, :, 2], cols[None, :, 3],
+                np.array([gens[i].xq_pu for i in idx]), np.array([gens[i].ra_pu for i in idx]))[0]
+            # Unwrap along time, frame by frame, against the last angle of each generator: at 60 frames/s a
+            # rotor moves far less than pi between frames, even slipping poles.
+            ref = np.array([self.last_angle_rad.get(gens[i].name, raw[j]) for j, i in enumerate(idx)])
+            angles[idx] = ref + np.angle(np.exp(1j * (raw - ref)))
         valid &= np.isfinite(angles)
+        for i in np.flatnonzero(valid):
+            self.last_angle_rad[gens[i].name] = float(angles[i])
         return RotorAngles(header=frame.header, generator_names=[g.name for g in gens],
                            generator_buses=[g.bus for g in gens], angle_rad=np.where(valid, angles, 0.0).tolist(),
                            valid=valid.tolist())
