@@ -154,8 +154,8 @@ class BagData:
         return self.grid.with_outages(self.tripped_branch_ids(before_s))
 
 
-def _stamp_s(stamp: object) -> float:
-    return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
+def _stamp_ns(stamp: object) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def _grid_from_snapshot(msg: object) -> Grid:
@@ -203,10 +203,10 @@ def load_bag(path: str | Path) -> BagData:
         raise BagDataError(f'{path}: no such bag')
     store = typestore()
     snapshot = None
-    frames: list[tuple[float, float, object]] = []
-    events: list[tuple[float, object]] = []
-    requests: list[tuple[float, str]] = []
-    truth: list[tuple[float, object]] = []
+    frames: list[tuple[int, int, object]] = []
+    events: list[tuple[int, object]] = []
+    requests: list[tuple[int, str]] = []
+    truth: list[tuple[int, object]] = []
     groups_msg = None
     try:
         with AnyReader([path], default_typestore=store) as reader:
@@ -215,13 +215,13 @@ def load_bag(path: str | Path) -> BagData:
                 if conn.topic == topics.NETWORK_SNAPSHOT and snapshot is None:
                     snapshot = msg
                 elif conn.topic == topics.PMU_FRAMES:
-                    frames.append((_stamp_s(msg.header.stamp), timestamp * 1e-9, msg))
+                    frames.append((_stamp_ns(msg.header.stamp), timestamp, msg))
                 elif conn.topic == topics.BRANCH_STATUS:
-                    events.append((_stamp_s(msg.header.stamp), msg))
+                    events.append((_stamp_ns(msg.header.stamp), msg))
                 elif conn.topic == topics.ISLANDING_REQUEST:
-                    requests.append((_stamp_s(msg.header.stamp), str(msg.request_id)))
+                    requests.append((_stamp_ns(msg.header.stamp), str(msg.request_id)))
                 elif conn.topic == topics.TRUTH_ROTOR_ANGLES:
-                    truth.append((_stamp_s(msg.header.stamp), msg))
+                    truth.append((_stamp_ns(msg.header.stamp), msg))
                 elif conn.topic == topics.TRUTH_COHERENT_GROUPS:
                     groups_msg = msg
     except Exception as exc:  # rosbags raises many reader error types; name the bag either way
@@ -230,10 +230,13 @@ def load_bag(path: str | Path) -> BagData:
         raise BagDataError(f'{path}: no {topics.NETWORK_SNAPSHOT} message')
     if not frames:
         raise BagDataError(f'{path}: no {topics.PMU_FRAMES} messages')
-    t0 = _stamp_s(snapshot.header.stamp)
+    t0_ns = _stamp_ns(snapshot.header.stamp)
+
+    def rel_s(ns: int) -> float:
+        return (ns - t0_ns) * 1e-9
 
     frames.sort(key=lambda item: item[0])
-    tags = np.array([f[0] for f in frames]) - t0
+    tags = np.array([rel_s(f[0]) for f in frames])
     steps = np.diff(tags)
     if len(steps) == 0 or np.min(steps) <= 0:
         raise BagDataError(f'{path}: PMU frame time tags must be distinct and at least two')
@@ -252,7 +255,7 @@ def load_bag(path: str | Path) -> BagData:
     delivery = np.full(n_frames, np.nan)
     for row, (_, recorded, msg) in zip(index, frames, strict=True):
         present[row] = True
-        delivery[row] = recorded - t0
+        delivery[row] = rel_s(recorded)
         for m in msg.measurements:
             j = column.get(str(m.station_id))
             if j is None:
@@ -276,15 +279,15 @@ def load_bag(path: str | Path) -> BagData:
     events.sort(key=lambda item: item[0])
     requests.sort()
     return BagData(
-        path=path, t0_s=t0, rate_fps=rate,
+        path=path, t0_s=t0_ns * 1e-9, rate_fps=rate,
         frame_t_s=np.arange(n_frames) / rate, frame_present=present, frame_delivery_s=delivery,
         pmu_station_ids=stations, pmu_buses=pmu_buses,
         v_mag_pu=data['voltage_magnitude_pu'], v_angle_rad=data['voltage_angle_rad'],
         i_mag_pu=data['current_magnitude_pu'], i_angle_rad=data['current_angle_rad'],
         frequency_hz=data['frequency_hz'], rocof_hz_per_s=data['rocof_hz_per_s'], stat=stat,
         grid=_grid_from_snapshot(snapshot),
-        branch_events=tuple(BranchEvent(t_s=t - t0, branch_id=str(m.branch_id), from_bus=int(m.from_bus),
+        branch_events=tuple(BranchEvent(t_s=rel_s(t), branch_id=str(m.branch_id), from_bus=int(m.from_bus),
                                         to_bus=int(m.to_bus), in_service=bool(m.in_service)) for t, m in events),
-        request_t_s=np.array([t - t0 for t, _ in requests]), request_ids=tuple(r for _, r in requests),
-        truth_t_s=np.array([t - t0 for t, _ in truth]), truth_generator_names=names,
+        request_t_s=np.array([rel_s(t) for t, _ in requests]), request_ids=tuple(r for _, r in requests),
+        truth_t_s=np.array([rel_s(t) for t, _ in truth]), truth_generator_names=names,
         truth_generator_buses=gen_buses, truth_angles_rad=truth_angles, truth_groups=truth_groups)

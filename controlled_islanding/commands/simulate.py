@@ -34,7 +34,7 @@ Example scenario (bags/ieee39_g6g7_unstable.yaml):
 The full schema is in controlled_islanding/sim/scenario.py. Same YAML and seed give the same messages.
 
   controlled-islanding simulate bags/ieee39_g6g7_unstable.yaml --out /tmp/g6g7 --force
-  controlled-islanding simulate bags/*.yaml --force          # regenerate every committed bag in bags/
+  controlled-islanding simulate --all --force                # regenerate every scenario in bags/ (index.yaml excepted)
   controlled-islanding simulate --update-manifest            # rewrite bags/index.yaml from the bags
 """
 
@@ -48,6 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--out', type=Path, metavar='BAG',
                         help='bag directory to write (one scenario only; default: the scenario name next to its '
                              'YAML file)')
+    parser.add_argument('--all', nargs='?', const=DEFAULT_BAGS_DIR, type=Path, metavar='DIR', dest='all_dir',
+                        help='simulate every scenario YAML in DIR (default bags/), each into DIR/<name>')
     parser.add_argument('--force', action='store_true', help='replace existing bags')
     parser.add_argument('--update-manifest', nargs='?', const=DEFAULT_BAGS_DIR / 'index.yaml', type=Path,
                         metavar='INDEX', help='after simulating, rewrite the manifest (default bags/index.yaml) '
@@ -61,8 +63,14 @@ def run(args: argparse.Namespace) -> int:
     from controlled_islanding.sim.bag import BagWriteError, run_scenario
     from controlled_islanding.sim.scenario import ScenarioError, load_scenario
 
+    from controlled_islanding.sim.manifest import scenario_files
+
+    if args.all_dir is not None:
+        if not args.all_dir.is_dir():
+            raise CliError(f'--all: {args.all_dir} is not a directory')
+        args.scenarios = [*args.scenarios, *scenario_files(args.all_dir)]
     if not args.scenarios and args.update_manifest is None:
-        raise CliError('give at least one SCENARIO.yaml, or --update-manifest')
+        raise CliError('give at least one SCENARIO.yaml, --all, or --update-manifest')
     if args.out is not None and len(args.scenarios) != 1:
         raise CliError(f'--out names one bag but {len(args.scenarios)} scenarios were given')
     try:

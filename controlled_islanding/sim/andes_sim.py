@@ -201,13 +201,13 @@ def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
                               t=trip.t_s))
     ss.setup()
     for row in midline_off:
-        ss.Line.alter('u', line_idx[row], 0)
+        ss.Line.set_status(line_idx[row], 0)
     if scenario.load_scale != 1.0:
         for model, params in ((ss.PQ, ('p0', 'q0')), (ss.PV, ('p0',))):
             for name in params:
                 values = np.array(getattr(model, name).v, dtype=float) * scenario.load_scale
                 for idx, value in zip(model.idx.v, values, strict=True):
-                    model.alter(name, idx, float(value))
+                    model.set(name, idx, float(value))  # system base, as .v holds it
 
     if not ss.PFlow.run() or not ss.PFlow.converged:
         raise SimulationError(f'{where}: the ANDES power flow of {scenario.case.name} did not converge')
