@@ -38,8 +38,6 @@ import kmedoids
 import numpy as np
 import scipy.linalg
 from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from controlled_islanding.core.grid import Grid
 
@@ -67,8 +65,9 @@ def flow_weights(grid: Grid) -> np.ndarray:
     rows = [idx[grid.branches[k].from_bus] for k in on]
     cols = [idx[grid.branches[k].to_bus] for k in on]
     n = len(grid.buses)
-    half = coo_matrix((w, (rows, cols)), shape=(n, n)).toarray()
-    return half + half.T
+    out = np.zeros((n, n))
+    np.add.at(out, (rows, cols), w)
+    return out + out.T
 
 
 def _bus_groups(grid: Grid, generator_groups: Mapping[str, int]) -> dict[int, int]:
@@ -84,13 +83,21 @@ def _bus_groups(grid: Grid, generator_groups: Mapping[str, int]) -> dict[int, in
     return out
 
 
-def _check_connected(grid: Grid, w: np.ndarray) -> None:
-    n_comp, comp = connected_components(w > 0, directed=False)
-    if n_comp > 1:
-        pieces = [sorted(int(b) for b, c in zip(grid.buses, comp, strict=True) if c == j) for j in range(n_comp)]
-        smallest = min(pieces, key=len)
-        raise SpectralError(f'grid {grid.name!r} is not connected with its in-service branches: {n_comp} pieces, '
-                            f'the smallest holding buses {smallest}')
+def _check_connected(grid: Grid, w: np.ndarray) -> list[list[int]]:
+    """Return the adjacency lists of the weight graph.
+
+    Raises:
+        SpectralError: The graph is not connected.
+
+    """
+    rows, cols = np.nonzero(w > 0)
+    adj = [a.tolist() for a in np.split(cols, np.searchsorted(rows, np.arange(1, len(w))))]
+    pieces = _pieces(adj, np.ones(len(adj), dtype=bool))
+    if len(pieces) > 1:
+        smallest = sorted(grid.buses[i] for i in min(pieces, key=len))
+        raise SpectralError(f'grid {grid.name!r} is not connected with its in-service branches: {len(pieces)} '
+                            f'pieces, the smallest holding buses {smallest}')
+    return adj
 
 
 class ConstrainedSpectralPartition:
@@ -154,7 +161,13 @@ class ConstrainedSpectralPartition:
         q_n = d_isqrt[:, None] * q * d_isqrt[None, :]
         mu = np.sort(np.linalg.eigvalsh(q_n))[::-1]
         self.beta_ = float(self.beta * mu[k - 2] * vol)
-        lam, vec = scipy.linalg.eig(lap_n, q_n - (self.beta_ / vol) * np.eye(n))
+        # B = Q_N - beta/vol I is nonsingular for 0 < beta < mu_{k-1} vol unless beta/vol hits an eigenvalue of
+        # Q_N, so eq. 8 is B^-1 L_N v = lambda v; numpy's eig skips scipy's per-vector Python normalisation.
+        b_mat = q_n - (self.beta_ / vol) * np.eye(n)
+        try:
+            lam, vec = np.linalg.eig(np.linalg.solve(b_mat, lap_n))
+        except np.linalg.LinAlgError:
+            lam, vec = scipy.linalg.eig(lap_n, b_mat)
         keep = np.isfinite(lam) & (np.abs(lam.imag) <= 1e-9 * np.maximum(1.0, np.abs(lam.real))) & (lam.real > 1e-10)
         lam, vec = lam.real[keep], vec.real[:, keep]
         if len(lam) < k - 1:
@@ -211,8 +224,7 @@ def repair_partition(grid: Grid, generator_groups: Mapping[str, int], labels: np
             for b in grid.branches:
                 if b.in_service and b.from_bus != b.to_bus:
                     weights[idx[b.from_bus], idx[b.to_bus]] = weights[idx[b.to_bus], idx[b.from_bus]] = 1.0
-    _check_connected(grid, weights)
-    adj = [np.flatnonzero(weights[i] > 0).tolist() for i in range(n)]
+    adj = _check_connected(grid, weights)
     lab = np.array(labels, dtype=int).copy()
     if lab.shape != (n,):
         raise SpectralError(f'labels have shape {lab.shape}, expected ({n},)')
