@@ -46,6 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--probe-hz', type=float, default=0.0,
                         help='also send islanding requests at this rate once the first decision is out, '
                              'to measure latency over many requests (a benchmark; default 0 = none)')
+    parser.add_argument('--disarmed', action='store_true',
+                        help='leave breaker_command disarmed: decisions are refused and audited, nothing is commanded')
     parser.add_argument('--no-figures', action='store_true', help='skip the figures')
     parser.add_argument('--timeout', type=float, default=120.0, help='give up after this many wall seconds')
 
@@ -80,7 +82,7 @@ def _bag_requests(bag: Path) -> int:
 
 
 def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: float, timeout_s: float,
-              quiet: bool) -> tuple[Observation, dict]:
+              quiet: bool, arm: bool = True) -> tuple[Observation, dict]:
     """Run the node graph on a bag; return what the observer saw and the player's speed report.
 
     Raises:
@@ -147,16 +149,17 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                     sup.start(spec, {**sim, **(audit if spec.executable == 'breaker_command' else {})})
                 sup.start(RECORDER, {**sim, 'output': results / 'output_bag'})
                 _say(quiet, f'replay: started {len(GRAPH)} nodes and the recorder (logs in {logs})')
-                arm = node.create_client(SetArmed, '/breaker_command/set_armed')
-                if not arm.wait_for_service(timeout_sec=20.0):
+                arm_client = node.create_client(SetArmed, '/breaker_command/set_armed')
+                if not arm_client.wait_for_service(timeout_sec=20.0):
                     sup.check_alive()
                     raise CliError('breaker_command did not offer /breaker_command/set_armed within 20 s')
-                future = arm.call_async(SetArmed.Request(armed=True))
-                if not spin_for(10.0, future.done) or not future.result().armed:
-                    raise CliError('breaker_command refused to arm')
-                _say(quiet, 'replay: breaker_command armed; playing the bag')
+                future = arm_client.call_async(SetArmed.Request(armed=arm))
+                if not spin_for(10.0, future.done) or future.result().armed != arm:
+                    raise CliError(f'breaker_command did not switch to armed={arm}')
+                _say(quiet, f'replay: breaker_command {"armed" if arm else "left disarmed"}; playing the bag')
                 player = sup.start(PLAYER, {'bag': bag.resolve(), 'as_fast_as_possible': fast, 'rate': rate,
-                                            'report_file': report_file, 'wait_for_subscriber_count': 2})
+                                            'report_file': report_file, 'wait_for_subscriber_count': 2,
+                                            'clock_min_step_s': 0.05 if fast else 0.0})
                 deadline = time.monotonic() + timeout_s
                 probe_period = 1.0 / probe_hz if probe_hz > 0 else None
                 next_probe = None
@@ -340,7 +343,7 @@ def write_figures(bag: Path, results: Path, summary: dict) -> list[Path]:
 
 
 def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float = 1.0, probe_hz: float = 0.0,
-           timeout_s: float = 120.0, figures: bool = True, quiet: bool = False) -> dict:
+           timeout_s: float = 120.0, figures: bool = True, quiet: bool = False, arm: bool = True) -> dict:
     """Replay a bag through the graph; write the results folder; return the summary.
 
     Raises:
@@ -359,7 +362,7 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
         raise CliError(f'results folder {results} exists; name a new one')
     results.mkdir(parents=True)
     obs, report = run_graph(bag, results, fast=fast, rate=rate, probe_hz=probe_hz, timeout_s=timeout_s,
-                            quiet=quiet)
+                            quiet=quiet, arm=arm)
     summary = summarize(bag, results, obs, report)
     if figures:
         try:
@@ -376,7 +379,7 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
 def run(args: argparse.Namespace) -> int:
     """Run the replay subcommand."""
     summary = replay(args.bag, args.results, fast=args.fast, rate=args.rate, probe_hz=args.probe_hz,
-                     timeout_s=args.timeout, figures=not args.no_figures, quiet=args.json)
+                     timeout_s=args.timeout, figures=not args.no_figures, quiet=args.json, arm=not args.disarmed)
     if args.json:
         print(json.dumps(summary, default=str))
     else:

@@ -45,6 +45,7 @@ class BagPlayerNode(Node):
         self.declare_parameter('lockstep_on_requests', True)
         self.declare_parameter('lockstep_timeout_s', 5.0)
         self.declare_parameter('report_file', '')
+        self.declare_parameter('clock_min_step_s', 0.0)
         bag = self.get_parameter('bag').value
         self.rate = float(self.get_parameter('rate').value)
         if not bag:
@@ -55,6 +56,7 @@ class BagPlayerNode(Node):
         self.lockstep = self.afap and bool(self.get_parameter('lockstep_on_requests').value)
         self.lockstep_timeout_s = float(self.get_parameter('lockstep_timeout_s').value)
         self.report_file = self.get_parameter('report_file').value
+        self.clock_step_ns = int(float(self.get_parameter('clock_min_step_s').value) * 1e9)
         publish_truth = bool(self.get_parameter('publish_truth').value)
         self.messages: list[tuple[str, int, bytes]] = []
         self.pubs = {}
@@ -107,20 +109,23 @@ class BagPlayerNode(Node):
         """Publish every message at its time; return a report with the speed against real time."""
         t0_ns = self.messages[0][1]
         start = time.monotonic()
-        held_s = 0.0
-        for topic, t_ns, raw in self.messages:
+        last_clock_ns = None
+        for n, (topic, t_ns, raw) in enumerate(self.messages):
             if not self.afap:
-                self._spin_until(executor, start + held_s + (t_ns - t0_ns) * 1e-9 / self.rate)
-            if self.clock_pub is not None:
+                self._spin_until(executor, start + (t_ns - t0_ns) * 1e-9 / self.rate)
+            request = topic == topics.ISLANDING_REQUEST
+            if self.clock_pub is not None and (last_clock_ns is None or request
+                                               or t_ns - last_clock_ns >= self.clock_step_ns):
                 self.clock_pub.publish(Clock(clock=Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)))
+                last_clock_ns = t_ns
             self.pubs[topic].publish(raw)
             self.diag.arrived()
-            if self.lockstep and topic == topics.ISLANDING_REQUEST:
+            if self.lockstep and request:
                 before, hold_start = self.decisions, time.monotonic()
                 self._spin_until(executor, hold_start + self.lockstep_timeout_s, lambda b=before: self.decisions > b)
                 if self.decisions == before:
                     self.get_logger().warning(f'no decision within lockstep_timeout_s={self.lockstep_timeout_s}')
-            elif self.afap:
+            elif self.afap and n % 100 == 0:
                 executor.spin_once(timeout_sec=0.0)
         wall_s = time.monotonic() - start
         bag_s = (self.messages[-1][1] - t0_ns) * 1e-9
