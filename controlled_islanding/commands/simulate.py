@@ -61,9 +61,8 @@ def run(args: argparse.Namespace) -> int:
     """Simulate every scenario given, then optionally rebuild the manifest."""
     from controlled_islanding.sim.andes_sim import SimulationError
     from controlled_islanding.sim.bag import BagWriteError, run_scenario
-    from controlled_islanding.sim.scenario import ScenarioError, load_scenario
-
     from controlled_islanding.sim.manifest import scenario_files
+    from controlled_islanding.sim.scenario import ScenarioError, load_scenario
 
     if args.all_dir is not None:
         if not args.all_dir.is_dir():

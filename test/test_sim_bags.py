@@ -1,0 +1,148 @@
+"""The committed scenario bags: two readers, manifest, scenario conformance, DTW recovery, regeneration.
+
+Each bag must open with rosbags and with the mcap package, match the manifest and its scenario, have its
+true groups recovered by DTW coherency, and regenerate with the same messages from its YAML file.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from controlled_islanding import topics
+from controlled_islanding.bagdata import BagData, load_bag
+from controlled_islanding.interfaces import msg_type_name
+from controlled_islanding.sim.manifest import build_manifest, scenario_files
+from controlled_islanding.sim.scenario import load_scenario
+
+BAGS = Path(__file__).resolve().parents[1] / 'bags'
+MANIFEST = yaml.safe_load((BAGS / 'index.yaml').read_text())['bags']
+NAMES = [entry['name'] for entry in MANIFEST]
+MAX_BAG_BYTES = 5 * 1024 * 1024
+
+
+def _entry(name: str) -> dict:
+    return next(e for e in MANIFEST if e['name'] == name)
+
+
+def _raw_messages(bag: Path) -> list[tuple[str, int, bytes]]:
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([bag]) as reader:
+        return [(conn.topic, timestamp, bytes(raw)) for conn, timestamp, raw in reader.messages()]
+
+
+def test_every_scenario_has_a_manifest_entry_and_a_bag() -> None:
+    assert sorted(p.stem for p in scenario_files(BAGS)) == sorted(NAMES)
+    assert any(not e['synchronous'] for e in MANIFEST) and any(e['synchronous'] for e in MANIFEST)
+
+
+@pytest.mark.parametrize('name', NAMES)
+def test_bag_opens_with_rosbags_and_with_the_mcap_package(name: str) -> None:
+    from mcap.reader import make_reader
+
+    bag = BAGS / name
+    files = list(bag.glob('*.mcap'))
+    assert len(files) == 1
+    assert sum(f.stat().st_size for f in bag.iterdir()) < MAX_BAG_BYTES
+    via_rosbags = _raw_messages(bag)
+    with files[0].open('rb') as handle:
+        via_mcap = [(channel.topic, message.log_time, bytes(message.data), schema.name)
+                    for schema, channel, message in make_reader(handle).iter_messages(log_time_order=True)]
+    assert len(via_mcap) == len(via_rosbags)
+    assert sorted(m[:3] for m in via_mcap) == sorted(via_rosbags)
+    schemas = {m[0]: m[3] for m in via_mcap}
+    assert schemas[topics.PMU_FRAMES] == msg_type_name('PmuFrame')
+    assert schemas[topics.TRUTH_COHERENT_GROUPS] == msg_type_name('CoherentGroups')
+
+
+def test_manifest_matches_what_the_bags_hold() -> None:
+    assert build_manifest(BAGS)['bags'] == MANIFEST
+
+
+@pytest.mark.parametrize('name', NAMES)
+def test_bag_follows_its_scenario(name: str) -> None:
+    scenario = load_scenario(BAGS / _entry(name)['scenario'])
+    data = load_bag(BAGS / name)
+    imp = scenario.impairments
+    assert data.rate_fps == scenario.rate_fps
+    assert data.frame_t_s[-1] == pytest.approx(scenario.end_s)
+    assert len(data.frame_t_s) == int(round(scenario.end_s * scenario.rate_fps)) + 1
+    assert set(data.pmu_buses) == {g.bus for g in data.grid.generators}
+    assert [(e.branch_id, e.t_s, e.in_service) for e in data.branch_events] == \
+        [(e.branch_id, t.t_s, False) for e, t in zip(data.branch_events, scenario.trips, strict=True)]
+    assert data.request_t_s.tolist() == pytest.approx([scenario.request_s])
+    assert data.grid.has_flows and sum(g.p_mw for g in data.grid.generators) > sum(ld.p_mw for ld in data.grid.loads)
+    assert np.isfinite([g.xq_pu for g in data.grid.generators]).all()
+    assert list(data.truth_generator_names) == [g.name for g in data.grid.generators]
+
+    delay = data.frame_delivery_s - data.frame_t_s
+    present = data.frame_present
+    if imp.delay_mean_s > 0:
+        assert (delay[present] > 0).all()
+        arrival_order = np.argsort(data.frame_delivery_s[present], kind='stable')
+        assert (np.diff(data.frame_t_s[present][arrival_order]) < 0).any()
+    else:
+        assert np.allclose(delay[present], 0.0, atol=1e-9)
+    assert not present[data.frame_t_s < imp.initial_gap_s - 1e-9].any()
+    assert present[data.frame_t_s >= imp.initial_gap_s - 1e-9].all()
+    invalid = np.isnan(data.v_mag_pu[present])
+    if imp.frame_loss_rate > 0:
+        assert invalid.mean() == pytest.approx(imp.frame_loss_rate, abs=0.03)
+    if imp.silent_pmu_bus is not None:
+        column = list(data.pmu_buses).index(imp.silent_pmu_bus)
+        silent = data.frame_t_s >= imp.silent_from_s - 1e-9
+        assert np.isnan(data.v_mag_pu[silent, column]).all()
+        assert not np.isnan(data.v_mag_pu[~silent & present, column]).any()
+    if imp.frame_loss_rate == 0 and imp.silent_pmu_bus is None:
+        assert not invalid.any()
+
+
+def _rotor_angle_series(data: BagData) -> list[np.ndarray]:
+    """Return what an online estimator holds at the request: frames delivered by then, tagged up to then."""
+    from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
+
+    request = float(data.request_t_s[0])
+    seen = (data.frame_t_s <= request + 1e-9) & (data.frame_delivery_s <= request + 1e-9)
+    series = []
+    for gen in data.grid.generators:
+        j = list(data.pmu_buses).index(gen.bus)
+        columns = [a[seen, j] for a in (data.v_mag_pu, data.v_angle_rad, data.i_mag_pu, data.i_angle_rad)]
+        series.append(estimate_rotor_angle_rad(*columns, xq_pu=gen.xq_pu, ra_pu=gen.ra_pu))
+    return series
+
+
+# CORE's estimator takes each series' own mean off before DTW; G7's PMU, silent from 6.0 s, then has a much
+# lower mean than G6's (which slips on to 7 s), so G7 looks closer to the main group (0.2 rad) than to G6
+# (3.5 rad) although it was already 230 deg ahead of the main group when it went silent. Strict: the mark
+# must go when the estimator handles it.
+_CORE_KNOWN_MISSES = {'ieee39_g6g7_silent_pmu'}
+
+
+@pytest.mark.parametrize('name', [
+    pytest.param(n, marks=pytest.mark.xfail(strict=True, reason='DTW coherency misses a PMU silent mid-slip'))
+    if n in _CORE_KNOWN_MISSES else n for n in NAMES])
+def test_dtw_coherency_recovers_the_truth_groups(name: str) -> None:
+    from controlled_islanding.core.coherency import DTWCoherency
+
+    data = load_bag(BAGS / name)
+    assert data.truth_groups is not None
+    estimator = DTWCoherency().fit(_rotor_angle_series(data))
+    truth = [data.truth_groups[g.name] for g in data.grid.generators]
+    # Both number groups by first generator, so equal partitions give equal label lists.
+    assert estimator.labels_.tolist() == truth, (
+        f'{name}: DTW groups {estimator.labels_.tolist()} (k = {estimator.n_groups_}) != truth {truth}')
+
+
+@pytest.mark.slow
+def test_every_bag_regenerates_with_the_same_messages(tmp_path: Path) -> None:
+    from controlled_islanding.sim.bag import run_scenario
+
+    scenarios = sorted((load_scenario(p) for p in scenario_files(BAGS)),
+                       key=lambda s: (repr(s.simulation_key()), s.name))
+    for scenario in scenarios:
+        out = run_scenario(scenario, tmp_path / scenario.name, progress=False).bag
+        assert _raw_messages(out) == _raw_messages(BAGS / scenario.name), scenario.name
