@@ -23,7 +23,8 @@ Print, in one run:
   2. the time of the core from rotor angles to decision on IEEE 39 with 4 s of 60 fps data:
      DTW coherency (band 30 samples = 0.5 s, as config/coherency.yaml) plus the islanding decision
      (constrained spectral partition, repair, cut set, balance). The angles and the grid come from the
-     first scenario bag in bags/index.yaml that has a split, else from synthetic swings on MATPOWER case39.
+     first scenario bag in bags/index.yaml that has a split, else from synthetic swings on MATPOWER case39;
+  3. the rotor angle estimation error against the simulator's truth on every bag without impairments.
 
 Figures are wall-clock medians (and best) over --repeat runs; the machine's load affects them.
 Example:  controlled-islanding bench --quick
@@ -174,6 +175,44 @@ def bench_pipeline(bags: Path, repeat: int) -> None:
           f'disrupted {decision.disrupted_mw:.1f} MW')
 
 
+def bench_rotor_angle_error(bags: Path) -> None:
+    """Print the rotor angle estimation error against the simulator's truth on every bag without impairments."""
+    import yaml
+
+    from controlled_islanding.bagdata import load_bag
+    from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
+
+    index = bags / 'index.yaml'
+    if not index.exists():
+        print('Rotor angle error: no bags/index.yaml')
+        return
+    print('Rotor angle estimation error |angle(V + (ra + j xq) I) - ANDES delta|, deg, p50 / p99 / max:')
+    print(f'  {"bag":<30} {"before the first event":>24} {"after it":>24}')
+    for entry in yaml.safe_load(index.read_text()).get('bags', []):
+        if entry.get('impairments') or not (bags / entry['bag']).exists():
+            continue
+        bag = load_bag(bags / entry['bag'])
+        col = {int(b): k for k, b in enumerate(bag.pmu_buses)}
+        gens = bag.grid.generators
+        cols = [col[g.bus] for g in gens]
+        est = estimate_rotor_angle_rad(bag.v_mag_pu[:, cols], bag.v_angle_rad[:, cols], bag.i_mag_pu[:, cols],
+                                       bag.i_angle_rad[:, cols], np.array([g.xq_pu for g in gens]),
+                                       np.array([g.ra_pu for g in gens]))
+        truth = np.column_stack([np.interp(bag.frame_t_s, bag.truth_t_s,
+                                           bag.truth_angles_rad[:, bag.truth_generator_names.index(g.name)])
+                                 for g in gens])
+        err = np.degrees(np.abs(np.angle(np.exp(1j * (est - truth)))))
+        # The first fault starts before the first trip; half a second covers the bags' faults.
+        first = min([e.t_s for e in bag.branch_events] + [float(bag.frame_t_s[-1])]) - 0.5
+        before = bag.frame_t_s < first
+        cells = []
+        for part in (err[before], err[~before]):
+            part = part[~np.isnan(part)]
+            cells.append(' / '.join(f'{v:.2f}' for v in (np.percentile(part, 50), np.percentile(part, 99),
+                                                           part.max())) if part.size else 'n/a')
+        print(f'  {entry["name"]:<30} {cells[0]:>24} {cells[1]:>24}')
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark and print the figures."""
     if args.repeat < 1:
@@ -181,4 +220,6 @@ def run(args: argparse.Namespace) -> int:
     bench_dtw(args.quick, args.repeat)
     print(flush=True)
     bench_pipeline(args.bags, args.repeat)
+    print()
+    bench_rotor_angle_error(args.bags)
     return 0
