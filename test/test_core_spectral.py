@@ -113,3 +113,15 @@ def test_errors_are_named(ieee39: Grid) -> None:
         ConstrainedSpectralPartition().fit(grid.with_outages(['2-30']), {**groups, 'G1': 1})
     with pytest.raises(SpectralError, match='beta'):
         ConstrainedSpectralPartition(beta=1.5).fit(grid, {**groups, 'G1': 1})
+
+
+@pytest.mark.parametrize('case', ['case14', 'case30', 'case57', 'case118'])
+def test_other_matpower_cases(case: str) -> None:
+    # Nothing assumes IEEE 39: two groups split by generator bus order, and the islands must still be valid.
+    grid = Grid.from_matpower(case).with_flows()
+    gen_buses = sorted({g.bus for g in grid.generators})
+    half = set(gen_buses[:len(gen_buses) // 2])
+    groups = {g.name: 0 if g.bus in half else 1 for g in grid.generators}
+    d = decide(grid, groups)
+    assert d.n_islands == 2 and d.cut_branches
+    assert_valid_islands(grid, groups, np.array([d.bus_island[b] for b in grid.buses]))
