@@ -21,7 +21,7 @@ Print, in one run:
      10 series of 600 samples and 400 series of 180 samples, and the largest relative difference
      of the values (dtaidistance's result squared, as it returns the square root of eq. 3);
   2. the time of the core from rotor angles to decision on IEEE 39 with 4 s of 60 fps data:
-     DTW coherency (band 30 samples = 0.5 s, as config/coherency.yaml) plus the islanding decision
+     DTW coherency (band 30 samples = 0.5 s as config/coherency.yaml, and 15) plus the islanding decision
      (constrained spectral partition, repair, cut set, balance). The angles and the grid come from the
      first scenario bag in bags/index.yaml that has a split, else from synthetic swings on MATPOWER case39;
   3. the rotor angle estimation error against the simulator's truth on every bag without impairments.
@@ -152,27 +152,28 @@ def bench_pipeline(bags: Path, repeat: int) -> None:
     angles = estimate()
     names = [g.name for g in grid.generators]
 
-    def pipeline():
-        model = DTWCoherency(window=30).fit(list(angles.T))
-        return model, decide(grid, dict(zip(names, model.labels_.tolist(), strict=True)))
-
     reps = max(repeat, 20)
     t_est, _, _ = _time(estimate, reps)
-    t_coh, b_coh, _ = _time(lambda: DTWCoherency(window=30).fit(list(angles.T)), reps)
-    model = DTWCoherency(window=30).fit(list(angles.T))
-    groups = dict(zip(names, model.labels_.tolist(), strict=True))
-    t_dec, b_dec, _ = _time(lambda: decide(grid, groups), reps)
-    t_all, b_all, (model, decision) = _time(pipeline, reps)
     print(f'Core pipeline on IEEE 39 ({label}), {angles.shape[0]} samples x {angles.shape[1]} generators, '
           f'median (best) of {reps}:')
     print(f'  rotor angle estimation   {t_est * 1e3:8.3f} ms   (before the pipeline: PMU phasors -> angles)')
-    print(f'  DTW coherency            {t_coh * 1e3:8.3f} ms ({b_coh * 1e3:.3f})')
-    print(f'  islanding decision       {t_dec * 1e3:8.3f} ms ({b_dec * 1e3:.3f})')
-    print(f'  rotor angles -> decision {t_all * 1e3:8.3f} ms ({b_all * 1e3:.3f})   target < 5 ms')
-    groups_txt = ' | '.join(','.join(n for n, g in zip(names, model.labels_, strict=True) if g == k)
-                            for k in range(model.n_groups_))
-    print(f'  groups: {groups_txt}; cut: {", ".join(decision.cut_branch_ids) or "none"}; '
-          f'disrupted {decision.disrupted_mw:.1f} MW')
+    for band in (30, 15):
+        def pipeline(band=band):
+            model = DTWCoherency(window=band).fit(list(angles.T))
+            return model, decide(grid, dict(zip(names, model.labels_.tolist(), strict=True)))
+
+        t_coh, b_coh, model = _time(lambda band=band: DTWCoherency(window=band).fit(list(angles.T)), reps)
+        groups = dict(zip(names, model.labels_.tolist(), strict=True))
+        t_dec, b_dec, _ = _time(lambda groups=groups: decide(grid, groups), reps)
+        t_all, b_all, (model, decision) = _time(pipeline, reps)
+        print(f'  DTW band {band} samples ({band / 60:.2f} s at 60 fps):')
+        print(f'    DTW coherency            {t_coh * 1e3:8.3f} ms ({b_coh * 1e3:.3f})')
+        print(f'    islanding decision       {t_dec * 1e3:8.3f} ms ({b_dec * 1e3:.3f})')
+        print(f'    rotor angles -> decision {t_all * 1e3:8.3f} ms ({b_all * 1e3:.3f})   target < 5 ms')
+        groups_txt = ' | '.join(','.join(n for n, g in zip(names, model.labels_, strict=True) if g == k)
+                                for k in range(model.n_groups_))
+        print(f'    groups: {groups_txt}; cut: {", ".join(decision.cut_branch_ids) or "none"}; '
+              f'disrupted {decision.disrupted_mw:.1f} MW')
 
 
 def bench_rotor_angle_error(bags: Path) -> None:
