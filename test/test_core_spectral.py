@@ -125,3 +125,14 @@ def test_other_matpower_cases(case: str) -> None:
     d = decide(grid, groups)
     assert d.n_islands == 2 and d.cut_branches
     assert_valid_islands(grid, groups, np.array([d.bus_island[b] for b in grid.buses]))
+
+
+def test_group_that_cannot_be_joined_is_named() -> None:
+    # A line 1-2-3 with group 0 at both ends and group 1 in the middle: no connected island for group 0.
+    from controlled_islanding.core.grid import Branch, Generator, Load
+
+    grid = Grid('line3', 100.0, (1, 2, 3), (Branch('1-2', 1, 2), Branch('2-3', 2, 3)),
+                (Generator('A', 1, 50.0, 60.0), Generator('B', 2, 50.0, 60.0), Generator('C', 3, 50.0, 60.0)),
+                (Load(2, 150.0),), p_from_mw=np.array([50.0, -50.0]), p_to_mw=np.array([-50.0, 50.0]))
+    with pytest.raises(SpectralError, match='group 0 at buses \\[3\\] cannot reach bus 1'):
+        repair_partition(grid, {'A': 0, 'B': 1, 'C': 0}, np.array([0, 1, 0]))
