@@ -61,6 +61,14 @@ def silhouette(r: np.ndarray, labels: np.ndarray) -> float:
 
     Singleton clusters score 0, as in scikit-learn's silhouette_score (which this equals; it is written
     out here because scikit-learn's input checks cost a millisecond per call on the decision path).
+
+    Args:
+        r: Symmetric dissimilarities, zero diagonal.
+        labels: Cluster of each item; at least two clusters.
+
+    Returns:
+        The mean silhouette, in [-1, 1].
+
     """
     ks = np.unique(labels)
     member = labels[None, :] == ks[:, None]
@@ -126,7 +134,8 @@ class DTWCoherency:
         n_groups: Fixed number of groups, or None to choose it (see the module docstring).
         max_groups: Largest k tried when choosing.
         window: Sakoe-Chiba half-width in samples for DTW, or None for none.
-        coherence_threshold_rad: All pairs closer than this (RMS along the warping path, rad) means k = 1.
+        coherence_threshold_rad: Generators farther apart than this (RMS along the warping path, rad) never share
+            a group; all pairs closer means k = 1.
         random_state: Passed to k-medoids (BUILD initialisation makes it irrelevant; kept for the API).
 
     Attributes:
