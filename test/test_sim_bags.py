@@ -115,16 +115,7 @@ def _rotor_angle_series(data: BagData) -> list[np.ndarray]:
     return series
 
 
-# CORE's estimator takes each series' own mean off before DTW; G7's PMU, silent from 6.0 s, then has a much
-# lower mean than G6's (which slips on to 7 s), so G7 looks closer to the main group (0.2 rad) than to G6
-# (3.5 rad) although it was already 230 deg ahead of the main group when it went silent. Strict: the mark
-# must go when the estimator handles it.
-_CORE_KNOWN_MISSES = {'ieee39_g6g7_silent_pmu'}
-
-
-@pytest.mark.parametrize('name', [
-    pytest.param(n, marks=pytest.mark.xfail(strict=True, reason='DTW coherency misses a PMU silent mid-slip'))
-    if n in _CORE_KNOWN_MISSES else n for n in NAMES])
+@pytest.mark.parametrize('name', NAMES)
 def test_dtw_coherency_recovers_the_truth_groups(name: str) -> None:
     from controlled_islanding.core.coherency import DTWCoherency
 

@@ -47,6 +47,8 @@ def test_good_scenario_defaults(tmp_path: Path) -> None:
     (('type: trip', 'type: open'), 'events[1].type'),
     (('islanding_request_s: 1.5', 'islanding_request_s: 3'), 'islanding_request_s'),
     (('bus: 17, ', ''), 'exactly one of bus'),
+    (('end_s: 2.0', 'end_s: 2.0\ndispatch: case9999'), "dispatch: unknown MATPOWER case 'case9999'"),
+    (('end_s: 2.0', 'end_s: 2.0\ndispatch: absent.m'), "dispatch: unknown MATPOWER file 'absent.m'"),
 ])
 def test_bad_field_is_named(tmp_path: Path, change: tuple[str, str], field: str) -> None:
     assert change[0] in GOOD
@@ -77,6 +79,21 @@ def test_simulate_rejects_what_the_case_lacks_and_writes_nothing(tmp_path: Path,
     assert status == 2
     assert message in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ['scn.yaml']
+
+
+def test_matpower_dispatch_replaces_loads_and_generation(tmp_path: Path) -> None:
+    from controlled_islanding.core.grid import Grid
+    from controlled_islanding.sim.andes_sim import simulate
+
+    text = GOOD.replace('end_s: 2.0', 'end_s: 0.05\ndispatch: case39').replace('islanding_request_s: 1.5',
+                                                                            'islanding_request_s: 0.05')
+    text = text[:text.index('events:')] + text[text.index('islanding_request_s'):]
+    sim = simulate(load_scenario(_write(tmp_path, text)), progress=False)
+    matpower = Grid.from_matpower('case39')
+    assert sum(ld.p_mw for ld in sim.grid.loads) == pytest.approx(sum(ld.p_mw for ld in matpower.loads))
+    by_bus = {g.bus: g.p_mw for g in matpower.generators}
+    pv = [g for g in sim.grid.generators if g.bus != 39]  # bus 39 is ANDES' slack: the power flow sets it
+    assert [g.p_mw for g in pv] == pytest.approx([by_bus[g.bus] for g in pv])
 
 
 def test_simulate_refuses_to_overwrite(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

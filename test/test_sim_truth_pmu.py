@@ -57,7 +57,7 @@ def _simulation() -> Simulation:
 
 
 def _scenario(**impairments: float) -> Scenario:
-    return Scenario(name='toy', description='', path=Path('toy.yaml'), case=Path('toy'), case_ref='toy',
+    return Scenario(name='toy', description='', path=Path('toy.yaml'), case=Path('toy'), case_ref='toy', dispatch=None,
                     load_scale=1.0, step_s=0.01, end_s=4.0, faults=(), trips=(), rate_fps=60, pmu_buses=None,
                     noise_tve=0.01, seed=5, impairments=Impairments(**impairments), request_s=3.0)
 

@@ -123,7 +123,8 @@ def _find_branch(where: str, ref: str, ids: list[str], pairs: list[tuple[int, in
 def _load_case(scenario: Scenario) -> Any:
     import andes
 
-    andes.config_logger(stream_level=logging.ERROR)
+    # ANDES logs 'Time step reduced to zero' at the end of runs that did reach it; real failures are raised below.
+    andes.config_logger(stream_level=logging.CRITICAL)
     pycode = pycode_dir()
     pycode.mkdir(parents=True, exist_ok=True)
     try:
@@ -199,7 +200,11 @@ def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
     for i, (trip, row) in enumerate(zip(scenario.trips, trip_rows, strict=True)):
         ss.add('Toggle', dict(idx=f'ScenarioTrip_{i}', name=f'ScenarioTrip_{i}', model='Line', dev=line_idx[row],
                               t=trip.t_s))
+    dispatch = _dispatch_plan(ss, scenario) if scenario.dispatch else None
     ss.setup()
+    if dispatch is not None:
+        for model, name, idx, value in dispatch:
+            getattr(ss, model).set(name, idx, value)  # system base, as .v holds it
     for row in midline_off:
         ss.Line.set_status(line_idx[row], 0)
     if scenario.load_scale != 1.0:
@@ -255,6 +260,48 @@ def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
         delta_rad=np.hstack(delta), p_pu=np.hstack(pe), q_pu=np.hstack(qe), grid=grid,
         branch_ends=dict(zip(ids, pairs, strict=True)), trip_branch_ids=tuple(ids[r] for r in trip_rows),
         wall_s=wall)
+
+
+def _dispatch_plan(ss: Any, scenario: Scenario) -> list[tuple[str, str, Any, float]]:
+    """Match the MATPOWER dispatch to the case by bus; add loads where the case has none (before setup)."""
+    from controlled_islanding.core.grid import Grid, GridError
+
+    where = f'{scenario.path}: dispatch'
+    try:
+        mp = Grid.from_matpower(scenario.dispatch)
+    except GridError as exc:
+        raise ScenarioError(f'{where}: {exc}') from None
+    mva = float(ss.config.mva)
+    if abs(mp.base_mva - mva) > 1e-9:
+        raise ScenarioError(f'{where}: MATPOWER base {mp.base_mva} MVA differs from the case base {mva} MVA')
+    buses = [int(b) for b in ss.Bus.idx.v]
+    load_pq: dict[int, list[float]] = {}
+    for ld in mp.loads:
+        if ld.bus not in buses:
+            raise ScenarioError(f'{where}: load at bus {ld.bus}, which the case does not have')
+        acc = load_pq.setdefault(ld.bus, [0.0, 0.0])
+        acc[0] += ld.p_mw / mva
+        acc[1] += ld.q_mvar / mva
+    plan: list[tuple[str, str, Any, float]] = []
+    pq_buses = [int(b) for b in ss.PQ.bus.v]
+    for idx, bus in zip(ss.PQ.idx.v, pq_buses, strict=True):
+        p, q = load_pq.get(bus, (0.0, 0.0))
+        share = 1.0 / pq_buses.count(bus)
+        plan += [('PQ', 'p0', idx, p * share), ('PQ', 'q0', idx, q * share)]
+    for bus, (p, q) in load_pq.items():
+        if bus not in pq_buses:
+            row = buses.index(bus)
+            ss.add('PQ', dict(idx=f'DispatchPQ_{bus}', name=f'DispatchPQ_{bus}', bus=bus, Vn=ss.Bus.Vn.v[row],
+                              p0=p, q0=q))
+    static = [(m.class_name, idx, int(b)) for m in ss.groups['StaticGen'].models.values() if m.n > 0
+              for idx, b in zip(m.idx.v, m.bus.v, strict=True)]
+    for gen in mp.generators:
+        hits = [(model, idx) for model, idx, b in static if b == gen.bus]
+        if len(hits) != 1:
+            raise ScenarioError(f'{where}: generator {gen.name} at bus {gen.bus} matches {len(hits)} static '
+                                'generators of the case; exactly one is needed')
+        plan.append((hits[0][0], 'p0', hits[0][1], gen.p_mw / mva))
+    return plan
 
 
 def _split_line(ss: Any, row: int, new_bus: int, position: float) -> int:

@@ -5,8 +5,11 @@ A scenario is a YAML mapping. Every key except `case`, `end_s` and `islanding_re
     name: ieee39_case1_unstable          # bag and manifest name; default: the file name without .yaml
     description: Why this scenario exists.
     case: ieee39/ieee39_full.xlsx        # ANDES case: a path relative to this file, else a case ANDES bundles
+    dispatch: case39                     # optional MATPOWER case (a PYPOWER case name, or a .m / .py file relative
+                                         # to this file): its loads and generator P replace the case's, matched by
+                                         # bus (voltage set points stay the ANDES case's)
     load_scale: 1.0                      # multiplies every load (P and Q) and every PV generator's P before the
-                                         # power flow; the slack takes up the difference
+                                         # power flow, after any dispatch; the slack takes up the difference
     step_s: 0.008333                     # integration step, s (default 1/120 s)
     end_s: 11.0                          # simulated time, s
     events:                              # in any order; times in s from the simulation start
@@ -118,6 +121,8 @@ class Scenario:
         path: The YAML file.
         case: The ANDES case file, resolved.
         case_ref: `case` as written in the file.
+        dispatch: MATPOWER case whose loads and dispatch replace the case's (a PYPOWER name or a resolved path),
+            or None.
         load_scale: Load and PV dispatch multiplier.
         step_s: Integration step, s.
         end_s: Simulated time, s.
@@ -137,6 +142,7 @@ class Scenario:
     path: Path
     case: Path
     case_ref: str
+    dispatch: str | None
     load_scale: float
     step_s: float
     end_s: float
@@ -151,10 +157,10 @@ class Scenario:
 
     def simulation_key(self) -> tuple[Any, ...]:
         """Return what determines the ANDES run (not the PMUs), so runs can be shared between scenarios."""
-        return (str(self.case), self.load_scale, self.step_s, self.end_s, self.faults, self.trips)
+        return (str(self.case), self.dispatch, self.load_scale, self.step_s, self.end_s, self.faults, self.trips)
 
 
-_TOP_KEYS = {'name', 'description', 'case', 'load_scale', 'step_s', 'end_s', 'events', 'pmu', 'seed',
+_TOP_KEYS = {'name', 'description', 'case', 'dispatch', 'load_scale', 'step_s', 'end_s', 'events', 'pmu', 'seed',
              'impairments', 'islanding_request_s'}
 _PMU_KEYS = {'rate_fps', 'buses', 'noise_tve'}
 _IMPAIRMENT_KEYS = {'frame_loss_rate', 'initial_gap_s', 'delay_mean_s', 'delay_jitter_s', 'silent_pmu_bus',
@@ -212,6 +218,25 @@ def resolve_case(ref: str, base_dir: Path) -> Path:
     if bundled.is_file():
         return bundled
     raise ScenarioError(f'case: unknown case file {ref!r}: neither {local} nor an ANDES bundled case')
+
+
+def _dispatch(ref: Any, base_dir: Path) -> str | None:
+    if ref is None:
+        return None
+    if not isinstance(ref, str) or not ref:
+        raise ScenarioError(f'dispatch: expected a MATPOWER case name or file, got {ref!r}')
+    local = base_dir / ref
+    if local.suffix in ('.m', '.py'):
+        if not local.is_file():
+            raise ScenarioError(f'dispatch: unknown MATPOWER file {ref!r} ({local} does not exist)')
+        return str(local.resolve())
+    from controlled_islanding.core.grid import Grid, GridError
+
+    try:
+        Grid.from_matpower(ref)
+    except GridError as exc:
+        raise ScenarioError(f'dispatch: unknown MATPOWER case {ref!r}: {exc}') from None
+    return ref
 
 
 def load_scenario(path: str | Path) -> Scenario:
@@ -337,6 +362,7 @@ def _parse(raw: Any, path: Path) -> Scenario:
     return Scenario(
         name=name, description=description.strip(), path=path.resolve(),
         case=resolve_case(top['case'], path.resolve().parent), case_ref=top['case'],
+        dispatch=_dispatch(top.get('dispatch'), path.resolve().parent),
         load_scale=_number('load_scale', top.get('load_scale', 1.0), low=0.0, high=3.0, low_open=True),
         step_s=step_s, end_s=end_s,
         faults=tuple(sorted(faults, key=lambda f: f.start_s)), trips=tuple(sorted(trips, key=lambda t: t.t_s)),
