@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
+from controlled_islanding import topics
 from controlled_islanding.cli import CliError
 
 HELP = 'replay a bag through the ROS 2 node graph and print its islanding decision'
@@ -33,6 +34,9 @@ Examples:
 """
 
 REPO = Path(__file__).resolve().parents[2]
+# After the bag ends, a request still unanswered this long (wall, s) is reported as undecided. The nodes
+# give up after at most 2 s (coherency request_wait_s, partitioning groups_wait_s), so this is ample.
+SETTLE_S = 8.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -68,15 +72,18 @@ def _say(quiet: bool, text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
 
-def _bag_requests(bag: Path) -> int:
+def _bag_topics(bag: Path) -> dict[str, int]:
+    """Return message counts by topic of the bag (the player withholds /truth topics)."""
     from rosbags.highlevel import AnyReader
 
-    from controlled_islanding import topics
     from controlled_islanding.interfaces import typestore
 
     try:
         with AnyReader([bag], default_typestore=typestore()) as reader:
-            return sum(c.msgcount for c in reader.connections if c.topic == topics.ISLANDING_REQUEST)
+            counts: dict[str, int] = {}
+            for c in reader.connections:
+                counts[c.topic] = counts.get(c.topic, 0) + c.msgcount
+            return counts
     except Exception as exc:  # rosbags raises many error types for an unreadable bag
         raise CliError(f'bag {bag}: cannot read it as a rosbag2 bag: {exc}') from exc
 
@@ -95,12 +102,13 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.signals import SignalHandlerOptions
 
-    from controlled_islanding import topics
     from controlled_islanding.node_common import qos_for
     from controlled_islanding.rosenv import isolated_ros_environment
     from controlled_islanding.supervisor import GRAPH, PLAYER, RECORDER, Supervisor, SupervisorError
 
-    n_requests = _bag_requests(bag)
+    bag_topics = _bag_topics(bag)
+    n_requests = bag_topics.get(topics.ISLANDING_REQUEST, 0)
+    played = [t for t in bag_topics if t not in topics.TRUTH_TOPICS] + [topics.CLOCK]
     obs = Observation()
     logs = results / 'logs'
     with isolated_ros_environment(REPO / 'build' / 'ros_log' / results.name) as env:
@@ -157,12 +165,21 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 if not spin_for(10.0, future.done) or future.result().armed != arm:
                     raise CliError(f'breaker_command did not switch to armed={arm}')
                 _say(quiet, f'replay: breaker_command {"armed" if arm else "left disarmed"}; playing the bag')
+                # The player starts once every subscriber now in the graph (this observer included) matches it.
+                counts: dict[str, int] = {}
+                stable_since = begun = time.monotonic()
+                while time.monotonic() - stable_since < 1.0 and time.monotonic() < begun + 15.0:
+                    now_counts = {t: node.count_subscribers(t) for t in played}
+                    if now_counts != counts:
+                        counts, stable_since = now_counts, time.monotonic()
+                    spin_for(0.1)
                 player = sup.start(PLAYER, {'bag': bag.resolve(), 'as_fast_as_possible': fast, 'rate': rate,
-                                            'report_file': report_file, 'wait_for_subscriber_count': 2,
-                                            'clock_min_step_s': 0.05 if fast else 0.0})
+                                            'report_file': report_file, 'clock_min_step_s': 0.05 if fast else 0.0,
+                                            'min_subscribers': str([f'{t}={n}' for t, n in counts.items()])})
                 deadline = time.monotonic() + timeout_s
                 probe_period = 1.0 / probe_hz if probe_hz > 0 else None
                 next_probe = None
+                done_at = None
                 while time.monotonic() < deadline:
                     spin_for(0.01)
                     sup.check_alive([s.executable for s in GRAPH])
@@ -184,6 +201,11 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                     if bag_done and answered >= n_requests and all(r in obs.decisions for r in obs.requests):
                         spin_for(0.3)  # let the last commands and diagnostics arrive
                         break
+                    if bag_done:
+                        done_at = done_at or time.monotonic()
+                        if time.monotonic() - done_at > SETTLE_S:
+                            _say(quiet, f'replay: no decision for some requests {SETTLE_S} s after the bag ended')
+                            break
                 else:
                     raise CliError(f'no decision for every request within --timeout {timeout_s} s; '
                                    f'logs in {logs}')
@@ -250,6 +272,7 @@ def summarize(bag: Path, results: Path, obs: Observation, report: dict) -> dict:
                for name, values in obs.diagnostics.items()}
     out = dict(decisions[-1]) if decisions else {'split': None}
     out.update({
+        'undecided_requests': [r for r in bag_requests if r not in obs.decisions],
         'bag': str(bag), 'results_dir': str(results), 'coherent_groups': _groups_dict(obs),
         'decisions': decisions, 'latency_ms': {
             'n': len(latencies), 'median': statistics.median(latencies) if latencies else None,
@@ -268,7 +291,10 @@ def render(summary: dict) -> str:
         lines.append(f'coherent groups ({groups["method"]}, k={groups["k"]}, window {groups["window_s"]:.2f} s):')
         lines += [f'  group {i}: {", ".join(names)}' for i, names in enumerate(groups['groups'])]
     if summary.get('split') is None:
-        lines.append('no decision')
+        lines.append('NO DECISION: see the dropped inputs below and the node logs')
+        lines += [f'dropped inputs at {name}: ' + ', '.join(f'{k}={v}' for k, v in rejects.items())
+                  for name, rejects in summary['diagnostics_rejects'].items()]
+        lines.append(f'results: {summary["results_dir"]}')
         return '\n'.join(lines)
     split = f'SPLIT into {summary["n_islands"]} islands' if summary['split'] else 'no split'
     lines.append(f'decision: {split}')
@@ -303,7 +329,7 @@ def write_figures(bag: Path, results: Path, summary: dict) -> list[Path]:
     import numpy as np
     from rosbags.highlevel import AnyReader
 
-    from controlled_islanding import plots, topics
+    from controlled_islanding import plots
     from controlled_islanding.interfaces import typestore
     from controlled_islanding.messages import grid_from_snapshot, stamp_s
 
@@ -384,4 +410,4 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(summary, default=str))
     else:
         print(render(summary))
-    return 0
+    return 1 if summary['split'] is None or summary['undecided_requests'] else 0

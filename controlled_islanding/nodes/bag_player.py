@@ -4,22 +4,25 @@ Timing follows the bag's log times divided by `rate`; `as_fast_as_possible` drop
 the bag time of every message, for nodes running with use_sim_time. Ground-truth topics (/truth/...) are never
 published unless `publish_truth` is set, so the graph under test cannot see the answer.
 
-In as-fast-as-possible mode with `lockstep_on_requests` (the default), the player holds after each islanding
-request until an islanding decision appears (or `lockstep_timeout_s` passes): bag time stops while the graph
-decides, so the decision sees exactly the data a real-time replay would, and is not refused as stale.
+In as-fast-as-possible mode with `lockstep_on_requests` (the default), the player holds at each islanding
+request: first until /rotor_angles has caught up with the last PMU frame played, then, after publishing the
+request, until an islanding decision appears (each hold at most `lockstep_timeout_s`). Bag time stops while
+the graph catches up and decides, so the decision sees exactly the data a real-time replay would, and is not
+refused as stale, however loaded the machine is.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import struct
 import sys
 import time
 from pathlib import Path
 
 import rclpy
 from builtin_interfaces.msg import Time
-from controlled_islanding_msgs.msg import IslandingDecision
+from controlled_islanding_msgs.msg import IslandingDecision, RotorAngles
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rosbags.highlevel import AnyReader
@@ -42,6 +45,7 @@ class BagPlayerNode(Node):
         self.declare_parameter('publish_clock', True)
         self.declare_parameter('wait_for_subscribers_s', 10.0)
         self.declare_parameter('wait_for_subscriber_count', 1)
+        self.declare_parameter('min_subscribers', [''])
         self.declare_parameter('lockstep_on_requests', True)
         self.declare_parameter('lockstep_timeout_s', 5.0)
         self.declare_parameter('report_file', '')
@@ -77,14 +81,33 @@ class BagPlayerNode(Node):
         self.clock_pub = (self.create_publisher(Clock, topics.CLOCK, qos_for(topics.CLOCK))
                           if self.get_parameter('publish_clock').value else None)
         self.decisions = 0
+        self.newest_angle_ns = -1
         if self.lockstep:
             self.create_subscription(IslandingDecision, topics.ISLANDING_DECISION, self._on_decision,
                                      qos_for(topics.ISLANDING_DECISION))
+            self.create_subscription(RotorAngles, topics.ROTOR_ANGLES, self._on_angles, qos_for(topics.ROTOR_ANGLES))
         self.diag = Diagnostics(self)
         self.get_logger().info(f'{len(self.messages)} messages on {len(self.pubs)} topics from {bag}')
 
     def _on_decision(self, _msg: IslandingDecision) -> None:
         self.decisions += 1
+
+    def _on_angles(self, msg: RotorAngles) -> None:
+        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        self.newest_angle_ns = max(self.newest_angle_ns, stamp_ns)
+
+    def _hold(self, executor: SingleThreadedExecutor, what: str, done) -> None:
+        self._spin_until(executor, time.monotonic() + self.lockstep_timeout_s, done)
+        if not done():
+            self.get_logger().warning(f'lockstep: no {what} within lockstep_timeout_s={self.lockstep_timeout_s}')
+
+    @staticmethod
+    def _frame_stamp_ns(raw: bytes, t_ns: int) -> int:
+        # CDR: 4-byte encapsulation header, then header.stamp (int32 sec, uint32 nanosec), little endian.
+        if len(raw) >= 12 and raw[1] == 1:
+            sec, nanosec = struct.unpack_from('<iI', raw, 4)
+            return sec * 1_000_000_000 + nanosec
+        return t_ns
 
     def _spin_until(self, executor: SingleThreadedExecutor, deadline: float, done=lambda: False) -> None:
         while not done():
@@ -94,37 +117,49 @@ class BagPlayerNode(Node):
             executor.spin_once(timeout_sec=left)
 
     def wait_for_subscribers(self, executor: SingleThreadedExecutor) -> None:
-        """Wait until every played topic has `wait_for_subscriber_count` subscribers, or the time passes."""
+        """Wait for subscribers (`min_subscribers` 'topic=count', else `wait_for_subscriber_count`), or the time."""
         deadline = time.monotonic() + float(self.get_parameter('wait_for_subscribers_s').value)
-        want = int(self.get_parameter('wait_for_subscriber_count').value)
+        want = {t: int(self.get_parameter('wait_for_subscriber_count').value) for t in self.pubs}
+        for item in self.get_parameter('min_subscribers').value:
+            topic, _, count = item.rpartition('=')
+            if topic:
+                want[topic] = int(count)
         # /clock too: nodes on use_sim_time must see the clock from the first message on.
         waited = dict(self.pubs, **({topics.CLOCK: self.clock_pub} if self.clock_pub is not None else {}))
-        self._spin_until(executor, deadline, lambda: all(p.get_subscription_count() >= want
-                                                         for p in waited.values()))
-        lonely = [t for t, p in waited.items() if p.get_subscription_count() < want]
+        want.setdefault(topics.CLOCK, want[next(iter(self.pubs))])
+
+        def ready() -> bool:
+            return all(p.get_subscription_count() >= want.get(t, 1) for t, p in waited.items())
+
+        self._spin_until(executor, deadline, ready)
+        lonely = [f'{t} ({p.get_subscription_count()} of {want.get(t, 1)})' for t, p in waited.items()
+                  if p.get_subscription_count() < want.get(t, 1)]
         if lonely:
-            self.get_logger().warning(f'playing although fewer than {want} subscribers match {", ".join(lonely)}')
+            self.get_logger().warning(f'playing although too few subscribers match {", ".join(lonely)}')
 
     def play(self, executor: SingleThreadedExecutor) -> dict:
         """Publish every message at its time; return a report with the speed against real time."""
         t0_ns = self.messages[0][1]
         start = time.monotonic()
         last_clock_ns = None
+        last_frame_ns = -1
         for n, (topic, t_ns, raw) in enumerate(self.messages):
             if not self.afap:
                 self._spin_until(executor, start + (t_ns - t0_ns) * 1e-9 / self.rate)
             request = topic == topics.ISLANDING_REQUEST
+            if self.lockstep and request and last_frame_ns >= 0:
+                self._hold(executor, 'rotor angles up to the newest frame',
+                           lambda f=last_frame_ns: self.newest_angle_ns >= f)
             if self.clock_pub is not None and (last_clock_ns is None or request
                                                or t_ns - last_clock_ns >= self.clock_step_ns):
                 self.clock_pub.publish(Clock(clock=Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)))
                 last_clock_ns = t_ns
             self.pubs[topic].publish(raw)
             self.diag.arrived()
+            if topic == topics.PMU_FRAMES:
+                last_frame_ns = max(last_frame_ns, self._frame_stamp_ns(raw, t_ns))
             if self.lockstep and request:
-                before, hold_start = self.decisions, time.monotonic()
-                self._spin_until(executor, hold_start + self.lockstep_timeout_s, lambda b=before: self.decisions > b)
-                if self.decisions == before:
-                    self.get_logger().warning(f'no decision within lockstep_timeout_s={self.lockstep_timeout_s}')
+                self._hold(executor, 'decision', lambda b=self.decisions: self.decisions > b)
             elif self.afap and n % 100 == 0:
                 executor.spin_once(timeout_sec=0.0)
         wall_s = time.monotonic() - start

@@ -243,7 +243,9 @@ class PartitioningNode(Node):
             self.diag.reject('decision_failed', f'request {request.request_id}: {exc}')
             return
         msg = decision_to_msg(decision, request, self.groups.method, time.perf_counter() - t0)
-        msg.header.stamp = self.get_clock().now().to_msg()
+        now = self.get_clock().now().to_msg()
+        # A decision is never older than its request: under a replayed /clock this node's clock may lag.
+        msg.header.stamp = max(now, request.header.stamp, key=lambda t: (t.sec, t.nanosec))
         self.decision_pub.publish(msg)
         self.answered.add(request.request_id)
         self.diag.computed(msg.compute_time_s)

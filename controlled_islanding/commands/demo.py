@@ -1,0 +1,93 @@
+"""`controlled-islanding demo`: replay the default IEEE 39 bag through the node graph and show the decision."""
+
+from __future__ import annotations
+
+import argparse
+from datetime import UTC
+from pathlib import Path
+
+import yaml
+
+from controlled_islanding.cli import CliError
+
+HELP = 'replay the default IEEE 39 bag through the ROS 2 nodes and print the islanding decision'
+DESCRIPTION = """\
+The main job, end to end: the default scenario bag of bags/index.yaml (IEEE 39, generators losing
+synchronism after a cascade) is played in real time into pmu_ingestion -> coherency -> partitioning ->
+breaker_command, each its own process over DDS (loopback only, a private ROS_DOMAIN_ID). The armed
+breaker node opens the cut lines. Printed: coherent groups, islands with their buses, cut lines,
+disrupted MW, generation/load/shed per island, breaker commands, and the latency from the islanding
+request to the breaker command. The results folder (named at the end) holds the recorded output bag,
+the breaker audit log, node logs, rotor_angles.png, network.png and summary.json.
+
+Same as `controlled-islanding replay BAG` on the default bag; see that command for more options.
+"""
+
+REPO = Path(__file__).resolve().parents[2]
+INDEX = REPO / 'bags' / 'index.yaml'
+
+
+def manifest_entries() -> list[dict]:
+    """Return the bags listed in bags/index.yaml (empty if there is no manifest)."""
+    if not INDEX.exists():
+        return []
+    data = yaml.safe_load(INDEX.read_text()) or {}
+    return list(data.get('bags') or [])
+
+
+def default_bag() -> dict:
+    """Return the manifest entry of the default bag: `default:` in bags/index.yaml, else the first split bag.
+
+    Raises:
+        CliError: No manifest, or it names no usable bag.
+
+    """
+    entries = manifest_entries()
+    if not entries:
+        raise CliError(f'{INDEX} lists no bags; run `make setup` in a full clone, or `controlled-islanding simulate`')
+    data = yaml.safe_load(INDEX.read_text()) or {}
+    wanted = data.get('default')
+    for entry in entries:
+        if entry.get('name') == wanted:
+            return entry
+    if wanted:
+        raise CliError(f'{INDEX}: default bag {wanted!r} is not among its bags')
+    return next((e for e in entries if e.get('expected_decision', {}).get('split')), entries[0])
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the demo options."""
+    parser.add_argument('--results', type=Path, default=None,
+                        help='results folder to create (default results/demo-<UTC time>)')
+    parser.add_argument('--fast', action='store_true', help='play as fast as possible instead of real time')
+    parser.add_argument('--json', action='store_true', help='print one JSON decision on stdout and nothing else')
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the demo."""
+    import json
+    from datetime import datetime
+
+    from controlled_islanding.commands.replay import render, replay
+
+    entry = default_bag()
+    bag = REPO / 'bags' / entry['bag']
+    if not bag.exists():
+        raise CliError(f'default bag {bag} is missing; regenerate it with `controlled-islanding simulate`')
+    results = args.results
+    if results is None:
+        results = REPO / 'results' / f'demo-{datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")}'
+    if not args.json:
+        print(f'demo: {entry["name"]}: {" ".join(str(entry.get("description", "")).split())}\n', flush=True)
+    summary = replay(bag, results, fast=args.fast, quiet=args.json)
+    expected = entry.get('expected_decision', {})
+    summary['manifest_agrees'] = (summary['split'] == expected.get('split')
+                                  and sorted(summary.get('cut_branch_ids', [])) ==
+                                  sorted(expected.get('cut_branches', [])))
+    if args.json:
+        print(json.dumps(summary, default=str))
+    else:
+        print(render(summary))
+        print(f'manifest expects: cut {", ".join(expected.get("cut_branches", [])) or "nothing"} -> '
+              f'{"agrees" if summary["manifest_agrees"] else "DIFFERS"}')
+    return 1 if summary['split'] is None or summary['undecided_requests'] else 0

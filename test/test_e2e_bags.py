@@ -1,0 +1,78 @@
+"""End to end: every bag in bags/index.yaml through the real node processes; the decision must be the manifest's.
+
+Each bag is replayed as fast as possible (lockstep at requests) through pmu_ingestion, coherency,
+partitioning and breaker_command, armed. The default bag is also replayed in real time, disarmed: the same
+decision, and nothing commanded. Breaker rules are checked on the audit log of every run.
+"""
+
+from __future__ import annotations
+
+import json
+import uuid
+from pathlib import Path
+
+import pytest
+
+from controlled_islanding.commands.demo import default_bag, manifest_entries
+from controlled_islanding.commands.replay import replay
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+REPO = Path(__file__).resolve().parents[1]
+ENTRIES = [e for e in manifest_entries() if (REPO / 'bags' / e['bag']).exists()]
+
+
+def results_dir(name: str) -> Path:
+    return REPO / 'build' / 'test_e2e' / f'{name}-{uuid.uuid4().hex[:8]}'
+
+
+def audit(summary: dict) -> list[dict]:
+    path = Path(summary['results_dir']) / 'breaker_audit.jsonl'
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def check_decision(summary: dict, entry: dict) -> None:
+    expected = entry['expected_decision']
+    assert summary['split'] == expected['split'], (summary.get('coherent_groups'), entry.get('truth_groups'))
+    if not expected['split']:
+        assert summary['cut_branch_ids'] == []
+        return
+    got_islands = {frozenset(i['buses']) for i in summary['islands']}
+    assert got_islands == {frozenset(i) for i in expected['islands']}
+    assert sorted(summary['cut_branch_ids']) == sorted(expected['cut_branches'])
+    assert summary['disrupted_mw'] == pytest.approx(expected['disrupted_mw'], abs=1e-2)
+
+
+def check_breaker_rules(summary: dict, armed: bool) -> None:
+    records = audit(summary)
+    commands = [r for r in records if r['event'] == 'command']
+    seen = [c['command_id'] for c in summary['breaker_commands']]
+    assert len(seen) == len(set(seen)), 'a breaker was commanded twice'
+    assert sorted(r['command_id'] for r in commands) == sorted(seen), 'commands and audit log disagree'
+    if not armed:
+        assert not commands
+        if summary['split']:
+            assert any(r['event'] == 'refusal' and r['reason'] == 'not_armed' for r in records)
+    elif summary['split']:
+        assert {c['branch_id'] for c in summary['breaker_commands']} == set(summary['cut_branch_ids'])
+
+
+@pytest.mark.skipif(not ENTRIES, reason='no bag of bags/index.yaml is present')
+@pytest.mark.parametrize('entry', ENTRIES, ids=[e['name'] for e in ENTRIES])
+def test_bag_decision_equals_manifest(entry):
+    summary = replay(REPO / 'bags' / entry['bag'], results_dir(entry['name']), fast=True, figures=False, quiet=True)
+    check_decision(summary, entry)
+    check_breaker_rules(summary, armed=True)
+    assert summary['decisions'], 'no decision for the bag request'
+
+
+@pytest.mark.skipif(not ENTRIES, reason='no bag of bags/index.yaml is present')
+def test_default_bag_in_real_time_disarmed_decides_the_same_and_commands_nothing():
+    entry = default_bag()
+    summary = replay(REPO / 'bags' / entry['bag'], results_dir('default-realtime'), fast=False, figures=True,
+                     quiet=True, arm=False)
+    check_decision(summary, entry)
+    check_breaker_rules(summary, armed=False)
+    assert summary['replay']['speed_vs_real_time'] == pytest.approx(1.0, abs=0.2)
+    for figure in summary['figures']:
+        assert Path(figure).stat().st_size > 0
