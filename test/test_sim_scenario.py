@@ -67,8 +67,8 @@ def test_missing_file_and_bad_yaml(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(('change', 'message'), [
-    (('bus: 17', 'bus: 99'), 'unknown bus 99'),
-    (('branch: 16-17', 'branch: 16-18'), "unknown branch '16-18'"),
+    (('bus: 17', 'bus: 99'), 'events[0].bus: unknown bus 99'),
+    (('branch: 16-17', 'branch: 16-18'), "events[1].branch: unknown branch '16-18'"),
     (('end_s: 2.0', 'end_s: 2.0\npmu: {buses: [30, 400]}'), 'pmu.buses: unknown bus 400'),
 ])
 def test_simulate_rejects_what_the_case_lacks_and_writes_nothing(tmp_path: Path, capsys: pytest.CaptureFixture[str],

@@ -163,9 +163,9 @@ def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
             raise ScenarioError(f'{where}: {field}: unknown bus {bus}; the case has buses '
                                 f'{min(bus_numbers)}..{max(bus_numbers)} ({len(bus_numbers)} buses)')
 
-    for i, fault in enumerate(scenario.faults):
+    for fault in scenario.faults:
         if fault.bus is not None:
-            check_bus(f'fault {i} bus', fault.bus)
+            check_bus(f'{fault.source}.bus', fault.bus)
     if scenario.pmu_buses is not None:
         for b in scenario.pmu_buses:
             check_bus('pmu.buses', b)
@@ -175,22 +175,23 @@ def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
         if scenario.impairments.silent_pmu_bus not in pmu_buses:
             raise ScenarioError(f'{where}: impairments.silent_pmu_bus: bus {scenario.impairments.silent_pmu_bus} '
                                 f'carries no PMU')
-    trip_rows = [_find_branch(f'{where}: trip of {t.branch}', t.branch, ids, pairs) for t in scenario.trips]
+    trip_rows = [_find_branch(f'{where}: {t.source}.branch', t.branch, ids, pairs) for t in scenario.trips]
 
     # A mid-line fault needs a bus part way along the line: split it into two sections before setup.
     midline_off: list[int] = []
     next_bus = max(bus_numbers) + 1
     fault_buses: list[int] = []
-    for i, fault in enumerate(scenario.faults):
+    for fault in scenario.faults:
         if fault.bus is not None:
             fault_buses.append(fault.bus)
             continue
-        row = _find_branch(f'{where}: fault {i} branch', fault.branch or '', ids, pairs)
+        row = _find_branch(f'{where}: {fault.source}.branch', fault.branch or '', ids, pairs)
         if row in trip_rows:
-            raise ScenarioError(f'{where}: fault {i}: a mid-line fault on a branch that is also tripped is not '
+            raise ScenarioError(f'{where}: {fault.source}: a mid-line fault on a branch that is also tripped is not '
                                 'supported; use a bus fault at one end with the trip')
         if float(ss.Line.tap.v[row]) != 1.0 or float(ss.Line.phi.v[row]) != 0.0:
-            raise ScenarioError(f'{where}: fault {i}: branch {ids[row]} is a transformer; mid-line faults need a line')
+            raise ScenarioError(f'{where}: {fault.source}: branch {ids[row]} is a transformer; a mid-line fault '
+                                'needs a line')
         fault_buses.append(_split_line(ss, row, next_bus, fault.position))
         midline_off.append(row)
         next_bus += 1

@@ -65,6 +65,7 @@ class Fault:
         bus: Faulted bus number (None for a mid-line fault).
         branch: Faulted branch id (None for a bus fault).
         position: Fraction of the branch length from its from bus (mid-line faults only).
+        source: Where the scenario file gives it, e.g. ``events[0]``, for error messages.
 
     """
 
@@ -73,6 +74,7 @@ class Fault:
     bus: int | None = None
     branch: str | None = None
     position: float = 0.5
+    source: str = field(default='', compare=False)
 
 
 @dataclass(frozen=True)
@@ -82,11 +84,13 @@ class Trip:
     Attributes:
         branch: Branch id, either bus order.
         t_s: Time the branch opens, s.
+        source: Where the scenario file gives it, e.g. ``events[1]``, for error messages.
 
     """
 
     branch: str
     t_s: float
+    source: str = field(default='', compare=False)
 
 
 @dataclass(frozen=True)
@@ -295,7 +299,7 @@ def _parse(raw: Any, path: Path) -> Scenario:
             t_s = _number(f'{where}.t_s', ev['t_s'], low=0.0)
             if t_s >= end_s:
                 raise ScenarioError(f'{where}.t_s: {t_s} s is not before end_s = {end_s} s')
-            trips.append(Trip(branch=_branch(f'{where}.branch', ev['branch']), t_s=t_s))
+            trips.append(Trip(branch=_branch(f'{where}.branch', ev['branch']), t_s=t_s, source=where))
             continue
         for key in ('start_s', 'clear_s'):
             if key not in ev:
@@ -310,11 +314,11 @@ def _parse(raw: Any, path: Path) -> Scenario:
             if 'position' in ev:
                 raise ScenarioError(f'{where}.position: only for a mid-line fault (with branch)')
             faults.append(Fault(start_s=start, clear_s=clear,
-                                bus=int(_number(f'{where}.bus', ev['bus'], low=0, integer=True))))
+                                bus=int(_number(f'{where}.bus', ev['bus'], low=0, integer=True)), source=where))
         else:
             faults.append(Fault(start_s=start, clear_s=clear, branch=_branch(f'{where}.branch', ev['branch']),
                                 position=_number(f'{where}.position', ev.get('position', 0.5), low=0.0, high=1.0,
-                                                 low_open=True)))
+                                                 low_open=True), source=where))
             if faults[-1].position == 1.0:
                 raise ScenarioError(f'{where}.position: must be below 1 (a fault at 1 is a bus fault)')
 
