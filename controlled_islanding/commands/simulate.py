@@ -19,6 +19,8 @@ truth (/truth/rotor_angles, /truth/coherent_groups) that no node may read.
 Example scenario (bags/ieee39_g6g7_unstable.yaml):
 
   case: ieee39/ieee39_full.xlsx        # ANDES case: path relative to the YAML, or bundled with ANDES
+  # dispatch: case39                   # optional MATPOWER loads and generator P, matched by bus
+  # load_scale: 1.1                    # optional: scales loads and PV dispatch
   step_s: 0.008333333333333333         # integration step, s
   end_s: 9.0                           # simulated time, s
   events:
@@ -44,7 +46,8 @@ DEFAULT_BAGS_DIR = Path(__file__).resolve().parents[2] / 'bags'
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the simulate options."""
     parser.add_argument('scenarios', nargs='*', type=Path, metavar='SCENARIO.yaml',
-                        help='scenario files; scenarios sharing one ANDES run should be listed together')
+                        help='scenario files; those differing only in PMUs, seed or impairments share one '
+                             'ANDES run')
     parser.add_argument('--out', type=Path, metavar='BAG',
                         help='bag directory to write (one scenario only; default: the scenario name next to its '
                              'YAML file)')
