@@ -68,6 +68,12 @@ def test_unknown_outage_is_named(ieee39: Grid, bad: str | tuple[int, int]) -> No
         ieee39.with_outages([bad])
 
 
+@pytest.mark.parametrize('case', ['case9', 'case9Q', 'case24_ieee_rts', 'case300'])
+def test_any_pypower_case_loads_and_solves(case: str) -> None:
+    grid = Grid.from_matpower(case).with_flows()
+    assert grid.has_flows and len(grid.buses) > 3 and grid.generators
+
+
 def test_unknown_case_is_named() -> None:
     with pytest.raises(GridError, match='case77'):
         Grid.from_matpower('case77')

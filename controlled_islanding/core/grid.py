@@ -288,8 +288,8 @@ def _load_ppc(case: str | Path | Mapping[str, Any]) -> tuple[str, dict[str, Any]
             return path.stem, loadcase(str(path))
         except Exception as exc:  # PYPOWER raises bare Exceptions on bad files
             raise GridError(f'case file {text!r} is not a PYPOWER case: {exc}') from exc
-    name = _CASE_ALIASES.get(text.lower(), text.lower())
-    if not re.fullmatch(r'case[0-9a-z_]+', name):
+    name = _CASE_ALIASES.get(text.lower(), text)
+    if not re.fullmatch(r'case[0-9A-Za-z_]+', name):
         raise GridError(f'case {text!r} is not a PYPOWER case name (e.g. case39, ieee39) nor a .m/.py file')
     try:
         module = importlib.import_module(f'pypower.{name}')
