@@ -128,10 +128,13 @@ def _load_case(scenario: Scenario) -> Any:
     pycode = pycode_dir()
     pycode.mkdir(parents=True, exist_ok=True)
     try:
-        return andes.load(str(scenario.case), setup=False, no_output=True, default_config=True,
-                          pycode_path=str(pycode))
+        ss = andes.load(str(scenario.case), setup=False, no_output=True, default_config=True,
+                        pycode_path=str(pycode))
     except Exception as exc:  # ANDES raises assorted parser errors for a file it cannot read
         raise ScenarioError(f'{scenario.path}: case: ANDES cannot read {scenario.case}: {exc}') from exc
+    if ss is None:  # some input formats make andes.load log the problem and return None
+        raise ScenarioError(f'{scenario.path}: case: ANDES cannot read {scenario.case}')
+    return ss
 
 
 def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
@@ -151,7 +154,11 @@ def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
     """
     ss = _load_case(scenario)
     where = f'{scenario.path}'
-    bus_numbers = [int(b) for b in ss.Bus.idx.v]
+    try:
+        bus_numbers = [int(b) for b in ss.Bus.idx.v]
+    except (TypeError, ValueError):
+        raise ScenarioError(f'{where}: case: bus idx must be integer bus numbers, got e.g. {ss.Bus.idx.v[:3]}') \
+            from None
     line_idx = list(ss.Line.idx.v)
     pairs = [(int(a), int(b)) for a, b in zip(ss.Line.bus1.v, ss.Line.bus2.v, strict=True)]
     ids = branch_ids(pairs)
