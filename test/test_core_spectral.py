@@ -136,3 +136,10 @@ def test_group_that_cannot_be_joined_is_named() -> None:
                 (Load(2, 150.0),), p_from_mw=np.array([50.0, -50.0]), p_to_mw=np.array([-50.0, 50.0]))
     with pytest.raises(SpectralError, match='group 0 at buses \\[3\\] cannot reach bus 1'):
         repair_partition(grid, {'A': 0, 'B': 1, 'C': 0}, np.array([0, 1, 0]))
+
+
+def test_beta_below_the_trivial_bound_is_refused(ieee39: Grid) -> None:
+    grid = ieee39.with_outages(CASES['case1'][0]).with_flows()
+    groups = groups_by_bus(grid, CASES['case1'][1])
+    with pytest.raises(SpectralError, match='trivial'):
+        ConstrainedSpectralPartition(beta=0.01).fit(grid, groups)

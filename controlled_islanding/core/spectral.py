@@ -11,7 +11,9 @@ diagonal of a generator bus included), -1 between generator buses of different g
 Eq. 8, L_N v = lambda (Q_N - beta/vol I) v, is solved as a dense generalized eigenproblem. The
 constraint v^T Q_N v > beta is only feasible in k-1 independent directions while beta/vol stays below
 the (k-1)-th largest eigenvalue mu_{k-1} of Q_N, so beta is given relative to that bound:
-beta = beta_fraction * mu_{k-1} * vol. The default beta_fraction = 0.2 is the middle of the range
+beta = beta_fraction * mu_{k-1} * vol. It must also exceed 1^T Q 1 (must-link pairs minus cannot-link
+pairs), or the excluded trivial vector D^1/2 1 alone satisfies the constraint; on case39 that puts the
+lower end of beta_fraction between 0.025 and 0.05. The default beta_fraction = 0.2 is the middle of the range
 (0.125 to 0.3) that reproduces the paper's Tables I and V on MATPOWER case39 with either pre-outage
 flows (outaged branches removed) or post-outage AC flows, without any repair.
 
@@ -161,6 +163,11 @@ class ConstrainedSpectralPartition:
         q_n = d_isqrt[:, None] * q * d_isqrt[None, :]
         mu = np.sort(np.linalg.eigvalsh(q_n))[::-1]
         self.beta_ = float(self.beta * mu[k - 2] * vol)
+        trivial = float(q.sum())  # v = D^1/2 1 gives v^T Q_N v = 1^T Q 1
+        if self.beta_ <= trivial:
+            raise SpectralError(f'beta = {self.beta} gives {self.beta_:.4g}, not above 1^T Q 1 = {trivial:.4g}, so the '
+                                f'trivial v = D^1/2 1 meets the constraint and eq. 8 has no useful solution; '
+                                f'raise beta above {trivial / (mu[k - 2] * vol):.3g}')
         # B = Q_N - beta/vol I is nonsingular for 0 < beta < mu_{k-1} vol unless beta/vol hits an eigenvalue of
         # Q_N, so eq. 8 is B^-1 L_N v = lambda v; numpy's eig skips scipy's per-vector Python normalisation.
         b_mat = q_n - (self.beta_ / vol) * np.eye(n)
@@ -171,8 +178,8 @@ class ConstrainedSpectralPartition:
         keep = np.isfinite(lam) & (np.abs(lam.imag) <= 1e-9 * np.maximum(1.0, np.abs(lam.real))) & (lam.real > 1e-10)
         lam, vec = lam.real[keep], vec.real[:, keep]
         if len(lam) < k - 1:
-            raise SpectralError(f'eq. 8 has {len(lam)} positive eigenvalues, {k - 1} are needed for {k} islands; '
-                                'lower beta')
+            raise SpectralError(f'eq. 8 has {len(lam)} positive eigenvalues, {k - 1} are needed for {k} islands '
+                                f'(beta = {self.beta})')
         order = np.argsort(lam)[:k - 1]
         v = vec[:, order]
         v = v / np.linalg.norm(v, axis=0) * np.sqrt(vol)
