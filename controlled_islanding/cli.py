@@ -73,4 +73,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    # Run the imported module, not this __main__ copy, so CliError raised by subcommands is the class caught here.
+    from controlled_islanding.cli import main as imported_main
+
+    sys.exit(imported_main())
