@@ -26,7 +26,7 @@ trap on_error ERR
 step="check python"
 command -v "$PYTHON" >/dev/null || { echo "setup: $PYTHON not found; Python 3.11 is required (the ROS 2 Jazzy wheels are cp311)." >&2; exit 1; }
 wheels_hash=$( { "$PYTHON" --version; cat requirements.txt constraints.txt; } | sha256sum | cut -d' ' -f1)
-full_hash=$( { echo "$wheels_hash"; cat setup.py setup.cfg package.xml tools/setup.sh;
+full_hash=$( { echo "$wheels_hash"; cat setup.py setup.cfg tools/setup.sh;
                find msg_schemas -type f | LC_ALL=C sort | xargs cat; } | sha256sum | cut -d' ' -f1)
 if [[ -f $STAMP && "$(cat "$STAMP")" == "$full_hash" ]]; then
   exit 0
