@@ -4,11 +4,12 @@ Timing follows the bag's log times divided by `rate`; `as_fast_as_possible` drop
 the bag time of every message, for nodes running with use_sim_time. Ground-truth topics (/truth/...) are never
 published unless `publish_truth` is set, so the graph under test cannot see the answer.
 
-In as-fast-as-possible mode with `lockstep_on_requests` (the default), the player holds at each islanding
-request: first until /rotor_angles has caught up with the last PMU frame played, then, after publishing the
-request, until an islanding decision appears (each hold at most `lockstep_timeout_s`). Bag time stops while
-the graph catches up and decides, so the decision sees exactly the data a real-time replay would, and is not
-refused as stale, however loaded the machine is.
+In as-fast-as-possible mode with `lockstep_on_requests` (the default), the player keeps the graph in step at
+each islanding request: before publishing it, it waits until /rotor_angles has caught up with the newest PMU
+frame played; after it, data keeps flowing in bag order (frames delayed past the request still arrive after
+it, as in real time) but /clock stays at the request time until a decision is out, plus `lockstep_settle_s`
+for its consumers to handle it (each wait at most `lockstep_timeout_s`). So the decision sees the data a
+real-time replay would, and no node sees it as stale on the replayed clock, however loaded the machine is.
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ class BagPlayerNode(Node):
         self.declare_parameter('min_subscribers', [''])
         self.declare_parameter('lockstep_on_requests', True)
         self.declare_parameter('lockstep_timeout_s', 5.0)
+        self.declare_parameter('lockstep_settle_s', 0.1)
         self.declare_parameter('report_file', '')
         self.declare_parameter('clock_min_step_s', 0.0)
         bag = self.get_parameter('bag').value
@@ -59,6 +61,7 @@ class BagPlayerNode(Node):
         self.afap = bool(self.get_parameter('as_fast_as_possible').value)
         self.lockstep = self.afap and bool(self.get_parameter('lockstep_on_requests').value)
         self.lockstep_timeout_s = float(self.get_parameter('lockstep_timeout_s').value)
+        self.lockstep_settle_s = float(self.get_parameter('lockstep_settle_s').value)
         self.report_file = self.get_parameter('report_file').value
         self.clock_step_ns = int(float(self.get_parameter('clock_min_step_s').value) * 1e9)
         publish_truth = bool(self.get_parameter('publish_truth').value)
@@ -82,10 +85,13 @@ class BagPlayerNode(Node):
                           if self.get_parameter('publish_clock').value else None)
         self.decisions = 0
         self.newest_angle_ns = -1
+        self.lockstep_subs = []
         if self.lockstep:
-            self.create_subscription(IslandingDecision, topics.ISLANDING_DECISION, self._on_decision,
-                                     qos_for(topics.ISLANDING_DECISION))
-            self.create_subscription(RotorAngles, topics.ROTOR_ANGLES, self._on_angles, qos_for(topics.ROTOR_ANGLES))
+            self.lockstep_subs = [
+                self.create_subscription(IslandingDecision, topics.ISLANDING_DECISION, self._on_decision,
+                                         qos_for(topics.ISLANDING_DECISION)),
+                self.create_subscription(RotorAngles, topics.ROTOR_ANGLES, self._on_angles,
+                                         qos_for(topics.ROTOR_ANGLES))]
         self.diag = Diagnostics(self)
         self.get_logger().info(f'{len(self.messages)} messages on {len(self.pubs)} topics from {bag}')
 
@@ -129,7 +135,8 @@ class BagPlayerNode(Node):
         want.setdefault(topics.CLOCK, want[next(iter(self.pubs))])
 
         def ready() -> bool:
-            return all(p.get_subscription_count() >= want.get(t, 1) for t, p in waited.items())
+            return (all(p.get_subscription_count() >= want.get(t, 1) for t, p in waited.items())
+                    and all(s.get_publisher_count() > 0 for s in self.lockstep_subs))
 
         self._spin_until(executor, deadline, ready)
         lonely = [f'{t} ({p.get_subscription_count()} of {want.get(t, 1)})' for t, p in waited.items()
@@ -143,6 +150,8 @@ class BagPlayerNode(Node):
         start = time.monotonic()
         last_clock_ns = None
         last_frame_ns = -1
+        frozen_at_ns = None  # lockstep: bag time stays here from a request until its decision is handled
+        waiting_for = 0
         for n, (topic, t_ns, raw) in enumerate(self.messages):
             if not self.afap:
                 self._spin_until(executor, start + (t_ns - t0_ns) * 1e-9 / self.rate)
@@ -150,18 +159,28 @@ class BagPlayerNode(Node):
             if self.lockstep and request and last_frame_ns >= 0:
                 self._hold(executor, 'rotor angles up to the newest frame',
                            lambda f=last_frame_ns: self.newest_angle_ns >= f)
+            if frozen_at_ns is not None and self.decisions >= waiting_for:
+                self._spin_until(executor, time.monotonic() + self.lockstep_settle_s)
+                frozen_at_ns = None
+            clock_ns = t_ns if frozen_at_ns is None else frozen_at_ns
             if self.clock_pub is not None and (last_clock_ns is None or request
-                                               or t_ns - last_clock_ns >= self.clock_step_ns):
-                self.clock_pub.publish(Clock(clock=Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)))
-                last_clock_ns = t_ns
+                                               or clock_ns - last_clock_ns >= self.clock_step_ns):
+                self.clock_pub.publish(Clock(clock=Time(sec=clock_ns // 1_000_000_000,
+                                                        nanosec=clock_ns % 1_000_000_000)))
+                last_clock_ns = clock_ns
             self.pubs[topic].publish(raw)
             self.diag.arrived()
             if topic == topics.PMU_FRAMES:
                 last_frame_ns = max(last_frame_ns, self._frame_stamp_ns(raw, t_ns))
             if self.lockstep and request:
-                self._hold(executor, 'decision', lambda b=self.decisions: self.decisions > b)
-            elif self.afap and n % 100 == 0:
+                # Data keeps flowing in bag order (late frames arrive after the request, as in real time),
+                # but /clock stops until the decision is out and handled, so nobody sees it as stale.
+                frozen_at_ns, waiting_for = t_ns, self.decisions + 1
+            if self.afap and n % 20 == 0:
                 executor.spin_once(timeout_sec=0.0)
+        if frozen_at_ns is not None:
+            self._hold(executor, 'decision', lambda: self.decisions >= waiting_for)
+            self._spin_until(executor, time.monotonic() + self.lockstep_settle_s)
         wall_s = time.monotonic() - start
         bag_s = (self.messages[-1][1] - t0_ns) * 1e-9
         report = {'messages': len(self.messages), 'bag_duration_s': bag_s, 'wall_s': wall_s,

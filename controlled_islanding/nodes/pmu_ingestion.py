@@ -41,6 +41,8 @@ class PmuIngestionNode(Node):
         if self.rate_fps <= 0:
             raise NodeSetupError(f'rate_fps={self.rate_fps} must be positive')
         self.grid: Grid | None = None
+        # Topics are not ordered against each other: frames may overtake the snapshot. Hold them until it comes.
+        self.early: deque[PmuFrame] = deque()
         self.seen: deque[int] = deque(maxlen=4096)
         self.seen_set: set[int] = set()
         self.unique_frames = 0
@@ -60,6 +62,9 @@ class PmuIngestionNode(Node):
             self.grid = grid_from_snapshot(msg)
         except MessageError as exc:
             self.diag.reject(exc.reason, f'network snapshot: {exc}')
+            return
+        while self.early:
+            self.on_frame(self.early.popleft(), counted=True)
 
     def _usable(self, m: PmuMeasurement, buses: set[int], stations: set[str]) -> bool:
         if m.station_id in stations:
@@ -76,9 +81,10 @@ class PmuIngestionNode(Node):
             return False
         return True
 
-    def on_frame(self, frame: PmuFrame) -> None:
+    def on_frame(self, frame: PmuFrame, counted: bool = False) -> None:
         """Check a frame, estimate each generator's rotor angle, publish."""
-        self.diag.arrived()
+        if not counted:
+            self.diag.arrived()
         t0 = time.perf_counter()
         t = stamp_s(frame.header.stamp)
         if t <= 0:
@@ -88,7 +94,11 @@ class PmuIngestionNode(Node):
             self.diag.reject('empty_message', f'PMU frame at {t:.3f} s has no measurements')
             return
         if self.grid is None:
-            self.diag.reject('no_data', 'PMU frame before any network snapshot: generator reactances unknown')
+            self.early.append(frame)
+            if stamp_s(self.early[-1].header.stamp) - stamp_s(self.early[0].header.stamp) > self.max_delay_s:
+                self.early.popleft()
+                self.diag.reject('no_data', f'PMU frames for more than max_delay_s={self.max_delay_s} before any '
+                                            'network snapshot: generator reactances unknown')
             return
         key = int(round(t * self.rate_fps))
         if key in self.seen_set:
