@@ -146,7 +146,9 @@ def test_coherency_drops_bad_rotor_angles_and_still_groups(pipeline):
     publish(probe, topics.ROTOR_ANGLES, old)
     assert probe.wait_counter('coherency', 'rejected.time_backwards', 1) >= 1
     before = len(out['groups'])
-    publish(probe, topics.ISLANDING_REQUEST, request(frames[59], 'coherency-ok'))
+    for frame in frames[63:100]:
+        publish(probe, topics.PMU_FRAMES, frame)
+    publish(probe, topics.ISLANDING_REQUEST, request(frames[99], 'coherency-ok'))
     assert probe.spin_until(lambda: len(out['groups']) > before), 'coherency stopped grouping'
     assert out['groups'][-1].generator_names == good.generator_names
     sup.check_alive()

@@ -63,7 +63,7 @@ class Observation:
     requests: dict[str, float] = field(default_factory=dict)
     decisions: dict[str, tuple[float, object]] = field(default_factory=dict)  # request id -> (t, msg)
     commands: list[tuple[float, object]] = field(default_factory=list)
-    groups: object | None = None
+    groups: list = field(default_factory=list)
     diagnostics: dict[str, dict[str, str]] = field(default_factory=dict)
 
 
@@ -133,7 +133,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
             obs.decisions.setdefault(msg.request_id, (time.monotonic(), msg))
 
         def on_groups(msg: CoherentGroups) -> None:
-            obs.groups = msg
+            obs.groups.append(msg)
 
         def on_diag(msg: DiagnosticArray) -> None:
             for status in msg.status:
@@ -192,7 +192,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                         next_probe = next_probe or now
                         if now >= next_probe:
                             probe = IslandingRequest(request_id=f'probe-{len(obs.requests)}', reason='latency probe')
-                            clock_s = obs.groups.header.stamp if obs.groups is not None else None
+                            clock_s = obs.groups[-1].header.stamp if obs.groups else None
                             if clock_s is not None:
                                 probe.header.stamp = clock_s
                                 obs.requests[probe.request_id] = time.monotonic()
@@ -243,10 +243,17 @@ def _decision_dict(request_id: str, obs: Observation) -> dict:
     }
 
 
-def _groups_dict(obs: Observation) -> dict:
-    g = obs.groups
-    if g is None:
+def _groups_dict(obs: Observation, request_stamp: object | None) -> dict:
+    """Describe the groups the decision used: the newest published up to its request (else the newest)."""
+    from controlled_islanding.messages import stamp_s
+
+    if not obs.groups:
         return {}
+    g = obs.groups[-1]
+    if request_stamp is not None:
+        # Within partitioning's freshness tolerance of the request: the groups it decided on.
+        usable = [m for m in obs.groups if stamp_s(m.header.stamp) <= stamp_s(request_stamp) + 0.05]
+        g = usable[-1] if usable else g
     return {'method': g.method, 'k': int(g.k), 'window_s': g.window_s,
             'groups': [[n for n, k in zip(g.generator_names, g.group, strict=True) if k == i] for i in range(g.k)]}
 
@@ -273,7 +280,9 @@ def summarize(bag: Path, results: Path, obs: Observation, report: dict) -> dict:
     out = dict(decisions[-1]) if decisions else {'split': None}
     out.update({
         'undecided_requests': [r for r in bag_requests if r not in obs.decisions],
-        'bag': str(bag), 'results_dir': str(results), 'coherent_groups': _groups_dict(obs),
+        'bag': str(bag), 'results_dir': str(results),
+        'coherent_groups': _groups_dict(obs, obs.decisions[decisions[-1]['request_id']][1].request_stamp
+                                        if decisions else None),
         'decisions': decisions, 'latency_ms': {
             'n': len(latencies), 'median': statistics.median(latencies) if latencies else None,
             'p99': percentile(latencies, 99) if latencies else None, 'max': max(latencies) if latencies else None},

@@ -53,6 +53,8 @@ class CoherencyNode(Node):
         self.t_s: list[float] = []
         self.angles: list[np.ndarray] = []  # NaN where invalid
         self.dirty = False
+        self.computed_end_s = -1.0  # newest sample time of the last published groups, s
+        self.late_inserts_before_s = -1.0  # newest time tag of a sample inserted behind that, s
         self.pending: list[tuple[IslandingRequest, float]] = []
         self.diag = Diagnostics(self)
         self.pub = self.create_publisher(CoherentGroups, topics.COHERENT_GROUPS, qos_for(topics.COHERENT_GROUPS))
@@ -61,7 +63,8 @@ class CoherencyNode(Node):
                                  qos_for(topics.ISLANDING_REQUEST))
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(float(self.get_parameter('period_s').value), self.on_period, clock=steady)
-        self.create_timer(0.01, self._serve_pending, clock=steady)
+        # Polls for the wait deadlines only while a request waits (no 100 Hz wake-ups when idle).
+        self.pending_timer = self.create_timer(0.01, self._serve_pending, clock=steady)
 
     def on_angles(self, msg: RotorAngles) -> None:
         """Insert one sample into the window, after checking it."""
@@ -97,6 +100,8 @@ class CoherencyNode(Node):
             return
         if self.names is None:
             self.names, self.buses = names, [int(b) for b in msg.generator_buses]
+        if t <= self.computed_end_s:
+            self.late_inserts_before_s = max(self.late_inserts_before_s, t)
         self.t_s.insert(i, t)
         self.angles.insert(i, np.where(valid, angles, np.nan))
         # Keep twice the window: a request stamped a little in the past still finds its whole window.
@@ -114,9 +119,13 @@ class CoherencyNode(Node):
             self.diag.reject('empty_message', 'islanding request without request_id or stamp')
             return
         self.pending.append((msg, time.monotonic() + self.request_wait_s))
+        self.pending_timer.reset()
         self._serve_pending()
 
     def _serve_pending(self) -> None:
+        if not self.pending:
+            self.pending_timer.cancel()
+            return
         now = time.monotonic()
         for item in list(self.pending):
             request, deadline = item
@@ -127,7 +136,12 @@ class CoherencyNode(Node):
             if not self.t_s or self.t_s[0] > t:
                 self.diag.reject('no_data', f'request {request.request_id}: no rotor angles before its stamp')
                 continue
+            if self.computed_end_s >= t - self.tolerance_s and not self._changed_before(t):
+                continue  # the latched groups already cover this request: nothing new to compute
             self._compute(t)
+
+    def _changed_before(self, t: float) -> bool:
+        return self.late_inserts_before_s >= 0 and self.late_inserts_before_s <= t
 
     def on_period(self) -> None:
         """Recompute on new data, so the groups are warm when a request comes."""
@@ -153,6 +167,7 @@ class CoherencyNode(Node):
                              distance=[float(x) for x in np.asarray(model.distance_matrix_, dtype=float).ravel()],
                              window_s=float(self.t_s[hi - 1] - self.t_s[lo]))
         newest = self.t_s[hi - 1]
+        self.computed_end_s, self.late_inserts_before_s = newest, -1.0
         msg.header.stamp.sec, msg.header.stamp.nanosec = split_stamp(newest)
         self.pub.publish(msg)
         self.dirty = self.dirty and hi < len(self.t_s)

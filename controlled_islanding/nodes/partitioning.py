@@ -85,7 +85,8 @@ class PartitioningNode(Node):
         self.create_subscription(IslandingRequest, topics.ISLANDING_REQUEST, self.on_request,
                                  qos_for(topics.ISLANDING_REQUEST))
         self.create_service(RequestIslanding, '~/request', self.on_service)
-        self.create_timer(0.01, self._serve_pending, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        # Polls for the wait deadlines only while a request waits (no 100 Hz wake-ups when idle).
+        self.pending_timer = self.create_timer(0.01, self._serve_pending, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     # --- inputs -------------------------------------------------------------------------------------------------
     def on_snapshot(self, msg: NetworkSnapshotMsg) -> None:
@@ -160,6 +161,7 @@ class PartitioningNode(Node):
         if msg.request_id in self.answered or any(p.request.request_id == msg.request_id for p in self.pending):
             return  # our own service requests come back on the topic; a repeat is answered once
         self.pending.append(_Pending(msg, time.monotonic() + self.wait_s))
+        self.pending_timer.reset()
         self._serve_pending()
 
     def on_service(self, request: RequestIslanding.Request, response: RequestIslanding.Response,
@@ -219,6 +221,9 @@ class PartitioningNode(Node):
         self.diag.values['warm_compute_ms'] = f'{seconds * 1e3:.1f}'
 
     def _serve_pending(self) -> None:
+        if not self.pending:
+            self.pending_timer.cancel()
+            return
         now = time.monotonic()
         for item in list(self.pending):
             req_s = stamp_s(item.request.header.stamp)
