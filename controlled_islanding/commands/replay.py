@@ -52,6 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              'to measure latency over many requests (a benchmark; default 0 = none)')
     parser.add_argument('--disarmed', action='store_true',
                         help='leave breaker_command disarmed: decisions are refused and audited, nothing is commanded')
+    parser.add_argument('--repeat', type=int, default=1,
+                        help='replay N times, each on a fresh node graph, and print the latency over all N '
+                             '(a benchmark; results/<folder>/run-<i> per replay)')
     parser.add_argument('--no-figures', action='store_true', help='skip the figures')
     parser.add_argument('--timeout', type=float, default=120.0, help='give up after this many wall seconds')
 
@@ -413,6 +416,10 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
 
 def run(args: argparse.Namespace) -> int:
     """Run the replay subcommand."""
+    if args.repeat < 1:
+        raise CliError(f'--repeat {args.repeat} must be at least 1')
+    if args.repeat > 1:
+        return _run_repeated(args)
     summary = replay(args.bag, args.results, fast=args.fast, rate=args.rate, probe_hz=args.probe_hz,
                      timeout_s=args.timeout, figures=not args.no_figures, quiet=args.json, arm=not args.disarmed)
     if args.json:
@@ -420,3 +427,40 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(render(summary))
     return 1 if summary['split'] is None or summary['undecided_requests'] else 0
+
+
+def _run_repeated(args: argparse.Namespace) -> int:
+    stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
+    base = (args.results or REPO / 'results' / f'bench-{args.bag.name}-{stamp}').resolve()
+    latencies, speeds, outcomes = [], [], set()
+    for i in range(args.repeat):
+        summary = replay(args.bag, base / f'run-{i}', fast=args.fast, rate=args.rate, probe_hz=args.probe_hz,
+                         timeout_s=args.timeout, figures=False, quiet=True, arm=not args.disarmed)
+        outcomes.add((summary['split'], tuple(sorted(summary.get('cut_branch_ids', [])))))
+        for d in summary['decisions']:
+            value = d['latency_request_to_command_ms']
+            latencies.append(value if value is not None else d['latency_request_to_decision_ms'])
+        if summary['replay']:
+            speeds.append(summary['replay']['speed_vs_real_time'])
+        _say(args.json, f'replay {i + 1}/{args.repeat}: split={summary["split"]} '
+                        f'cut={summary.get("cut_branch_ids")} latency={latencies[-1] if latencies else None} ms')
+    result = {'bag': str(args.bag), 'results_dir': str(base), 'replays': args.repeat,
+              'distinct_decisions': [list(o) for o in sorted(outcomes, key=str)],
+              'latency_ms': {'n': len(latencies), 'median': statistics.median(latencies) if latencies else None,
+                             'p99': percentile(latencies, 99) if latencies else None,
+                             'max': max(latencies) if latencies else None},
+              'speed_vs_real_time': {'median': statistics.median(speeds) if speeds else None,
+                                     'min': min(speeds) if speeds else None}}
+    if args.json:
+        print(json.dumps(result))
+    else:
+        lat, spd = result['latency_ms'], result['speed_vs_real_time']
+        print(f'{args.repeat} replays of {args.bag} ({"as fast as possible" if args.fast else "real time"}): '
+              f'{len(outcomes)} distinct decision(s) {result["distinct_decisions"]}')
+        if lat['n']:
+            print(f'latency request -> breaker command over {lat["n"]} requests: median {lat["median"]:.1f} ms, '
+                  f'p99 {lat["p99"]:.1f} ms, max {lat["max"]:.1f} ms')
+        if spd['median'] is not None:
+            print(f'speed against real time: median {spd["median"]:.1f}x, slowest {spd["min"]:.1f}x')
+        print(f'results: {base}')
+    return 0 if len(outcomes) == 1 else 1
