@@ -169,12 +169,20 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                     raise CliError(f'breaker_command did not switch to armed={arm}')
                 _say(quiet, f'replay: breaker_command {"armed" if arm else "left disarmed"}; playing the bag')
                 # The player starts once every subscriber now in the graph (this observer included) matches it.
+                # The graph is wired once every internal topic has a writer and a reader, and nothing changed
+                # for a second (matching follows discovery): an as-fast-as-possible replay misses nothing.
+                internal = (topics.ROTOR_ANGLES, topics.COHERENT_GROUPS, topics.ISLANDING_DECISION,
+                            topics.BREAKER_COMMANDS)
                 counts: dict[str, int] = {}
+                wiring: dict[str, tuple[int, int]] = {}
                 stable_since = begun = time.monotonic()
-                while time.monotonic() - stable_since < 1.0 and time.monotonic() < begun + 15.0:
+                while time.monotonic() < begun + 20.0:
                     now_counts = {t: node.count_subscribers(t) for t in played}
-                    if now_counts != counts:
-                        counts, stable_since = now_counts, time.monotonic()
+                    now_wiring = {t: (node.count_publishers(t), node.count_subscribers(t)) for t in internal}
+                    if now_counts != counts or now_wiring != wiring:
+                        counts, wiring, stable_since = now_counts, now_wiring, time.monotonic()
+                    elif time.monotonic() - stable_since >= 1.0 and all(min(w) > 0 for w in wiring.values()):
+                        break
                     spin_for(0.1)
                 player = sup.start(PLAYER, {'bag': bag.resolve(), 'as_fast_as_possible': fast, 'rate': rate,
                                             'report_file': report_file, 'clock_min_step_s': 0.05 if fast else 0.0,

@@ -84,6 +84,7 @@ class BagPlayerNode(Node):
         self.clock_pub = (self.create_publisher(Clock, topics.CLOCK, qos_for(topics.CLOCK))
                           if self.get_parameter('publish_clock').value else None)
         self.decisions = 0
+        self.held_s: dict[str, float] = {}  # wall time spent in each lockstep wait
         self.newest_angle_ns = -1
         self.lockstep_subs = []
         if self.lockstep:
@@ -103,7 +104,9 @@ class BagPlayerNode(Node):
         self.newest_angle_ns = max(self.newest_angle_ns, stamp_ns)
 
     def _hold(self, executor: SingleThreadedExecutor, what: str, done) -> None:
-        self._spin_until(executor, time.monotonic() + self.lockstep_timeout_s, done)
+        t0 = time.monotonic()
+        self._spin_until(executor, t0 + self.lockstep_timeout_s, done)
+        self.held_s[what] = self.held_s.get(what, 0.0) + time.monotonic() - t0
         if not done():
             self.get_logger().warning(f'lockstep: no {what} within lockstep_timeout_s={self.lockstep_timeout_s}')
 
@@ -185,7 +188,7 @@ class BagPlayerNode(Node):
         bag_s = (self.messages[-1][1] - t0_ns) * 1e-9
         report = {'messages': len(self.messages), 'bag_duration_s': bag_s, 'wall_s': wall_s,
                   'speed_vs_real_time': bag_s / wall_s if wall_s > 0 else float('inf'),
-                  'as_fast_as_possible': self.afap, 'rate': self.rate}
+                  'as_fast_as_possible': self.afap, 'rate': self.rate, 'lockstep_waits_s': self.held_s}
         self.get_logger().info(f'played {len(self.messages)} messages: {bag_s:.2f} s of bag in {wall_s:.2f} s '
                                f'({report["speed_vs_real_time"]:.1f}x real time)')
         if self.report_file:

@@ -154,6 +154,8 @@ class PmuIngestionNode(Node):
         self.diag.computed(time.perf_counter() - t0)
         expected = int(round((self.newest_s - self.first_s) * self.rate_fps)) + 1
         self.diag.values['missing_frames'] = str(max(0, expected - self.unique_frames))
+        if self.unique_frames % 30:
+            return  # stale PMUs change slowly; refreshing them twice a second at 60 frames/s is plenty
         stale = sorted(s for s, last in self.last_valid_s.items() if self.newest_s - last > self.stale_pmu_s)
         self.diag.values['stale_pmus'] = str(len(stale))
         self.diag.values['stale_pmu_ids'] = ','.join(stale)
