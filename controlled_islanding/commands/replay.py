@@ -56,6 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='replay N times, each on a fresh node graph, and print the latency over all N '
                              '(a benchmark; results/<folder>/run-<i> per replay)')
     parser.add_argument('--no-figures', action='store_true', help='skip the figures')
+    parser.add_argument('--no-record', action='store_true',
+                        help='do not run the recorder (no output bag, so no figures): less load while benchmarking')
     parser.add_argument('--timeout', type=float, default=120.0, help='give up after this many wall seconds')
 
 
@@ -92,7 +94,7 @@ def _bag_topics(bag: Path) -> dict[str, int]:
 
 
 def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: float, timeout_s: float,
-              quiet: bool, arm: bool = True) -> tuple[Observation, dict]:
+              quiet: bool, arm: bool = True, record: bool = True) -> tuple[Observation, dict]:
     """Run the node graph on a bag; return what the observer saw and the player's speed report.
 
     Raises:
@@ -158,8 +160,10 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 for spec in GRAPH:
                     audit = {'audit_log': results / 'breaker_audit.jsonl'}
                     sup.start(spec, {**sim, **(audit if spec.executable == 'breaker_command' else {})})
-                sup.start(RECORDER, {**sim, 'output': results / 'output_bag'})
-                _say(quiet, f'replay: started {len(GRAPH)} nodes and the recorder (logs in {logs})')
+                if record:
+                    sup.start(RECORDER, {**sim, 'output': results / 'output_bag'})
+                _say(quiet, f'replay: started {len(GRAPH)} nodes{" and the recorder" if record else ""} '
+                            f'(logs in {logs})')
                 arm_client = node.create_client(SetArmed, '/breaker_command/set_armed')
                 if not arm_client.wait_for_service(timeout_sec=20.0):
                     sup.check_alive()
@@ -389,7 +393,8 @@ def write_figures(bag: Path, results: Path, summary: dict) -> list[Path]:
 
 
 def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float = 1.0, probe_hz: float = 0.0,
-           timeout_s: float = 120.0, figures: bool = True, quiet: bool = False, arm: bool = True) -> dict:
+           timeout_s: float = 120.0, figures: bool = True, quiet: bool = False, arm: bool = True,
+           record: bool = True) -> dict:
     """Replay a bag through the graph; write the results folder; return the summary.
 
     Raises:
@@ -408,9 +413,9 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
         raise CliError(f'results folder {results} exists; name a new one')
     results.mkdir(parents=True)
     obs, report = run_graph(bag, results, fast=fast, rate=rate, probe_hz=probe_hz, timeout_s=timeout_s,
-                            quiet=quiet, arm=arm)
+                            quiet=quiet, arm=arm, record=record)
     summary = summarize(bag, results, obs, report)
-    if figures:
+    if figures and record:
         try:
             summary['figures'] = [str(p) for p in write_figures(bag, results, summary)]
         except Exception as exc:  # a figure must never hide the decision
@@ -429,7 +434,8 @@ def run(args: argparse.Namespace) -> int:
     if args.repeat > 1:
         return _run_repeated(args)
     summary = replay(args.bag, args.results, fast=args.fast, rate=args.rate, probe_hz=args.probe_hz,
-                     timeout_s=args.timeout, figures=not args.no_figures, quiet=args.json, arm=not args.disarmed)
+                     timeout_s=args.timeout, figures=not args.no_figures, quiet=args.json, arm=not args.disarmed,
+                     record=not args.no_record)
     if args.json:
         print(json.dumps(summary, default=str))
     else:
@@ -443,7 +449,8 @@ def _run_repeated(args: argparse.Namespace) -> int:
     latencies, speeds, outcomes = [], [], set()
     for i in range(args.repeat):
         summary = replay(args.bag, base / f'run-{i}', fast=args.fast, rate=args.rate, probe_hz=args.probe_hz,
-                         timeout_s=args.timeout, figures=False, quiet=True, arm=not args.disarmed)
+                         timeout_s=args.timeout, figures=False, quiet=True, arm=not args.disarmed,
+                         record=not args.no_record)
         outcomes.add((summary['split'], tuple(sorted(summary.get('cut_branch_ids', [])))))
         for d in summary['decisions']:
             value = d['latency_request_to_command_ms']
