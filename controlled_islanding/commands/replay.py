@@ -300,7 +300,8 @@ def summarize(bag: Path, results: Path, obs: Observation, report: dict) -> dict:
                                         if decisions else None),
         'decisions': decisions, 'latency_ms': {
             'n': len(latencies), 'median': statistics.median(latencies) if latencies else None,
-            'p99': percentile(latencies, 99) if latencies else None, 'max': max(latencies) if latencies else None},
+            'p99': percentile(latencies, 99) if latencies else None, 'max': max(latencies) if latencies else None,
+            'samples': latencies},
         'replay': report,
         'diagnostics_rejects': {k: v for k, v in rejects.items() if any(x != '0' for x in v.values())},
     })
@@ -452,9 +453,7 @@ def _run_repeated(args: argparse.Namespace) -> int:
                          timeout_s=args.timeout, figures=False, quiet=True, arm=not args.disarmed,
                          record=not args.no_record)
         outcomes.add((summary['split'], tuple(sorted(summary.get('cut_branch_ids', [])))))
-        for d in summary['decisions']:
-            value = d['latency_request_to_command_ms']
-            latencies.append(value if value is not None else d['latency_request_to_decision_ms'])
+        latencies += summary['latency_ms']['samples']  # the bag's requests and any --probe-hz ones
         if summary['replay']:
             speeds.append(summary['replay']['speed_vs_real_time'])
         _say(args.json, f'replay {i + 1}/{args.repeat}: split={summary["split"]} '
