@@ -61,7 +61,7 @@ def test_node_command_uses_the_parameter_file_and_overrides():
 def test_an_error_inside_the_block_stops_every_child(ros_env):
     with pytest.raises(RuntimeError, match='boom'):
         with Supervisor(ros_env, BUILD / 'error') as sup:
-            children = [sup.start(spec) for spec in GRAPH]
+            children = [sup.start(spec, {'audit_log': BUILD / 'audit.jsonl'}) for spec in GRAPH]
             time.sleep(1.0)
             assert all(c.poll() is None for c in children), 'a node died at start'
             raise RuntimeError('boom')
@@ -75,7 +75,8 @@ SCRIPT = textwrap.dedent("""
     from controlled_islanding.supervisor import GRAPH, Supervisor
     import os
     with Supervisor(dict(os.environ), Path(sys.argv[1])) as sup:
-        print(' '.join(str(sup.start(spec).pid) for spec in GRAPH), flush=True)
+        audit = {'audit_log': Path(sys.argv[1]) / 'audit.jsonl'}
+        print(' '.join(str(sup.start(spec, audit).pid) for spec in GRAPH), flush=True)
         while True:
             time.sleep(0.1)
 """)
