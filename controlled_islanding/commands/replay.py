@@ -247,7 +247,8 @@ def _decision_dict(request_id: str, obs: Observation) -> dict:
             'imbalance_mw': msg.island_imbalance_mw[i], 'shed_mw': msg.island_shed_mw[i]})
     latency_cmd = (commands[-1][0] - t_req) * 1e3 if commands and t_req is not None else None
     return {
-        'request_id': request_id, 'decision_id': msg.decision_id, 'method': msg.method, 'split': bool(msg.split),
+        'request_id': request_id, 'request_stamp_s': msg.request_stamp.sec + msg.request_stamp.nanosec * 1e-9,
+        'decision_id': msg.decision_id, 'method': msg.method, 'split': bool(msg.split),
         'n_islands': len(islands), 'islands': islands, 'cut_branch_ids': list(msg.cut_branch_ids),
         'disrupted_mw': msg.disrupted_mw,
         'breaker_commands': [{'command_id': c.command_id, 'breaker_id': c.breaker_id, 'branch_id': c.branch_id,
@@ -382,9 +383,11 @@ def write_figures(bag: Path, results: Path, summary: dict) -> list[Path]:
         t_arr = np.asarray(t)[order]
         angles = np.vstack(rows)[order].T
         angles = angles - angles[:, :1]
+        marks = {f'islanding request {i + 1}' if len(summary['decisions']) > 1 else 'islanding request':
+                 d['request_stamp_s'] - t_arr[0] for i, d in enumerate(summary['decisions'])}
         written.append(plots.plot_rotor_angles(
             t_arr - t_arr[0], angles, names, [group_of.get(n, 0) for n in names], results / 'rotor_angles.png',
-            title=f'estimated rotor angles, {bag.name}'))
+            title=f'estimated rotor angles, {bag.name}', marks_s=marks))
     if grid is not None and summary.get('split') is not None:
         grid = grid.with_outages(b for b in dict.fromkeys(trips) if b in {x.branch_id for x in grid.branches})
         bus_island = {b: isl['island'] for isl in summary['islands'] for b in isl['buses']}
