@@ -202,6 +202,17 @@ def test_partitioning_drops_bad_network_and_groups_and_still_decides(pipeline):
     sup.check_alive()
 
 
+def test_the_request_service_is_answered_with_a_decision(pipeline):
+    from controlled_islanding_msgs.srv import RequestIslanding
+
+    sup, probe, _snapshot, _frames, out = pipeline
+    response = probe.call(RequestIslanding, '/partitioning/request', RequestIslanding.Request(reason='operator'))
+    assert response.accepted, response.message
+    assert probe.spin_until(lambda: any(d.request_id == response.request_id for d in out['decisions'])), \
+        'no decision for the service request'
+    sup.check_alive()
+
+
 def test_every_dropped_input_was_logged_by_its_node(pipeline):
     sup, probe, *_ = pipeline
     probe.spin_for(0.5)
