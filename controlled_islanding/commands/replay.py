@@ -107,7 +107,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.signals import SignalHandlerOptions
 
-    from controlled_islanding.node_common import qos_for
+    from controlled_islanding.node_common import qos_for, settle_heap
     from controlled_islanding.rosenv import isolated_ros_environment
     from controlled_islanding.supervisor import GRAPH, PLAYER, RECORDER, Supervisor, SupervisorError
 
@@ -191,6 +191,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 player = sup.start(PLAYER, {'bag': bag.resolve(), 'as_fast_as_possible': fast, 'rate': rate,
                                             'report_file': report_file, 'clock_min_step_s': 0.05 if fast else 0.0,
                                             'min_subscribers': str([f'{t}={n}' for t, n in counts.items()])})
+                settle_heap()  # this observer's timestamps must not wait on a full garbage collection either
                 deadline = time.monotonic() + timeout_s
                 probe_period = 1.0 / probe_hz if probe_hz > 0 else None
                 next_probe = None

@@ -29,7 +29,7 @@ from controlled_islanding.core.islanding import IslandingDecision as Decision
 from controlled_islanding.core.islanding import decide
 from controlled_islanding.core.spectral import ConstrainedSpectralPartition  # noqa: F401  imported now, not mid-request
 from controlled_islanding.messages import Groups, MessageError, grid_from_snapshot, groups_from_msg, stamp_s
-from controlled_islanding.node_common import Diagnostics, qos_for, spin_node
+from controlled_islanding.node_common import Diagnostics, qos_for, settle_heap, spin_node
 
 
 @dataclass
@@ -209,6 +209,7 @@ class PartitioningNode(Node):
         except Exception as exc:  # a trial split may be infeasible; it only warms caches
             self.get_logger().info(f'warm-up split failed ({exc}); continuing')
         self.diag.values['warm_up_ms'] = f'{(time.perf_counter() - t0) * 1e3:.1f}'
+        settle_heap()
 
     def _warm(self) -> None:
         if self.snapshot is None or self.groups is None or self.pending:
