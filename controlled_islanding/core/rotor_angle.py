@@ -27,6 +27,8 @@ def unwrap_nan(angle_rad: np.ndarray, axis: int = 0) -> np.ndarray:
 
     """
     a = np.moveaxis(np.asarray(angle_rad, dtype=float), axis, 0)
+    if not np.isnan(a).any():  # the common case, and the per-frame hot path of pmu_ingestion
+        return np.moveaxis(np.unwrap(a, axis=0), 0, axis)
     out = np.full_like(a, np.nan)
     flat_in = a.reshape(a.shape[0], -1)
     flat_out = out.reshape(a.shape[0], -1)
