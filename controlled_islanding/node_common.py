@@ -161,12 +161,15 @@ def settle_heap() -> None:
     gc.freeze()
 
 
-def spin_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
+def spin_node(factory: Callable[[], Node], args: list[str] | None = None,
+              run: Callable[[Node, SingleThreadedExecutor], None] | None = None) -> int:
     """Init rclpy, build the node, spin it single-threaded until Ctrl-C or shutdown, then clean up.
 
     Args:
         factory: Builds the node; called after rclpy.init.
         args: Command line arguments (for --ros-args).
+        run: What to do with the node and its executor instead of spinning forever (a node with an end,
+            like the bag player).
 
     Returns:
         Process exit status: 0 after a clean stop, 1 when the node failed to start.
@@ -180,7 +183,10 @@ def spin_node(factory: Callable[[], Node], args: list[str] | None = None) -> int
         settle_heap()
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        executor.spin()
+        if run is None:
+            executor.spin()
+        else:
+            run(node, executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except NodeSetupError as exc:

@@ -21,17 +21,16 @@ import sys
 import time
 from pathlib import Path
 
-import rclpy
 from builtin_interfaces.msg import Time
 from controlled_islanding_msgs.msg import IslandingDecision, RotorAngles
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rosbags.highlevel import AnyReader
 from rosgraph_msgs.msg import Clock
 
 from controlled_islanding import topics
 from controlled_islanding.interfaces import typestore
-from controlled_islanding.node_common import Diagnostics, NodeSetupError, message_class, qos_for
+from controlled_islanding.node_common import Diagnostics, NodeSetupError, message_class, qos_for, spin_node
 
 
 class BagPlayerNode(Node):
@@ -198,29 +197,15 @@ class BagPlayerNode(Node):
         return report
 
 
+def _play_once(node: BagPlayerNode, executor: SingleThreadedExecutor) -> None:
+    node.wait_for_subscribers(executor)
+    node.play(executor)
+    node._spin_until(executor, time.monotonic() + 0.5)
+
+
 def main(args: list[str] | None = None) -> int:
     """Run the bag_player: wait for subscribers, play the bag once, linger briefly so reliable writers flush."""
-    rclpy.init(args=args)
-    node = None
-    status = 0
-    try:
-        node = BagPlayerNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        node.wait_for_subscribers(executor)
-        node.play(executor)
-        node._spin_until(executor, time.monotonic() + 0.5)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except NodeSetupError as exc:
-        print(f'error: {exc}', flush=True)
-        status = 1
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return status
-
+    return spin_node(BagPlayerNode, args, run=_play_once)
 
 if __name__ == '__main__':
     sys.exit(main())
