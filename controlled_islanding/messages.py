@@ -1,6 +1,7 @@
 """Decode and check messages into core data; works on rclpy and on rosbags message objects alike (no rclpy).
 
-Every decoder raises MessageError with a `reason` key the nodes count in /diagnostics.
+Every decoder raises MessageError with a `reason` key the nodes count in /diagnostics. Sizes are checked against
+`Limits` before any per-element work, so one oversized message costs no more than its length check.
 """
 
 from __future__ import annotations
@@ -39,6 +40,34 @@ def _parallel(msg: object, what: str, fields: tuple[str, ...]) -> int:
     return next(iter(lengths.values()))
 
 
+@dataclass(frozen=True)
+class Limits:
+    """Largest message a decoder accepts (counts of elements).
+
+    Room for a large interconnection model, but bounded, so no message can make a node, or every later
+    decision, allocate without limit.
+
+    Attributes:
+        max_buses: Buses per snapshot.
+        max_branches: Branches per snapshot.
+        max_generators: Generators per snapshot or per coherent-groups message.
+        max_loads: Loads per snapshot.
+
+    """
+
+    max_buses: int = 50_000
+    max_branches: int = 100_000
+    max_generators: int = 10_000
+    max_loads: int = 50_000
+
+
+def _at_most(msg: object, what: str, fields: tuple[str, ...], cap: int) -> None:
+    for f in fields:
+        n = len(getattr(msg, f, ()))  # a field newer than the message's type counts as empty
+        if n > cap:
+            raise MessageError('too_large', f'{what}: {f} has {n} entries, more than the limit of {cap}')
+
+
 def _finite(values: object, what: str) -> np.ndarray:
     arr = np.asarray(values, dtype=float)
     if not np.all(np.isfinite(arr)):
@@ -46,13 +75,36 @@ def _finite(values: object, what: str) -> np.ndarray:
     return arr
 
 
-def grid_from_snapshot(msg: object) -> Grid:
+def _finite_non_negative(values: object, what: str) -> np.ndarray:
+    arr = _finite(values, what)
+    if (arr < 0).any():
+        raise MessageError('bad_value', f'{what} holds a negative value ({float(arr.min())}); it must be >= 0')
+    return arr
+
+
+_BRANCH_FIELDS = ('branch_ids', 'branch_breaker_ids', 'branch_from_bus', 'branch_to_bus', 'branch_in_service',
+                  'branch_p_from_mw', 'branch_p_to_mw')
+_GENERATOR_FIELDS = ('generator_names', 'generator_bus', 'generator_p_mw', 'generator_p_max_mw', 'generator_xq_pu',
+                     'generator_ra_pu')
+_LOAD_FIELDS = ('load_bus', 'load_p_mw', 'load_q_mvar')
+
+
+def grid_from_snapshot(msg: object, limits: Limits = Limits()) -> Grid:
     """Build a core Grid (with flows) from a NetworkSnapshot message.
 
+    Args:
+        msg: A NetworkSnapshot (rclpy or rosbags).
+        limits: Largest network accepted.
+
     Raises:
-        MessageError: Empty, arrays of unequal length, NaN/inf values, or an inconsistent network.
+        MessageError: Too large ('too_large'), empty, arrays of unequal length, NaN/inf values, negative
+            reactance or resistance ('bad_value'), a base that is not positive, or an inconsistent network.
 
     """
+    _at_most(msg, 'network snapshot', ('bus_numbers',), limits.max_buses)
+    _at_most(msg, 'network snapshot', _BRANCH_FIELDS, limits.max_branches)
+    _at_most(msg, 'network snapshot', _GENERATOR_FIELDS, limits.max_generators)
+    _at_most(msg, 'network snapshot', _LOAD_FIELDS, limits.max_loads)
     if not len(msg.bus_numbers) or not len(msg.branch_ids) or not len(msg.generator_names):
         raise MessageError('empty_message', 'network snapshot has no buses, branches or generators')
     _parallel(msg, 'snapshot branches', ('branch_ids', 'branch_from_bus', 'branch_to_bus', 'branch_in_service',
@@ -63,20 +115,26 @@ def grid_from_snapshot(msg: object) -> Grid:
     p_from = _finite(msg.branch_p_from_mw, 'branch_p_from_mw')
     p_to = _finite(msg.branch_p_to_mw, 'branch_p_to_mw')
     gen_p = _finite(msg.generator_p_mw, 'generator_p_mw')
+    gen_p_max = _finite(msg.generator_p_max_mw, 'generator_p_max_mw')
+    # A NaN or negative reactance reaches core.rotor_angle, which refuses it on every frame.
+    xq = _finite_non_negative(msg.generator_xq_pu, 'generator_xq_pu')
+    ra = _finite_non_negative(msg.generator_ra_pu, 'generator_ra_pu')
     load_p = _finite(msg.load_p_mw, 'load_p_mw')
+    load_q = _finite(msg.load_q_mvar, 'load_q_mvar')
     base = float(msg.base_mva)
-    if not np.isfinite(base) or base <= 0:
-        raise MessageError('nan_value', f'base_mva={base} is not a positive number')
+    if not np.isfinite(base):
+        raise MessageError('nan_value', f'base_mva={base} is not a number')
+    if base <= 0:
+        raise MessageError('bad_value', f'base_mva={base} MVA must be positive')
     try:
         return Grid(
             name=str(msg.case_name), base_mva=base, buses=tuple(int(b) for b in msg.bus_numbers),
             branches=tuple(Branch(str(i), int(f), int(t), bool(s)) for i, f, t, s in zip(
                 msg.branch_ids, msg.branch_from_bus, msg.branch_to_bus, msg.branch_in_service, strict=True)),
             generators=tuple(Generator(str(n), int(b), float(p), float(pm), float(x), float(r)) for n, b, p, pm, x, r in
-                             zip(msg.generator_names, msg.generator_bus, gen_p, msg.generator_p_max_mw,
-                                 msg.generator_xq_pu, msg.generator_ra_pu, strict=True)),
+                             zip(msg.generator_names, msg.generator_bus, gen_p, gen_p_max, xq, ra, strict=True)),
             loads=tuple(Load(int(b), float(p), float(q))
-                        for b, p, q in zip(msg.load_bus, load_p, msg.load_q_mvar, strict=True)),
+                        for b, p, q in zip(msg.load_bus, load_p, load_q, strict=True)),
             p_from_mw=p_from, p_to_mw=p_to)
     except GridError as exc:
         raise MessageError('unknown_id', str(exc)) from exc
@@ -107,13 +165,19 @@ class Groups:
         return dict(zip(self.names, self.labels, strict=True))
 
 
-def groups_from_msg(msg: object) -> Groups:
+def groups_from_msg(msg: object, limits: Limits = Limits()) -> Groups:
     """Decode and check a CoherentGroups message.
 
+    Args:
+        msg: A CoherentGroups message (rclpy or rosbags).
+        limits: `max_generators` bounds the generators named.
+
     Raises:
-        MessageError: Empty, arrays of unequal length, duplicate names, or k not matching the labels.
+        MessageError: Too large, empty, arrays of unequal length, duplicate names, NaN/inf or negative
+            distances, or k not matching the labels.
 
     """
+    _at_most(msg, 'coherent groups', ('generator_names', 'generator_buses', 'group'), limits.max_generators)
     n = _parallel(msg, 'coherent groups', ('generator_names', 'generator_buses', 'group'))
     if n == 0:
         raise MessageError('empty_message', 'coherent groups name no generator')
@@ -122,6 +186,7 @@ def groups_from_msg(msg: object) -> Groups:
         raise MessageError('unknown_id', 'coherent groups name a generator twice')
     if len(msg.distance) not in (0, n * n):
         raise MessageError('array_length', f'distance has {len(msg.distance)} values, expected 0 or {n * n}')
+    _finite_non_negative(msg.distance, 'coherent groups distance')
     raw = [int(g) for g in msg.group]
     if int(msg.k) != len(set(raw)) or max(raw) >= int(msg.k):
         raise MessageError('bad_value', f'k={msg.k} does not match the group labels {sorted(set(raw))}')
