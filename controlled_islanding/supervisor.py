@@ -1,8 +1,12 @@
-"""Start the node graph as separate processes and stop every one of them, whatever happens.
+"""Start the node graph as separate processes, keep it alive, and stop every one of them, whatever happens.
 
 `ros2 launch` is not installable from PyPI, so the CLI starts the executables itself. GRAPH is the one list of
 executables and parameter files: launch/islanding.launch.py reads the same table, so both paths start the
 same processes with the same parameters.
+
+With a RestartPolicy, `Supervisor.supervise` restarts a pipeline node that died, with backoff, and SIGKILLs
+and restarts one whose /diagnostics heartbeat stopped (controlled_islanding.watchdog decides), recording
+each in `restarts` and `hangs` so that a run can report that it did not come from a healthy graph.
 """
 
 from __future__ import annotations
@@ -15,7 +19,10 @@ import sys
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
+
+from controlled_islanding.watchdog import Action, ActionKind, RestartPolicy, Watchdog
 
 
 class SupervisorError(RuntimeError):
@@ -38,6 +45,60 @@ GRAPH: tuple[NodeSpec, ...] = (
 )
 PLAYER = NodeSpec('bag_player', 'bag_player.yaml')
 RECORDER = NodeSpec('recorder', 'recorder.yaml')
+
+# The pipeline nodes have no end of their own, so any exit is a failure; the player and the recorder end
+# normally when the bag does, and are never restarted.
+PIPELINE_POLICY = RestartPolicy(nodes=frozenset(spec.executable for spec in GRAPH))
+
+
+@dataclass
+class RestartRecord:
+    """One failure of a supervised child (it exited, or was killed as hung) and its restart.
+
+    Attributes:
+        name: The child.
+        cause: 'exited' or 'hung'.
+        reason: One line: what happened and what the supervisor did.
+        exit_status: Exit status of the failed process (negative: the signal that ended it, -9 when killed as hung).
+        pid: The failed process.
+        failed_after_s: When the failure was noticed, s since the supervisor was created.
+        failed_utc: The same, as a UTC ISO 8601 time.
+        log_tail: The last lines of its log at that moment.
+        restarted_after_s: When it was started again, s since the supervisor was created; None if not (yet).
+        new_pid: The restarted process, if any.
+
+    """
+
+    name: str
+    cause: str
+    reason: str
+    exit_status: int | None
+    pid: int
+    failed_after_s: float
+    failed_utc: str
+    log_tail: str
+    restarted_after_s: float | None = None
+    new_pid: int | None = None
+
+
+@dataclass
+class HangRecord:
+    """A child found hung: alive, but with no heartbeat on /diagnostics for longer than the policy allows.
+
+    Attributes:
+        name: The child.
+        pid: The hung process (killed with SIGKILL).
+        silent_s: How long no heartbeat had come, s.
+        detected_after_s: When it was found, s since the supervisor was created.
+        detected_utc: The same, as a UTC ISO 8601 time.
+
+    """
+
+    name: str
+    pid: int
+    silent_s: float
+    detected_after_s: float
+    detected_utc: str
 
 
 def config_dir() -> Path:
@@ -90,14 +151,21 @@ class Supervisor:
     Args:
         env: Environment for the children (from controlled_islanding.rosenv).
         log_dir: Each child's stdout and stderr go to <log_dir>/<name>.log.
+        policy: Which children `supervise` restarts and watches for hangs, and how; None: none (a dead
+            child is only seen by `check_alive`).
 
     """
 
-    def __init__(self, env: Mapping[str, str], log_dir: Path) -> None:
+    def __init__(self, env: Mapping[str, str], log_dir: Path, policy: RestartPolicy | None = None) -> None:
         self.env = dict(env)
         self.log_dir = Path(log_dir)
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.children: dict[str, subprocess.Popen] = {}
+        self.watchdog = Watchdog(policy) if policy is not None else None
+        self.restarts: list[RestartRecord] = []
+        self.hangs: list[HangRecord] = []
+        self._launch: dict[str, tuple[NodeSpec, dict[str, object]]] = {}
+        self._t0_s = time.monotonic()
 
     def __enter__(self) -> Supervisor:
         return self
@@ -116,12 +184,74 @@ class Supervisor:
         name = name or spec.executable
         if name in self.children and self.children[name].poll() is None:
             raise SupervisorError(f'{name} is already running (pid {self.children[name].pid})')
+        self._launch[name] = (spec, dict(overrides or {}))
+        return self._spawn(name)
+
+    def _spawn(self, name: str) -> subprocess.Popen:
+        spec, overrides = self._launch[name]
         with open(self.log_dir / f'{name}.log', 'ab') as log:
             child = subprocess.Popen(node_command(spec, overrides), env=self.env, stdout=log,
                                      stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                      start_new_session=True, preexec_fn=_die_with_parent)
         self.children[name] = child
+        if self.watchdog is not None:
+            self.watchdog.started(name, time.monotonic())
         return child
+
+    def supervise(self, heartbeats_s: Mapping[str, float] | None = None) -> list[Action]:
+        """Restart the watched children that died or hung, each after its backoff; call this often.
+
+        Args:
+            heartbeats_s: Arrival time (time.monotonic, s) of each node's newest DiagnosticStatus, by node
+                name with or without the leading '/'. Without heartbeats, no node can be found hung until
+                the policy's start-up grace has passed, and then every one is: pass them.
+
+        Returns:
+            What was done, in order (empty almost always).
+
+        Raises:
+            SupervisorError: A child failed once more than the policy's restart budget allows.
+
+        """
+        if self.watchdog is None:
+            return []
+        now_s = time.monotonic()
+        beats = {name.lstrip('/'): t for name, t in (heartbeats_s or {}).items()}
+        status = {name: self.children[name].poll() for name in self.watchdog.watched()}
+        actions = self.watchdog.step(now_s, status, beats)
+        for action in actions:
+            child = self.children[action.name]
+            if action.kind is ActionKind.KILL:
+                self._kill_hung(child)
+                self.hangs.append(HangRecord(action.name, child.pid, action.silent_s or 0.0, now_s - self._t0_s,
+                                             _utc_now()))
+            if action.kind in (ActionKind.KILL, ActionKind.DOWN):
+                self.restarts.append(RestartRecord(
+                    action.name, 'hung' if action.kind is ActionKind.KILL else 'exited', action.reason,
+                    child.returncode, child.pid, now_s - self._t0_s, _utc_now(), self.log_tail(action.name)))
+                self._log_note(action.name, action.reason)
+                if action.gave_up:
+                    raise SupervisorError(f'{action.reason}; log {self.log_dir / (action.name + ".log")}:\n'
+                                          f'{self.restarts[-1].log_tail}')
+            elif action.kind is ActionKind.RESTART:
+                new = self._spawn(action.name)
+                record = next(r for r in reversed(self.restarts) if r.name == action.name)
+                record.restarted_after_s = time.monotonic() - self._t0_s
+                record.new_pid = new.pid
+        return actions
+
+    def _kill_hung(self, child: subprocess.Popen) -> None:
+        # A hung (or stopped) process cannot run a clean shutdown: SIGKILL is the one signal it cannot ignore.
+        try:
+            os.kill(child.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        child.wait()
+
+    def _log_note(self, name: str, text: str) -> None:
+        # The restarted process appends to the same log; a marker tells where the failed one ended.
+        with open(self.log_dir / f'{name}.log', 'a') as log:
+            log.write(f'--- supervisor {_utc_now()}: {text}\n')
 
     def check_alive(self, names: Sequence[str] | None = None) -> None:
         """Raise if any (named) child has exited.
@@ -146,6 +276,8 @@ class Supervisor:
         child = self.children.get(name)
         if child is None:
             return None
+        if self.watchdog is not None:
+            self.watchdog.stopped(name)
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
             if child.poll() is not None:
                 break
@@ -161,6 +293,9 @@ class Supervisor:
 
     def stop_all(self, timeout_s: float = 5.0) -> None:
         """Stop every child, all at once: SIGINT to all, wait, then escalate per child."""
+        if self.watchdog is not None:
+            for name in self.children:
+                self.watchdog.stopped(name)
         for child in self.children.values():
             if child.poll() is None:
                 try:
@@ -172,3 +307,7 @@ class Supervisor:
             time.sleep(0.05)
         for name in list(self.children):
             self.stop(name, timeout_s=2.0)
+
+
+def _utc_now() -> str:
+    return datetime.now(UTC).isoformat(timespec='milliseconds')

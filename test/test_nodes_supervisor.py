@@ -1,4 +1,8 @@
-"""The supervisor stops every child it started: on leaving its block, on an error, on Ctrl-C, and if killed."""
+"""The supervisor stops every child it started, and restarts a pipeline node that dies or hangs.
+
+It stops them on leaving its block, on an error, on Ctrl-C and if killed. A node that dies or hangs is restarted
+with its parameters, after a backoff, and the restart is recorded.
+"""
 
 from __future__ import annotations
 
@@ -12,8 +16,10 @@ import time
 from pathlib import Path
 
 import pytest
+from nodes_harness import graph
 
-from controlled_islanding.supervisor import GRAPH, Supervisor, config_dir, node_command
+from controlled_islanding.supervisor import GRAPH, NodeSpec, Supervisor, SupervisorError, config_dir, node_command
+from controlled_islanding.watchdog import RestartPolicy, Watchdog
 
 REPO = Path(__file__).resolve().parents[1]
 BUILD = REPO / 'build' / 'test_nodes' / 'supervisor'
@@ -98,3 +104,104 @@ def test_the_children_die_with_the_supervisor_process(ros_env, sig):
     finally:
         if parent.poll() is None:
             parent.kill()
+
+
+def test_a_node_that_keeps_dying_is_restarted_with_backoff_then_given_up_on():
+    """A module that does not exist dies at once, every time: three restarts 0.1, 0.2, 0.4 s apart, then an error."""
+    missing = NodeSpec('no_such_node', GRAPH[0].params_file)
+    policy = RestartPolicy(nodes=frozenset({missing.executable}), backoff_initial_s=0.1, max_restarts=3)
+    with Supervisor(dict(os.environ), BUILD / 'give_up' / str(time.time_ns()), policy) as sup:
+        first = sup.start(missing)
+        end = time.monotonic() + 30.0
+        with pytest.raises(SupervisorError, match='no_such_node exited with status 1.*3 restarts.*giving up'):
+            while time.monotonic() < end:
+                sup.supervise()
+                time.sleep(0.01)
+    assert [r.cause for r in sup.restarts] == ['exited'] * 4 and [r.exit_status for r in sup.restarts] == [1] * 4
+    assert sup.restarts[0].pid == first.pid and sup.restarts[-1].new_pid is None
+    assert all('No module named' in r.log_tail for r in sup.restarts)
+    waits = [r.restarted_after_s - r.failed_after_s for r in sup.restarts[:3]]
+    assert waits == pytest.approx([0.1, 0.2, 0.4], abs=0.05)
+    assert sup.hangs == []
+
+
+def watch(sup: Supervisor, probe, policy: RestartPolicy) -> dict[str, float]:
+    """Watch the supervisor's children under policy; return the heartbeat times the probe keeps, by node."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from controlled_islanding import topics
+    from controlled_islanding.node_common import qos_for
+
+    beats: dict[str, float] = {}
+    sup.watchdog = Watchdog(policy)
+
+    def on_diag(msg: DiagnosticArray) -> None:
+        beats.update({status.name: time.monotonic() for status in msg.status})
+
+    probe.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, on_diag, qos_for(topics.DIAGNOSTICS))
+    return beats
+
+
+def parameter(probe, node: str, name: str) -> float:
+    """Ask a running node for a double parameter through its parameter service."""
+    from rcl_interfaces.srv import GetParameters
+
+    return probe.call(GetParameters, f'/{node}/get_parameters', GetParameters.Request(names=[name])).values[0]\
+        .double_value
+
+
+def supervise_until(sup: Supervisor, probe, beats: dict[str, float], done, timeout_s: float) -> bool:
+    end = time.monotonic() + timeout_s
+    while not done() and time.monotonic() < end:
+        probe.spin_for(0.02)
+        sup.supervise(beats)
+    return done()
+
+
+ROS_POLICY = RestartPolicy(nodes=frozenset({'pmu_ingestion'}), backoff_initial_s=0.5, max_restarts=2,
+                           hang_timeout_s=2.0, startup_grace_s=30.0)
+
+
+@pytest.mark.ros
+def test_a_killed_node_is_restarted_with_the_same_parameters_and_answers_again():
+    with graph('supervisor_restart', []) as (sup, probe):
+        beats = watch(sup, probe, ROS_POLICY)
+        old = sup.start(GRAPH[0], {'max_delay_s': 0.75})
+        assert supervise_until(sup, probe, beats, lambda: '/pmu_ingestion' in beats, 30.0), 'no first heartbeat'
+        assert parameter(probe, 'pmu_ingestion', 'max_delay_s') == 0.75
+        os.kill(old.pid, signal.SIGKILL)
+        killed_s = time.monotonic()
+        assert supervise_until(sup, probe, beats, lambda: sup.restarts and sup.restarts[0].new_pid
+                               and beats['/pmu_ingestion'] > killed_s + 0.5, 30.0), 'not restarted'
+        record = sup.restarts[0]
+        assert (record.name, record.cause, record.exit_status, record.pid) == ('pmu_ingestion', 'exited', -9, old.pid)
+        assert record.new_pid == sup.children['pmu_ingestion'].pid != old.pid
+        assert parameter(probe, 'pmu_ingestion', 'max_delay_s') == 0.75
+        assert sup.hangs == [] and len(sup.restarts) == 1
+
+
+@pytest.mark.ros
+def test_a_stopped_node_is_reported_hung_killed_and_restarted():
+    with graph('supervisor_hang', []) as (sup, probe):
+        beats = watch(sup, probe, ROS_POLICY)
+        old = sup.start(GRAPH[0])
+        try:
+            assert supervise_until(sup, probe, beats, lambda: '/pmu_ingestion' in beats, 30.0), 'no first heartbeat'
+            os.kill(old.pid, signal.SIGSTOP)
+            stopped_s = time.monotonic()
+            assert supervise_until(sup, probe, beats, lambda: sup.hangs, 10.0), 'the stopped node was not found hung'
+            found_after_s = time.monotonic() - stopped_s
+            assert not alive(old.pid), 'the hung node was not killed'
+            assert supervise_until(sup, probe, beats, lambda: sup.restarts[0].new_pid
+                                   and beats['/pmu_ingestion'] > stopped_s + found_after_s, 30.0), 'not restarted'
+        finally:
+            if alive(old.pid):  # never leave a stopped process behind, whatever failed
+                os.kill(old.pid, signal.SIGKILL)
+        hang, record = sup.hangs[0], sup.restarts[0]
+        assert (hang.name, hang.pid) == ('pmu_ingestion', old.pid)
+        assert ROS_POLICY.hang_timeout_s < hang.silent_s < ROS_POLICY.hang_timeout_s + 1.5
+        assert found_after_s < ROS_POLICY.hang_timeout_s + 1.0  # the last heartbeat came up to 1 s before the stop
+        assert (record.cause, record.exit_status, record.pid) == ('hung', -signal.SIGKILL, old.pid)
+        assert len(sup.hangs) == len(sup.restarts) == 1
+        new = sup.children['pmu_ingestion']
+    assert wait_dead([old.pid, new.pid]) == []
