@@ -5,6 +5,13 @@ one; the coherency node orders its window by time tag. A frame repeating a time 
 duplicate; one older than the newest by more than `max_delay_s` is too late. A PMU whose STAT says "do not
 use", or that is absent from the frame, gives `valid = false` for its generator. Rotor angles come from the
 core estimator with the generator reactances of the latest /network/snapshot.
+
+Time tags are bounded by the node's own clock (sim time in replay): a frame or snapshot stamped more than
+`future_tolerance_s` ahead of it is refused, so it never becomes "the newest" that every honest frame would
+then be judged too old against. Until that clock starts (sim time before the first /clock), inputs are held,
+at most `max_held_frames`, and judged once it runs. Everything remembered per PMU is bounded: only stations
+on a bus of the snapshot are remembered, at most `max_stations_remembered` of them (least recently heard
+forgotten first).
 """
 
 from __future__ import annotations
@@ -12,19 +19,56 @@ from __future__ import annotations
 import math
 import sys
 import time
-from collections import deque
+from collections import OrderedDict, deque
 
 import numpy as np
 from controlled_islanding_msgs.msg import NetworkSnapshot, PmuFrame, PmuMeasurement, RotorAngles
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.clock import Clock, ClockType
+from rclpy.exceptions import InvalidParameterValueException
 from rclpy.node import Node
 
 from controlled_islanding import topics
 from controlled_islanding.core.grid import Grid
-from controlled_islanding.messages import MessageError, grid_from_snapshot, stamp_s
+from controlled_islanding.core.rotor_angle import RotorAngleError, estimate_rotor_angle_rad
+from controlled_islanding.messages import Limits, MessageError, grid_from_snapshot, stamp_s
 from controlled_islanding.node_common import Diagnostics, NodeSetupError, qos_for, spin_node
+from controlled_islanding.timebounds import StampError, StampGate
 
 _UNUSABLE = 0x8000  # STAT bit 15: 10 = data invalid, 11 = PMU error
 _FIELDS = ('voltage_magnitude_pu', 'voltage_angle_rad', 'current_magnitude_pu', 'current_angle_rad')
+_MAX_STATION_ID_CHARS = 256  # a remembered key longer than any real PMU name only costs memory
+_MAX_STALE_NAMED = 50  # stale station ids listed in /diagnostics
+_RELEASE_PERIOD_S = 0.05  # wall time between looks at held inputs while the node clock has not started
+
+
+def declare_bounded(node: Node, name: str, default: float | int, low: float | int, high: float | int,
+                    description: str) -> float | int:
+    """Declare a parameter with its range and meaning; return its value.
+
+    Raises:
+        NodeSetupError: The configured value is outside [low, high].
+
+    """
+    if isinstance(default, int):
+        bound = {'integer_range': [IntegerRange(from_value=int(low), to_value=int(high), step=1)]}
+    else:
+        bound = {'floating_point_range': [FloatingPointRange(from_value=float(low), to_value=float(high))]}
+    try:
+        node.declare_parameter(name, default, ParameterDescriptor(description=description, **bound))
+    except InvalidParameterValueException as exc:
+        raise NodeSetupError(f'parameter {name}: {exc}; it must be in [{low}, {high}]') from exc
+    return node.get_parameter(name).value
+
+
+def declare_limits(node: Node) -> Limits:
+    """Declare the snapshot size caps as parameters; return them as Limits."""
+    default = Limits()
+    return Limits(**{
+        field: int(declare_bounded(node, field, getattr(default, field), 1, 10 * getattr(default, field),
+                                   f'largest number of {field[4:]} accepted in one network snapshot; a '
+                                   'larger one is refused (too_large) before any per-element work'))
+        for field in ('max_buses', 'max_branches', 'max_generators', 'max_loads')})
 
 
 class PmuIngestionNode(Node):
@@ -40,52 +84,139 @@ class PmuIngestionNode(Node):
         self.stale_pmu_s = float(self.get_parameter('stale_pmu_s').value)
         if self.rate_fps <= 0:
             raise NodeSetupError(f'rate_fps={self.rate_fps} must be positive')
+        future_tolerance_s = float(declare_bounded(
+            self, 'future_tolerance_s', 1.0, 0.0, 3600.0,
+            'how far, s, a frame time tag or snapshot stamp may lead this node clock (sim time in replay); '
+            'further ahead it is refused (future_stamp)'))
+        max_held = int(declare_bounded(
+            self, 'max_held_frames', 1000, 1, 100_000,
+            'frames held while the node clock has not started or no snapshot has come; the oldest is dropped'))
+        self.max_pmus = int(declare_bounded(
+            self, 'max_pmus_per_frame', 10_000, 1, 1_000_000,
+            'largest number of PMU measurements in one frame; a larger frame is refused (too_large)'))
+        self.max_stations = int(declare_bounded(
+            self, 'max_stations_remembered', 10_000, 1, 1_000_000,
+            'PMU stations remembered for staleness; beyond it the least recently heard is forgotten'))
+        self.limits = declare_limits(self)
         self.grid: Grid | None = None
+        self.grid_stamp_s = -math.inf
+        self.buses: frozenset[int] = frozenset()
+        self.gate: StampGate[tuple[str, object]] = StampGate(future_tolerance_s, max_held)
         # Topics are not ordered against each other: frames may overtake the snapshot. Hold them until it comes.
         self.early: deque[PmuFrame] = deque()
+        self.max_early = max_held
         self.seen: deque[int] = deque(maxlen=4096)
         self.seen_set: set[int] = set()
         self.unique_frames = 0
         self.first_s = math.inf
         self.newest_s = -math.inf
-        self.last_valid_s: dict[str, float] = {}
+        # station id -> (bus, last time tag with usable data, s), least recently heard first
+        self.stations: OrderedDict[str, tuple[int, float]] = OrderedDict()
+        self.stations_forgotten = 0
         self.last_angle_rad: dict[str, float] = {}
         self.diag = Diagnostics(self)
         self.pub = self.create_publisher(RotorAngles, topics.ROTOR_ANGLES, qos_for(topics.ROTOR_ANGLES))
-        self.create_subscription(NetworkSnapshot, topics.NETWORK_SNAPSHOT, self.on_snapshot,
+        self.create_subscription(NetworkSnapshot, topics.NETWORK_SNAPSHOT, self.diag.guard(self.on_snapshot),
                                  qos_for(topics.NETWORK_SNAPSHOT))
-        self.create_subscription(PmuFrame, topics.PMU_FRAMES, self.on_frame, qos_for(topics.PMU_FRAMES))
+        self.create_subscription(PmuFrame, topics.PMU_FRAMES, self.diag.guard(self.on_frame),
+                                 qos_for(topics.PMU_FRAMES))
+        self.release_timer = self.create_timer(_RELEASE_PERIOD_S, self.diag.guard(self.on_release_timer),
+                                               clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.release_timer.cancel()  # runs only while something is held
+
+    def _now_s(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _admit(self, what: str, t: float, item: tuple[str, object]) -> None:
+        """Use an input now, hold it for a clock that has not started, or refuse it as future-stamped."""
+        try:
+            usable = self.gate.offer(what, t, self._now_s(), item)
+        except StampError as exc:
+            self.diag.reject(exc.reason, str(exc))
+            return
+        if usable:
+            self._use(item)
+        else:
+            self.release_timer.reset()
+            self.diag.values['held_for_clock'] = str(self.gate.held)
+            self.diag.values['dropped_before_clock'] = str(self.gate.dropped_while_held)
+
+    def _use(self, item: tuple[str, object]) -> None:
+        kind, msg = item
+        if kind == 'snapshot':
+            self._take_snapshot(msg)
+        else:
+            self._take_frame(msg)
+
+    def _release(self) -> None:
+        """Judge held inputs, in arrival order, once the node clock runs."""
+        if not self.gate.held:
+            return
+        self.gate.release(self._now_s(), self._use, lambda exc: self.diag.reject(exc.reason, str(exc)))
+        self.diag.values['held_for_clock'] = str(self.gate.held)
+
+    def on_release_timer(self) -> None:
+        """Judge held inputs even when no new input comes to do it."""
+        self._release()
+        if not self.gate.held:
+            self.release_timer.cancel()
 
     def on_snapshot(self, msg: NetworkSnapshot) -> None:
-        """Take the generators (names, buses, reactances) from a snapshot."""
+        """Take the generators (names, buses, reactances) from a snapshot, once its stamp is within bounds."""
+        self._release()
+        self._admit('network snapshot', stamp_s(msg.header.stamp), ('snapshot', msg))
+
+    def _take_snapshot(self, msg: NetworkSnapshot) -> None:
         try:
-            self.grid = grid_from_snapshot(msg)
+            grid = grid_from_snapshot(msg, self.limits)
         except MessageError as exc:
             self.diag.reject(exc.reason, f'network snapshot: {exc}')
             return
+        t = stamp_s(msg.header.stamp)
+        if t < self.grid_stamp_s:
+            self.diag.reject('time_backwards', f'network snapshot stamped {t:.3f} s, older than the one held '
+                                               f'({self.grid_stamp_s:.3f} s)')
+            return
+        self.grid, self.grid_stamp_s, self.buses = grid, t, frozenset(grid.buses)
+        # Memory follows the network: nothing is kept for a generator or a bus the snapshot no longer has.
+        names = {g.name for g in grid.generators}
+        self.last_angle_rad = {n: a for n, a in self.last_angle_rad.items() if n in names}
+        for station in [s for s, (bus, _) in self.stations.items() if bus not in self.buses]:
+            del self.stations[station]
         while self.early:
-            self.on_frame(self.early.popleft(), counted=True)
+            self._take_frame(self.early.popleft())
 
-    def _usable(self, m: PmuMeasurement, buses: set[int], stations: set[str]) -> bool:
+    def _judge(self, m: PmuMeasurement, stations: set[str]) -> str:
+        """Return 'use', 'unusable' (a known PMU without usable data) or 'rejected' (not remembered)."""
+        if len(m.station_id) > _MAX_STATION_ID_CHARS:
+            self.diag.reject('too_large', f'PMU station id of {len(m.station_id)} characters, more than '
+                                          f'{_MAX_STATION_ID_CHARS}')
+            return 'rejected'
         if m.station_id in stations:
             self.diag.reject('duplicate', f'PMU {m.station_id} appears twice in one frame')
-            return False
+            return 'rejected'
         stations.add(m.station_id)
-        if int(m.bus) not in buses:
+        if int(m.bus) not in self.buses:
             self.diag.reject('unknown_id', f'PMU {m.station_id} reports bus {m.bus}, not in the network')
-            return False
+            return 'rejected'
         if m.stat & _UNUSABLE:
-            return False
+            return 'unusable'
         if not all(math.isfinite(getattr(m, f)) for f in _FIELDS):
             self.diag.reject('nan_value', f'PMU {m.station_id}: NaN or inf phasor with a good STAT')
-            return False
-        return True
+            return 'unusable'
+        return 'use'
 
-    def on_frame(self, frame: PmuFrame, counted: bool = False) -> None:
-        """Check a frame, estimate each generator's rotor angle, publish."""
-        if not counted:
-            self.diag.arrived()
-        t0 = time.perf_counter()
+    def _remember(self, station: str, bus: int, usable_at_s: float) -> None:
+        bus_was, last_s = self.stations.pop(station, (bus, -math.inf))
+        self.stations[station] = (bus, max(last_s, usable_at_s) if bus_was == bus else usable_at_s)
+        if len(self.stations) > self.max_stations:
+            self.stations.popitem(last=False)
+            self.stations_forgotten += 1
+
+    def on_frame(self, frame: PmuFrame) -> None:
+        """Check a frame's shape and time tag; use it, hold it, or refuse it."""
+        self.diag.arrived()
+        self._release()
         t = stamp_s(frame.header.stamp)
         if t <= 0:
             self.diag.reject('missing_stamp', 'PMU frame header.stamp (time tag) is zero')
@@ -93,12 +224,24 @@ class PmuIngestionNode(Node):
         if not frame.measurements:
             self.diag.reject('empty_message', f'PMU frame at {t:.3f} s has no measurements')
             return
+        if len(frame.measurements) > self.max_pmus:
+            self.diag.reject('too_large', f'PMU frame at {t:.3f} s has {len(frame.measurements)} measurements, '
+                                          f'more than max_pmus_per_frame={self.max_pmus}')
+            return
+        self._admit('PMU frame', t, ('frame', frame))
+
+    def _take_frame(self, frame: PmuFrame) -> None:
+        """Estimate each generator's rotor angle from a frame within bounds, publish."""
+        t0 = time.perf_counter()
+        t = stamp_s(frame.header.stamp)
         if self.grid is None:
             self.early.append(frame)
-            if stamp_s(self.early[-1].header.stamp) - stamp_s(self.early[0].header.stamp) > self.max_delay_s:
+            if (len(self.early) > self.max_early
+                    or stamp_s(self.early[-1].header.stamp) - stamp_s(self.early[0].header.stamp) > self.max_delay_s):
                 self.early.popleft()
-                self.diag.reject('no_data', f'PMU frames for more than max_delay_s={self.max_delay_s} before any '
-                                            'network snapshot: generator reactances unknown')
+                self.diag.reject('no_data', f'PMU frames for more than max_delay_s={self.max_delay_s} (or more than '
+                                            f'max_held_frames={self.max_early}) before any network snapshot: '
+                                            'generator reactances unknown')
             return
         key = int(round(t * self.rate_fps))
         if key in self.seen_set:
@@ -108,26 +251,29 @@ class PmuIngestionNode(Node):
             self.diag.reject('time_backwards', f'PMU frame at {t:.3f} s is {self.newest_s - t:.3f} s older than '
                                                f'the newest; more than max_delay_s={self.max_delay_s}')
             return
+        by_bus = {}
+        stations: set[str] = set()
+        for m in frame.measurements:
+            verdict = self._judge(m, stations)
+            if verdict == 'use':
+                by_bus[int(m.bus)] = m
+            if verdict != 'rejected':
+                self._remember(m.station_id, int(m.bus), t if verdict == 'use' else -math.inf)
+        try:
+            angles = self._angles(frame, by_bus)
+        except RotorAngleError as exc:  # the snapshot validator should make this impossible; never fatal
+            self.diag.reject('compute_failed', f'rotor angles of the frame at {t:.3f} s: {exc}')
+            return
         if len(self.seen) == self.seen.maxlen:
             self.seen_set.discard(self.seen[0])
         self.seen.append(key)
         self.seen_set.add(key)
         self.unique_frames += 1
         self.first_s, self.newest_s = min(self.first_s, t), max(self.newest_s, t)
-        buses, stations = set(self.grid.buses), set()
-        by_bus = {}
-        for m in frame.measurements:
-            if self._usable(m, buses, stations):
-                by_bus[int(m.bus)] = m
-                self.last_valid_s[m.station_id] = max(self.last_valid_s.get(m.station_id, t), t)
-            else:
-                self.last_valid_s.setdefault(m.station_id, -math.inf)
-        self.pub.publish(self._angles(frame, by_bus))
+        self.pub.publish(angles)
         self._account(t0)
 
     def _angles(self, frame: PmuFrame, by_bus: dict[int, PmuMeasurement]) -> RotorAngles:
-        from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
-
         assert self.grid is not None
         gens = self.grid.generators
         valid = np.array([g.bus in by_bus for g in gens])
@@ -156,9 +302,13 @@ class PmuIngestionNode(Node):
         self.diag.values['missing_frames'] = str(max(0, expected - self.unique_frames))
         if self.unique_frames % 30:
             return  # stale PMUs change slowly; refreshing them twice a second at 60 frames/s is plenty
-        stale = sorted(s for s, last in self.last_valid_s.items() if self.newest_s - last > self.stale_pmu_s)
+        stale = sorted(s for s, (_, last) in self.stations.items() if self.newest_s - last > self.stale_pmu_s)
         self.diag.values['stale_pmus'] = str(len(stale))
-        self.diag.values['stale_pmu_ids'] = ','.join(stale)
+        # Named up to a point: the count says how many, and a diagnostics message must stay small.
+        more = ',...' if len(stale) > _MAX_STALE_NAMED else ''
+        self.diag.values['stale_pmu_ids'] = ','.join(stale[:_MAX_STALE_NAMED]) + more
+        self.diag.values['stations_remembered'] = str(len(self.stations))
+        self.diag.values['stations_forgotten'] = str(self.stations_forgotten)
 
 
 def main(args: list[str] | None = None) -> int:
