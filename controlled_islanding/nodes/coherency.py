@@ -6,23 +6,33 @@ clock every `period_s` when new samples came in: its cost stays bounded in an as
 the groups stay warm for the next request. On a request stamped T the node waits (at most `request_wait_s`
 wall) for a sample at T or later, then groups the window ending at T and publishes at once; the groups are
 latched (transient local) for late joiners.
+
+The generators are those of the latched /network/snapshot: a sample naming any other generator is refused
+(unknown_id), and a snapshot with a different generator set starts a new window. Stamps are bounded by the
+node's own clock (sim time in replay): a sample or request stamped more than `future_tolerance_s` ahead of
+it is refused, so it can never become the newest sample that makes every honest one look too old. Until that
+clock starts, inputs are held (at most `max_held_samples`) and judged once it runs.
 """
 
 from __future__ import annotations
 
 import bisect
+import math
 import sys
 import time
+from collections import deque
 
 import numpy as np
-from controlled_islanding_msgs.msg import CoherentGroups, IslandingRequest, RotorAngles
+from controlled_islanding_msgs.msg import CoherentGroups, IslandingRequest, NetworkSnapshot, RotorAngles
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from controlled_islanding import topics
 from controlled_islanding.core.coherency import DTWCoherency
-from controlled_islanding.messages import split_stamp, stamp_s
+from controlled_islanding.messages import MessageError, grid_from_snapshot, split_stamp, stamp_s
 from controlled_islanding.node_common import Diagnostics, NodeSetupError, qos_for, spin_node
+from controlled_islanding.nodes.pmu_ingestion import declare_bounded, declare_limits
+from controlled_islanding.timebounds import StampError, StampGate
 
 
 class CoherencyNode(Node):
@@ -48,7 +58,22 @@ class CoherencyNode(Node):
         self.band = band if band > 0 else None
         if self.window_s <= 0 or self.min_samples < 2:
             raise NodeSetupError(f'window_s={self.window_s} must be positive and min_samples={self.min_samples} >= 2')
-        self.names: tuple[str, ...] | None = None
+        future_tolerance_s = float(declare_bounded(
+            self, 'future_tolerance_s', 1.0, 0.0, 3600.0,
+            'how far, s, a rotor-angle sample, request or snapshot stamp may lead this node clock (sim time in '
+            'replay); further ahead it is refused (future_stamp)'))
+        self.max_held = int(declare_bounded(
+            self, 'max_held_samples', 1000, 1, 100_000,
+            'samples held while the node clock has not started or no snapshot has come; the oldest is dropped'))
+        self.max_window_samples = int(declare_bounded(
+            self, 'max_window_samples', 10_000, 2, 1_000_000,
+            'samples kept in the window (twice window_s of time tags); beyond it the oldest are dropped'))
+        self.limits = declare_limits(self)
+        self.gate: StampGate[tuple[str, object]] = StampGate(future_tolerance_s, self.max_held)
+        self.early: deque[RotorAngles] = deque()  # samples that overtook the snapshot
+        self.snapshot_stamp_s = -math.inf
+        self.names: tuple[str, ...] | None = None  # the snapshot's generators, in window column order
+        self.column: dict[str, int] = {}
         self.buses: list[int] = []
         self.t_s: list[float] = []
         self.angles: list[np.ndarray] = []  # NaN where invalid
@@ -58,38 +83,126 @@ class CoherencyNode(Node):
         self.pending: list[tuple[IslandingRequest, float]] = []
         self.diag = Diagnostics(self)
         self.pub = self.create_publisher(CoherentGroups, topics.COHERENT_GROUPS, qos_for(topics.COHERENT_GROUPS))
-        self.create_subscription(RotorAngles, topics.ROTOR_ANGLES, self.on_angles, qos_for(topics.ROTOR_ANGLES))
-        self.create_subscription(IslandingRequest, topics.ISLANDING_REQUEST, self.on_request,
+        self.create_subscription(NetworkSnapshot, topics.NETWORK_SNAPSHOT, self.diag.guard(self.on_snapshot),
+                                 qos_for(topics.NETWORK_SNAPSHOT))
+        self.create_subscription(RotorAngles, topics.ROTOR_ANGLES, self.diag.guard(self.on_angles),
+                                 qos_for(topics.ROTOR_ANGLES))
+        self.create_subscription(IslandingRequest, topics.ISLANDING_REQUEST, self.diag.guard(self.on_request),
                                  qos_for(topics.ISLANDING_REQUEST))
         steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self.create_timer(float(self.get_parameter('period_s').value), self.on_period, clock=steady)
+        self.create_timer(float(self.get_parameter('period_s').value), self.diag.guard(self.on_period), clock=steady)
         # Polls for the wait deadlines only while a request waits (no 100 Hz wake-ups when idle).
-        self.pending_timer = self.create_timer(0.01, self._serve_pending, clock=steady)
+        self.pending_timer = self.create_timer(0.01, self.diag.guard(self._serve_pending), clock=steady)
+
+    def _now_s(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _admit(self, what: str, t: float, item: tuple[str, object]) -> None:
+        """Use an input now, hold it for a clock that has not started, or refuse it as future-stamped."""
+        try:
+            usable = self.gate.offer(what, t, self._now_s(), item)
+        except StampError as exc:
+            self.diag.reject(exc.reason, str(exc))
+            return
+        if usable:
+            self._use(item)
+        else:
+            self.diag.values['held_for_clock'] = str(self.gate.held)
+            self.diag.values['dropped_before_clock'] = str(self.gate.dropped_while_held)
+
+    def _use(self, item: tuple[str, object]) -> None:
+        kind, msg = item
+        if kind == 'snapshot':
+            self._take_snapshot(msg)
+        elif kind == 'angles':
+            self._take_angles(msg)
+        else:
+            self._take_request(msg)
+
+    def _release(self) -> None:
+        """Judge held inputs, in arrival order, once the node clock runs."""
+        if self.gate.held:
+            self.gate.release(self._now_s(), self._use, lambda exc: self.diag.reject(exc.reason, str(exc)))
+            self.diag.values['held_for_clock'] = str(self.gate.held)
+
+    def on_snapshot(self, msg: NetworkSnapshot) -> None:
+        """Take the generator set from a snapshot, once its stamp is within bounds."""
+        self._release()
+        self._admit('network snapshot', stamp_s(msg.header.stamp), ('snapshot', msg))
+
+    def _take_snapshot(self, msg: NetworkSnapshot) -> None:
+        try:
+            grid = grid_from_snapshot(msg, self.limits)
+        except MessageError as exc:
+            self.diag.reject(exc.reason, f'network snapshot: {exc}')
+            return
+        t = stamp_s(msg.header.stamp)
+        if t < self.snapshot_stamp_s:
+            self.diag.reject('time_backwards', f'network snapshot stamped {t:.3f} s, older than the one held '
+                                               f'({self.snapshot_stamp_s:.3f} s)')
+            return
+        self.snapshot_stamp_s = t
+        bus_of = {g.name: g.bus for g in grid.generators}
+        if self.names is None or set(self.names) != set(bus_of):
+            if self.names is not None:
+                # Samples of another generator set cannot share a DTW window with the new one.
+                self.get_logger().info(f'generator set changed ({len(self.names)} -> {len(bus_of)}); window reset')
+                self.diag.values['window_resets'] = str(int(self.diag.values.get('window_resets', 0)) + 1)
+            self.names = tuple(g.name for g in grid.generators)
+            self.column = {n: i for i, n in enumerate(self.names)}
+            self.t_s, self.angles, self.dirty = [], [], False
+            self.computed_end_s, self.late_inserts_before_s = -1.0, -1.0
+        self.buses = [bus_of[n] for n in self.names]
+        while self.early:
+            self._take_angles(self.early.popleft())
 
     def on_angles(self, msg: RotorAngles) -> None:
-        """Insert one sample into the window, after checking it."""
+        """Check one sample's shape and stamp; use it, hold it, or refuse it."""
         self.diag.arrived()
+        self._release()
         n = len(msg.generator_names)
         lengths = (len(msg.generator_buses), len(msg.angle_rad), len(msg.valid))
         if n == 0:
             self.diag.reject('empty_message', 'rotor angles name no generator')
             return
+        if n > self.limits.max_generators:
+            self.diag.reject('too_large', f'rotor angles name {n} generators, more than '
+                                          f'max_generators={self.limits.max_generators}')
+            return
         if any(x != n for x in lengths):
             self.diag.reject('array_length', f'rotor angles: {n} names but buses/angles/valid have {lengths}')
             return
-        names = tuple(msg.generator_names)
-        if self.names is not None and names != self.names:
-            self.diag.reject('unknown_id', f'rotor angles for generators {names}, expected {self.names}')
+        t = stamp_s(msg.header.stamp)
+        if t <= 0:
+            self.diag.reject('missing_stamp', 'rotor angles header.stamp is zero')
+            return
+        self._admit('rotor angles', t, ('angles', msg))
+
+    def _take_angles(self, msg: RotorAngles) -> None:
+        """Insert one sample, within time bounds, into the window, after checking its generators and values."""
+        if self.names is None:
+            self.early.append(msg)
+            if len(self.early) > self.max_held:
+                self.early.popleft()
+                self.diag.reject('no_data', f'more than max_held_samples={self.max_held} rotor-angle samples '
+                                            'before any network snapshot: generator set unknown')
+            return
+        names = [str(x) for x in msg.generator_names]
+        cols = [self.column.get(x, -1) for x in names]
+        if -1 in cols or len(set(cols)) != len(cols) or len(cols) != len(self.names):
+            unknown = sorted(set(names) - set(self.column))[:5]
+            missing = sorted(set(self.column) - set(names))[:5]
+            self.diag.reject('unknown_id', f'rotor angles name generators {names[:5]}...: not those of the network '
+                                           f'snapshot (unknown {unknown}, missing {missing}, or named twice)')
             return
         angles = np.asarray(msg.angle_rad, dtype=float)
         valid = np.asarray(msg.valid, dtype=bool)
         if not np.all(np.isfinite(angles[valid])):
             self.diag.reject('nan_value', 'rotor angles marked valid hold NaN or inf')
             return
+        row = np.full(len(self.names), np.nan)
+        row[cols] = np.where(valid, angles, np.nan)
         t = stamp_s(msg.header.stamp)
-        if t <= 0:
-            self.diag.reject('missing_stamp', 'rotor angles header.stamp is zero')
-            return
         if self.t_s and t < self.t_s[-1] - self.max_sample_age_s:
             self.diag.reject('time_backwards', f'sample at {t:.3f} s is {self.t_s[-1] - t:.3f} s older than '
                                                f'the newest; more than max_sample_age_s={self.max_sample_age_s}')
@@ -98,14 +211,13 @@ class CoherencyNode(Node):
         if i < len(self.t_s) and self.t_s[i] == t:
             self.diag.reject('duplicate', f'a sample at {t:.6f} s is already held')
             return
-        if self.names is None:
-            self.names, self.buses = names, [int(b) for b in msg.generator_buses]
         if t <= self.computed_end_s:
             self.late_inserts_before_s = max(self.late_inserts_before_s, t)
         self.t_s.insert(i, t)
-        self.angles.insert(i, np.where(valid, angles, np.nan))
+        self.angles.insert(i, row)
         # Keep twice the window: a request stamped a little in the past still finds its whole window.
         cut = bisect.bisect_left(self.t_s, self.t_s[-1] - 2 * self.window_s)
+        cut = max(cut, len(self.t_s) - self.max_window_samples)
         if cut:
             del self.t_s[:cut], self.angles[:cut]
         self.dirty = True
@@ -113,11 +225,16 @@ class CoherencyNode(Node):
             self._serve_pending()
 
     def on_request(self, msg: IslandingRequest) -> None:
-        """Queue a request; it is served once data up to its stamp is in (or the wait ends)."""
+        """Check a request's stamp; queue it, hold it, or refuse it."""
+        self._release()
         t = stamp_s(msg.header.stamp)
         if not msg.request_id or t <= 0:
             self.diag.reject('empty_message', 'islanding request without request_id or stamp')
             return
+        self._admit('islanding request', t, ('request', msg))
+
+    def _take_request(self, msg: IslandingRequest) -> None:
+        """Queue a request; it is served once data up to its stamp is in (or the wait ends)."""
         self.pending.append((msg, time.monotonic() + self.request_wait_s))
         self.pending_timer.reset()
         self._serve_pending()
@@ -144,7 +261,8 @@ class CoherencyNode(Node):
         return self.late_inserts_before_s >= 0 and self.late_inserts_before_s <= t
 
     def on_period(self) -> None:
-        """Recompute on new data, so the groups are warm when a request comes."""
+        """Judge inputs held for the clock; recompute on new data, so the groups are warm when a request comes."""
+        self._release()
         if self.dirty and not self.pending:
             self._compute(self.t_s[-1])
 
