@@ -45,6 +45,7 @@ class Branch:
         to_bus: Bus number of the to end.
         in_service: False once tripped.
         x_pu: Series reactance, pu on the system base (NaN if unknown).
+        breaker_id: The breaker that opens this branch, when the data names one.
 
     """
 
@@ -53,6 +54,12 @@ class Branch:
     to_bus: int
     in_service: bool = True
     x_pu: float = float('nan')
+    breaker_id: str = ''
+
+    @property
+    def breaker(self) -> str:
+        """Return the breaker id: the one the data names, else one breaker per branch, 'CB-<branch_id>'."""
+        return self.breaker_id or f'CB-{self.branch_id}'
 
 
 @dataclass(frozen=True)

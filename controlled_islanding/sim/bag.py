@@ -91,7 +91,7 @@ def _snapshot_msg(m: _Messages, grid: Grid, stamp_ns: int) -> Any:
     return m.new(
         'NetworkSnapshot', header=m.header(stamp_ns, 'andes_power_flow'), case_name=grid.name,
         base_mva=float(grid.base_mva), bus_numbers=np.array(grid.buses, dtype=np.uint32),
-        branch_ids=[b.branch_id for b in grid.branches],
+        branch_ids=[b.branch_id for b in grid.branches], branch_breaker_ids=[b.breaker for b in grid.branches],
         branch_from_bus=np.array([b.from_bus for b in grid.branches], dtype=np.uint32),
         branch_to_bus=np.array([b.to_bus for b in grid.branches], dtype=np.uint32),
         branch_in_service=np.array([b.in_service for b in grid.branches], dtype=bool),
