@@ -13,9 +13,11 @@ QoS per topic (reliable everywhere: a lost request, decision or command is a los
 
 from __future__ import annotations
 
+import functools
 import gc
 import importlib
 import time
+import traceback
 from collections import Counter, deque
 from collections.abc import Callable
 
@@ -92,6 +94,8 @@ class Diagnostics:
         self.compute_last_s = 0.0
         self.compute_max_s = 0.0
         self.values: dict[str, str] = {}
+        self.errors: Counter[str] = Counter()
+        self.faults: dict[str, str] = {}
         self._last_log_s: dict[str, float] = {}
         self._last_publish_s = 0.0
         self._timer = node.create_timer(period_s, self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME))
@@ -119,6 +123,35 @@ class Diagnostics:
         if now - self._last_publish_s >= 0.1:
             self.publish()
 
+    def guard(self, callback: Callable[..., object]) -> Callable[..., object]:
+        """Wrap a callback so that an unexpected exception is logged with its traceback and counted, never fatal.
+
+        The count is `error.<callback name>` in /diagnostics, and the level is ERROR while any is counted: an
+        exception escaping a callback is a bug or an input no validator foresaw, and the node must go on.
+        """
+        key = getattr(callback, '__name__', 'callback')
+
+        @functools.wraps(callback)
+        def guarded(*args: object, **kwargs: object) -> object:
+            try:
+                return callback(*args, **kwargs)
+            except Exception:  # noqa: BLE001  the whole point: nothing from one input may end the process
+                self.errors[key] += 1
+                self._node.get_logger().error(f'{key} failed ({self.errors[key]} so far):\n{traceback.format_exc()}')
+                self.publish()
+                return None
+
+        return guarded
+
+    def fault(self, key: str, detail: str | None) -> None:
+        """Raise (detail given) or clear (None) a lasting condition that keeps the level at ERROR."""
+        if detail is None:
+            self.faults.pop(key, None)
+        elif self.faults.get(key) != detail:
+            self.faults[key] = detail
+            self._node.get_logger().error(f'{key}: {detail}')
+            self.publish()
+
     def computed(self, seconds: float) -> None:
         """Record one compute time in s."""
         self.compute_last_s = seconds
@@ -132,7 +165,10 @@ class Diagnostics:
     def publish(self) -> None:
         """Publish one DiagnosticStatus for this node."""
         self._last_publish_s = time.monotonic()
-        level = DiagnosticStatus.WARN if self.rejects else DiagnosticStatus.OK
+        if self.faults or self.errors:
+            level = DiagnosticStatus.ERROR
+        else:
+            level = DiagnosticStatus.WARN if self.rejects else DiagnosticStatus.OK
         pairs = {
             'input_rate_hz': f'{self.input_rate_hz():.1f}',
             'received': str(self.received),
@@ -141,10 +177,18 @@ class Diagnostics:
             'compute_time_max_ms': f'{self.compute_max_s * 1e3:.3f}',
         }
         pairs.update({f'rejected.{k}': str(v) for k, v in sorted(self.rejects.items())})
+        pairs.update({f'error.{k}': str(v) for k, v in sorted(self.errors.items())})
+        pairs.update({f'fault.{k}': v for k, v in sorted(self.faults.items())})
         pairs.update(self.values)
+        if self.faults:
+            message = '; '.join(f'{k}: {v}' for k, v in sorted(self.faults.items()))
+        elif self.errors:
+            message = f'{sum(self.errors.values())} callback errors'
+        else:
+            message = f'{sum(self.rejects.values())} inputs rejected' if self.rejects else 'ok'
         status = DiagnosticStatus(
             level=level, name=self._node.get_fully_qualified_name(), hardware_id='controlled_islanding',
-            message=f'{sum(self.rejects.values())} inputs rejected' if self.rejects else 'ok',
+            message=message,
             values=[KeyValue(key=k, value=v) for k, v in pairs.items()])
         array = DiagnosticArray(status=[status])
         array.header.stamp = self._node.get_clock().now().to_msg()
