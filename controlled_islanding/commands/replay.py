@@ -8,7 +8,7 @@ import os
 import statistics
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -70,6 +70,9 @@ class Observation:
     commands: list[tuple[float, object]] = field(default_factory=list)
     groups: list = field(default_factory=list)
     diagnostics: dict[str, dict[str, str]] = field(default_factory=dict)
+    heartbeats_s: dict[str, float] = field(default_factory=dict)  # node -> arrival of its newest diagnostics
+    restarts: list = field(default_factory=list)  # supervisor.RestartRecord, as the supervisor records them
+    hangs: list = field(default_factory=list)  # supervisor.HangRecord
 
 
 def _say(quiet: bool, text: str) -> None:
@@ -109,7 +112,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
 
     from controlled_islanding.node_common import qos_for, settle_heap
     from controlled_islanding.rosenv import isolated_ros_environment
-    from controlled_islanding.supervisor import GRAPH, PLAYER, RECORDER, Supervisor, SupervisorError
+    from controlled_islanding.supervisor import GRAPH, PIPELINE_POLICY, PLAYER, RECORDER, Supervisor, SupervisorError
 
     bag_topics = _bag_topics(bag)
     n_requests = bag_topics.get(topics.ISLANDING_REQUEST, 0)
@@ -143,6 +146,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
         def on_diag(msg: DiagnosticArray) -> None:
             for status in msg.status:
                 obs.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
+                obs.heartbeats_s[status.name] = time.monotonic()
 
         node.create_subscription(IslandingRequest, topics.ISLANDING_REQUEST, on_request,
                                  qos_for(topics.ISLANDING_REQUEST))
@@ -155,7 +159,8 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
         probe_pub = node.create_publisher(IslandingRequest, topics.ISLANDING_REQUEST, qos_for(topics.ISLANDING_REQUEST))
         report_file = results / 'player_report.json'
         try:
-            with Supervisor(env, logs) as sup:
+            with Supervisor(env, logs, PIPELINE_POLICY) as sup:
+                obs.restarts, obs.hangs = sup.restarts, sup.hangs
                 sim = {'use_sim_time': True}
                 for spec in GRAPH:
                     audit = {'audit_log': results / 'breaker_audit.jsonl'}
@@ -198,7 +203,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 done_at = None
                 while time.monotonic() < deadline:
                     spin_for(0.01)
-                    sup.check_alive([s.executable for s in GRAPH])
+                    sup.supervise(obs.heartbeats_s)
                     bag_done = player.poll() is not None
                     if bag_done and player.returncode != 0:
                         raise CliError(f'bag_player failed:\n{sup.log_tail("bag_player")}')
@@ -306,8 +311,21 @@ def summarize(bag: Path, results: Path, obs: Observation, report: dict) -> dict:
             'samples': latencies},
         'replay': report,
         'diagnostics_rejects': {k: v for k, v in rejects.items() if any(x != '0' for x in v.values())},
+        'restarts': [asdict(r) for r in obs.restarts], 'hangs': [asdict(h) for h in obs.hangs],
     })
     return out
+
+
+def graph_failure(summary: dict) -> str | None:
+    """Return one line naming every pipeline node that died or hung during the replay, else None.
+
+    A decision from a graph that lost a node, even one restarted in time, may rest on state the node lost.
+    """
+    if not summary.get('restarts'):
+        return None
+    what = [f'{r["name"]} {"hung" if r["cause"] == "hung" else "exited with status " + str(r["exit_status"])}'
+            f'{" (restarted)" if r["new_pid"] else ""}' for r in summary['restarts']]
+    return f'graph not healthy during the replay: {"; ".join(what)}; see restarts in summary.json and the node logs'
 
 
 def render(summary: dict) -> str:
@@ -321,6 +339,8 @@ def render(summary: dict) -> str:
         lines.append('NO DECISION: see the dropped inputs below and the node logs')
         lines += [f'dropped inputs at {name}: ' + ', '.join(f'{k}={v}' for k, v in rejects.items())
                   for name, rejects in summary['diagnostics_rejects'].items()]
+        if graph_failure(summary):
+            lines.append(f'FAILED: {graph_failure(summary)}')
         lines.append(f'results: {summary["results_dir"]}')
         return '\n'.join(lines)
     split = f'SPLIT into {summary["n_islands"]} islands' if summary['split'] else 'no split'
@@ -347,6 +367,8 @@ def render(summary: dict) -> str:
                      f'({rep["speed_vs_real_time"]:.1f}x real time)')
     for name, rejects in summary['diagnostics_rejects'].items():
         lines.append(f'dropped inputs at {name}: ' + ', '.join(f'{k}={v}' for k, v in rejects.items()))
+    if graph_failure(summary):
+        lines.append(f'FAILED: {graph_failure(summary)}')
     lines.append(f'results: {summary["results_dir"]}')
     return '\n'.join(lines)
 
@@ -445,18 +467,23 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(summary, default=str))
     else:
         print(render(summary))
+    if graph_failure(summary):
+        if args.json:  # render() already said it on stdout otherwise
+            print(f'replay: FAILED: {graph_failure(summary)}', file=sys.stderr)
+        return 1
     return 1 if summary['split'] is None or summary['undecided_requests'] else 0
 
 
 def _run_repeated(args: argparse.Namespace) -> int:
     stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
     base = (args.results or REPO / 'results' / f'bench-{args.bag.name}-{stamp}').resolve()
-    latencies, speeds, outcomes = [], [], set()
+    latencies, speeds, outcomes, failures = [], [], set(), []
     for i in range(args.repeat):
         summary = replay(args.bag, base / f'run-{i}', fast=args.fast, rate=args.rate, probe_hz=args.probe_hz,
                          timeout_s=args.timeout, figures=False, quiet=True, arm=not args.disarmed,
                          record=not args.no_record)
         outcomes.add((summary['split'], tuple(sorted(summary.get('cut_branch_ids', [])))))
+        failures.append(graph_failure(summary))
         latencies += summary['latency_ms']['samples']  # the bag's requests and any --probe-hz ones
         if summary['replay']:
             speeds.append(summary['replay']['speed_vs_real_time'])
@@ -481,4 +508,7 @@ def _run_repeated(args: argparse.Namespace) -> int:
         if spd['median'] is not None:
             print(f'speed against real time: median {spd["median"]:.1f}x, slowest {spd["min"]:.1f}x')
         print(f'results: {base}')
-    return 0 if len(outcomes) == 1 else 1
+    for i, failure in enumerate(failures):
+        if failure:
+            print(f'replay {i + 1}/{args.repeat}: FAILED: {failure}', file=sys.stderr)
+    return 0 if len(outcomes) == 1 and not any(failures) else 1
