@@ -30,6 +30,8 @@ class RestartPolicy:
         restart_window_s: Restarts older than this no longer count towards the budget nor the backoff, s.
         hang_timeout_s: A node whose newest heartbeat is older than this is hung, s.
         startup_grace_s: A node that has not sent its first heartbeat this long after its start is hung, s.
+        max_step_gap_s: Steps further apart than this mean the supervisor itself stalled; it then judges no
+            hang until it has watched for hang_timeout_s again, s.
 
     """
 
@@ -41,11 +43,12 @@ class RestartPolicy:
     restart_window_s: float = 60.0
     hang_timeout_s: float = 5.0
     startup_grace_s: float = 20.0
+    max_step_gap_s: float = 1.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, 'nodes', frozenset(self.nodes))
         for name in ('backoff_initial_s', 'backoff_max_s', 'restart_window_s', 'hang_timeout_s',
-                     'startup_grace_s'):
+                     'startup_grace_s', 'max_step_gap_s'):
             if not getattr(self, name) > 0:
                 raise WatchdogError(f'{name} must be positive, got {getattr(self, name)}')
         if self.backoff_factor < 1:
@@ -113,6 +116,8 @@ class Watchdog:
     def __init__(self, policy: RestartPolicy) -> None:
         self.policy = policy
         self._watches: dict[str, _Watch] = {}
+        self._last_step_s: float | None = None
+        self._watching_since_s = 0.0
 
     def watched(self) -> list[str]:
         """Return the names being watched now (started, not stopped on purpose, not given up on)."""
@@ -148,6 +153,12 @@ class Watchdog:
 
         """
         actions: list[Action] = []
+        # Heartbeats arrive through the supervising process: if it stalled, their silence is its own, not
+        # the nodes', and killing the whole graph for it would turn one slow moment into a failed run.
+        if self._last_step_s is None or now_s - self._last_step_s > self.policy.max_step_gap_s:
+            self._watching_since_s = now_s
+        self._last_step_s = now_s
+        judging = now_s - self._watching_since_s > self.policy.hang_timeout_s
         for name, watch in list(self._watches.items()):
             if watch.gave_up:
                 continue
@@ -164,6 +175,8 @@ class Watchdog:
             # A heartbeat older than the start came from the process this one replaced.
             if beat is not None and beat >= watch.started_s:
                 watch.heartbeat_s = beat
+            if not judging:
+                continue
             if watch.heartbeat_s is None:
                 silent_s = now_s - watch.started_s
                 if silent_s > self.policy.startup_grace_s:

@@ -61,38 +61,59 @@ def test_a_node_stopped_on_purpose_is_forgotten():
     assert dog.step(100.0, {'coherency': 0}, {}) == []
 
 
+def watch_over(dog: Watchdog, start_s: float, end_s: float, exits, beats, step_s: float = 0.1):
+    """Step every step_s from start_s to end_s with beats(t) as the heartbeats; return (time, action) pairs."""
+    seen = []
+    for i in range(round((end_s - start_s) / step_s) + 1):
+        t_s = start_s + i * step_s
+        seen += [(t_s, a) for a in dog.step(t_s, exits, beats(t_s))]
+    return seen
+
+
 def test_a_silent_node_is_hung_after_its_heartbeat_timeout_and_restarted_under_the_same_backoff():
     dog = Watchdog(POLICY)
     dog.started('coherency', 0.0)
     dog.started('partitioning', 0.0)
-    beats = {'coherency': 3.0, 'partitioning': 3.0}
-    assert dog.step(8.0, RUNNING, beats) == []
-    beats['partitioning'] = 7.5
-    hung = dog.step(8.1, RUNNING, beats)
-    assert kinds(hung) == [(ActionKind.KILL, 'coherency')]
-    assert hung[0].silent_s == pytest.approx(5.1) and hung[0].restart_in_s == 0.5 and 'hung' in hung[0].reason
+    # coherency beats until 3 s and then falls silent; partitioning beats every second throughout.
+    beats = lambda t_s: {'coherency': min(3.0, float(int(t_s))), 'partitioning': float(int(t_s))}  # noqa: E731
+    seen = watch_over(dog, 0.0, 8.5, RUNNING, beats)
+    assert [(t, a.kind, a.name) for t, a in seen] == [(pytest.approx(8.1), ActionKind.KILL, 'coherency')]
+    hung = seen[0][1]
+    assert hung.silent_s == pytest.approx(5.1) and hung.restart_in_s == 0.5 and 'hung' in hung.reason
     # Killed, it is down: its exit is not a second failure, and no second kill follows.
-    assert dog.step(8.2, {**RUNNING, 'coherency': -9}, beats) == []
-    assert kinds(dog.step(8.6, {**RUNNING, 'coherency': -9}, beats)) == [(ActionKind.RESTART, 'coherency')]
+    assert watch_over(dog, 8.2, 8.5, {**RUNNING, 'coherency': -9}, beats) == []
+    assert kinds(dog.step(8.61, {**RUNNING, 'coherency': -9}, beats(8.61))) == [(ActionKind.RESTART, 'coherency')]
     dog.started('coherency', 8.6)
-    # The old heartbeat (3.0) belongs to the killed process: the new one gets the start-up grace.
-    assert dog.step(8.6 + 19.9, RUNNING, {**beats, 'partitioning': 28.0}) == []
-    again = dog.step(8.6 + 20.1, RUNNING, {**beats, 'partitioning': 28.0})
-    assert kinds(again) == [(ActionKind.KILL, 'coherency')] and again[0].restart_in_s == 1.0
-    assert 'no heartbeat' in again[0].reason
+    # The old heartbeat (3 s) belongs to the killed process: the new one gets the start-up grace.
+    seen = watch_over(dog, 9.0, 29.0, RUNNING, beats)
+    assert [(t, a.kind, a.name) for t, a in seen] == [(pytest.approx(28.7), ActionKind.KILL, 'coherency')]
+    assert seen[0][1].restart_in_s == 1.0 and 'no heartbeat' in seen[0][1].reason
+
+
+def test_a_stalled_supervisor_does_not_take_its_own_silence_for_hung_nodes():
+    dog = Watchdog(POLICY)
+    dog.started('coherency', 0.0)
+    beats = lambda t_s: {'coherency': 1.0}  # noqa: E731  the heartbeats stop coming, as if the nodes hung
+    assert watch_over(dog, 0.0, 2.0, RUNNING, beats) == []
+    # Ten seconds without a step: the supervisor could not have heard anything, and must watch again first.
+    assert dog.step(12.0, RUNNING, beats(12.0)) == []
+    seen = watch_over(dog, 12.1, 17.5, RUNNING, beats)
+    assert [(t, a.kind) for t, a in seen] == [(pytest.approx(17.1), ActionKind.KILL)]
+    assert seen[0][1].silent_s == pytest.approx(16.1)
 
 
 def test_a_hung_node_over_its_budget_is_still_killed_but_not_restarted():
     dog = Watchdog(RestartPolicy(nodes=frozenset({'coherency'}), max_restarts=0, hang_timeout_s=2.0,
                                  startup_grace_s=1.0))
     dog.started('coherency', 0.0)
-    hung = dog.step(1.5, {'coherency': None}, {})
-    assert kinds(hung) == [(ActionKind.KILL, 'coherency')] and hung[0].gave_up
-    assert dog.step(10.0, {'coherency': -9}, {}) == []
+    seen = watch_over(dog, 0.0, 3.0, {'coherency': None}, lambda t_s: {})
+    assert [(t, a.kind) for t, a in seen] == [(pytest.approx(2.1), ActionKind.KILL)] and seen[0][1].gave_up
+    assert watch_over(dog, 3.0, 10.0, {'coherency': -9}, lambda t_s: {}) == []
 
 
 @pytest.mark.parametrize('bad', [{'backoff_initial_s': 0.0}, {'backoff_factor': 0.5}, {'max_restarts': -1},
-                                 {'hang_timeout_s': 1.0}, {'startup_grace_s': -1.0}, {'restart_window_s': 0.0}])
+                                 {'hang_timeout_s': 1.0}, {'startup_grace_s': -1.0}, {'restart_window_s': 0.0},
+                                 {'max_step_gap_s': 0.0}])
 def test_a_policy_that_cannot_work_is_refused(bad):
     with pytest.raises(WatchdogError):
         RestartPolicy(nodes=frozenset({'coherency'}), **bad)
