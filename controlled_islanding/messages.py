@@ -112,6 +112,10 @@ def grid_from_snapshot(msg: object, limits: Limits = Limits()) -> Grid:
     _parallel(msg, 'snapshot generators', ('generator_names', 'generator_bus', 'generator_p_mw',
                                            'generator_p_max_mw', 'generator_xq_pu', 'generator_ra_pu'))
     _parallel(msg, 'snapshot loads', ('load_bus', 'load_p_mw', 'load_q_mvar'))
+    breakers = [str(x) for x in msg.branch_breaker_ids] or [''] * len(msg.branch_ids)
+    if len(breakers) != len(msg.branch_ids):
+        raise MessageError('array_length', f'branch_breaker_ids has {len(msg.branch_breaker_ids)} entries for '
+                                           f'{len(msg.branch_ids)} branches; give one per branch or none')
     p_from = _finite(msg.branch_p_from_mw, 'branch_p_from_mw')
     p_to = _finite(msg.branch_p_to_mw, 'branch_p_to_mw')
     gen_p = _finite(msg.generator_p_mw, 'generator_p_mw')
@@ -129,8 +133,8 @@ def grid_from_snapshot(msg: object, limits: Limits = Limits()) -> Grid:
     try:
         return Grid(
             name=str(msg.case_name), base_mva=base, buses=tuple(int(b) for b in msg.bus_numbers),
-            branches=tuple(Branch(str(i), int(f), int(t), bool(s)) for i, f, t, s in zip(
-                msg.branch_ids, msg.branch_from_bus, msg.branch_to_bus, msg.branch_in_service, strict=True)),
+            branches=tuple(Branch(str(i), int(f), int(t), bool(s), breaker_id=c) for i, f, t, s, c in zip(
+                msg.branch_ids, msg.branch_from_bus, msg.branch_to_bus, msg.branch_in_service, breakers, strict=True)),
             generators=tuple(Generator(str(n), int(b), float(p), float(pm), float(x), float(r)) for n, b, p, pm, x, r in
                              zip(msg.generator_names, msg.generator_bus, gen_p, gen_p_max, xq, ra, strict=True)),
             loads=tuple(Load(int(b), float(p), float(q))

@@ -224,7 +224,7 @@ def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
 
     if not ss.PFlow.run() or not ss.PFlow.converged:
         raise SimulationError(f'{where}: the ANDES power flow of {scenario.case.name} did not converge')
-    grid = _snapshot(ss, scenario, bus_numbers, ids, pairs, midline_off)
+    grid = _snapshot(ss, scenario.case.name, bus_numbers, ids, pairs, midline_off)
 
     tds = ss.TDS
     tds.config.tstep = scenario.step_s
@@ -327,7 +327,37 @@ def _split_line(ss: Any, row: int, new_bus: int, position: float) -> int:
     return new_bus
 
 
-def _snapshot(ss: Any, scenario: Scenario, bus_numbers: list[int], ids: list[str], pairs: list[tuple[int, int]],
+def power_flow_grid(case: str | Path, addfile: str | Path | None = None) -> Grid:
+    """Return an ANDES case's network after its power flow, as the core Grid a snapshot would carry.
+
+    Args:
+        case: A case file, or a case bundled with ANDES such as 'ieee14/ieee14_full.xlsx'.
+        addfile: A dynamic data file for a PSS/E .raw case (its .dyr).
+
+    Raises:
+        SimulationError: ANDES cannot read the case, or its buses are not numbered.
+
+    """
+    import andes
+
+    andes.config_logger(stream_level=logging.CRITICAL)
+    path = Path(case) if Path(case).exists() else Path(andes.get_case(str(case)))
+    pycode = pycode_dir()
+    pycode.mkdir(parents=True, exist_ok=True)
+    extra = {'addfile': str(Path(path).parent / addfile)} if addfile else {}
+    ss = andes.load(str(path), setup=True, no_output=True, default_config=True, pycode_path=str(pycode), **extra)
+    if ss is None:
+        raise SimulationError(f'ANDES cannot read {case}')
+    ss.PFlow.run()
+    try:
+        bus_numbers = [int(b) for b in ss.Bus.idx.v]
+    except (TypeError, ValueError):
+        raise SimulationError(f'{case}: bus idx are not bus numbers, e.g. {ss.Bus.idx.v[:3]}') from None
+    pairs = [(int(a), int(b)) for a, b in zip(ss.Line.bus1.v, ss.Line.bus2.v, strict=True)]
+    return _snapshot(ss, path.name, bus_numbers, branch_ids(pairs), pairs, [])
+
+
+def _snapshot(ss: Any, case_name: str, bus_numbers: list[int], ids: list[str], pairs: list[tuple[int, int]],
               midline_off: list[int]) -> Grid:
     mva = float(ss.config.mva)
     line = ss.Line
@@ -378,7 +408,7 @@ def _snapshot(ss: Any, scenario: Scenario, bus_numbers: list[int], ids: list[str
                                         ra_pu=float(r)))
     loads = tuple(Load(bus=int(b), p_mw=float(p) * mva, q_mvar=float(q) * mva)
                   for b, p, q, u in zip(ss.PQ.bus.v, ss.PQ.p0.v, ss.PQ.q0.v, ss.PQ.u.v, strict=True) if u)
-    name = scenario.case.name
+    name = case_name
     for suffix in ('.xlsx', '.json', '.raw', '.m'):
         name = name.removesuffix(suffix)
     return Grid(name=name, base_mva=mva, buses=tuple(bus_numbers), branches=branches,

