@@ -24,6 +24,7 @@ from collections.abc import Callable
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -233,8 +234,9 @@ def spin_node(factory: Callable[[], Node], args: list[str] | None = None,
             run(node, executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except NodeSetupError as exc:
-        print(f'error: {exc}', flush=True)
+    except (NodeSetupError, ParameterException) as exc:
+        print(f'error: {type(exc).__name__}: {exc}' if isinstance(exc, ParameterException) else f'error: {exc}',
+              flush=True)
         status = 1
     finally:
         if node is not None:

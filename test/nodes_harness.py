@@ -8,6 +8,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import rclpy
+from breaker_cases import made_test_keys
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
@@ -99,6 +100,8 @@ def graph(name: str, specs_and_overrides: list) -> Iterator[tuple[Supervisor, Pr
 
     """
     with isolated_ros_environment(BUILD / 'ros_log' / name) as env:
+        # Nodes that sign or check signatures use keys this test run made, never the user's own.
+        env = {**env, 'CONTROLLED_ISLANDING_KEYS': str(made_test_keys())}
         with Supervisor(env, BUILD / 'test_nodes' / name / f'{time.time_ns()}') as sup:
             for spec, overrides in specs_and_overrides:
                 sup.start(spec, overrides)

@@ -110,10 +110,15 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.signals import SignalHandlerOptions
 
+    from controlled_islanding import signing
     from controlled_islanding.node_common import qos_for, settle_heap
     from controlled_islanding.rosenv import isolated_ros_environment
     from controlled_islanding.supervisor import GRAPH, PIPELINE_POLICY, PLAYER, RECORDER, Supervisor, SupervisorError
 
+    # The demo and replays sign with the user's keys, made on first use, outside the repository.
+    key_dir = signing.default_key_dir()
+    signing.init_keys(key_dir)
+    operator_key = signing.load_private_key(signing.key_paths(key_dir, 'operator').private)
     bag_topics = _bag_topics(bag)
     n_requests = bag_topics.get(topics.ISLANDING_REQUEST, 0)
     played = [t for t in bag_topics if t not in topics.TRUTH_TOPICS] + [topics.CLOCK]
@@ -162,9 +167,10 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
             with Supervisor(env, logs, PIPELINE_POLICY) as sup:
                 obs.restarts, obs.hangs = sup.restarts, sup.hangs
                 sim = {'use_sim_time': True}
+                extra = {'breaker_command': {'audit_log': results / 'breaker_audit.jsonl', 'key_dir': key_dir},
+                         'partitioning': {'key_dir': key_dir}}
                 for spec in GRAPH:
-                    audit = {'audit_log': results / 'breaker_audit.jsonl'}
-                    sup.start(spec, {**sim, **(audit if spec.executable == 'breaker_command' else {})})
+                    sup.start(spec, {**sim, **extra.get(spec.executable, {})})
                 if record:
                     sup.start(RECORDER, {**sim, 'output': results / 'output_bag'})
                 _say(quiet, f'replay: started {len(GRAPH)} nodes{" and the recorder" if record else ""} '
@@ -173,9 +179,12 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 if not arm_client.wait_for_service(timeout_sec=20.0):
                     sup.check_alive()
                     raise CliError('breaker_command did not offer /breaker_command/set_armed within 20 s')
-                future = arm_client.call_async(SetArmed.Request(armed=arm))
-                if not spin_for(10.0, future.done) or future.result().armed != arm:
-                    raise CliError(f'breaker_command did not switch to armed={arm}')
+                request = signing.signed_arm_request(SetArmed.Request(), operator_key, '/breaker_command', arm,
+                                                     time.time())
+                future = arm_client.call_async(request)
+                if not spin_for(10.0, future.done) or not future.result().accepted or future.result().armed != arm:
+                    why = future.result().message if future.done() else 'no answer within 10 s'
+                    raise CliError(f'breaker_command did not switch to armed={arm}: {why}')
                 _say(quiet, f'replay: breaker_command {"armed" if arm else "left disarmed"}; playing the bag')
                 # The player starts once every subscriber now in the graph (this observer included) matches it.
                 # The graph is wired once every internal topic has a writer and a reader, and nothing changed
@@ -255,6 +264,7 @@ def _decision_dict(request_id: str, obs: Observation) -> dict:
     return {
         'request_id': request_id, 'request_stamp_s': msg.request_stamp.sec + msg.request_stamp.nanosec * 1e-9,
         'decision_id': msg.decision_id, 'method': msg.method, 'split': bool(msg.split),
+        'status': status_name(msg.status), 'status_detail': msg.status_detail,
         'n_islands': len(islands), 'islands': islands, 'cut_branch_ids': list(msg.cut_branch_ids),
         'disrupted_mw': msg.disrupted_mw,
         'breaker_commands': [{'command_id': c.command_id, 'breaker_id': c.breaker_id, 'branch_id': c.branch_id,
@@ -263,6 +273,20 @@ def _decision_dict(request_id: str, obs: Observation) -> dict:
         'latency_request_to_decision_ms': (t_dec - t_req) * 1e3 if t_req is not None else None,
         'partitioning_compute_ms': msg.compute_time_s * 1e3,
     }
+
+
+def status_name(status: int) -> str:
+    """Return the IslandingDecision STATUS_* name of a status value, without the prefix."""
+    from controlled_islanding_msgs.msg import IslandingDecision
+
+    names = {getattr(IslandingDecision, n): n[len('STATUS_'):] for n in dir(IslandingDecision)
+             if n.startswith('STATUS_')}
+    return names.get(int(status), f'UNKNOWN_{int(status)}')
+
+
+def refused(summary: dict) -> bool:
+    """Return whether the decision is a refusal (the graph could not decide), not a split or no split."""
+    return str(summary.get('status', '')).startswith('REFUSED') or summary.get('status') == 'UNSET'
 
 
 def _groups_dict(obs: Observation, request_stamp: object | None) -> dict:
@@ -339,6 +363,12 @@ def render(summary: dict) -> str:
         lines.append('NO DECISION: see the dropped inputs below and the node logs')
         lines += [f'dropped inputs at {name}: ' + ', '.join(f'{k}={v}' for k, v in rejects.items())
                   for name, rejects in summary['diagnostics_rejects'].items()]
+        if graph_failure(summary):
+            lines.append(f'FAILED: {graph_failure(summary)}')
+        lines.append(f'results: {summary["results_dir"]}')
+        return '\n'.join(lines)
+    if refused(summary):
+        lines.append(f'decision: {summary["status"]}: {summary.get("status_detail", "")}')
         if graph_failure(summary):
             lines.append(f'FAILED: {graph_failure(summary)}')
         lines.append(f'results: {summary["results_dir"]}')
@@ -471,7 +501,7 @@ def run(args: argparse.Namespace) -> int:
         if args.json:  # render() already said it on stdout otherwise
             print(f'replay: FAILED: {graph_failure(summary)}', file=sys.stderr)
         return 1
-    return 1 if summary['split'] is None or summary['undecided_requests'] else 0
+    return 1 if summary['split'] is None or summary['undecided_requests'] or refused(summary) else 0
 
 
 def _run_repeated(args: argparse.Namespace) -> int:

@@ -1,36 +1,55 @@
-"""breaker_command: turn islanding decisions into breaker open commands, under an arm switch and an audit log.
+"""breaker_command: the only part of the graph that acts on the grid. Signed decisions in, breaker commands out.
 
-Rules, in the order they are checked for each decision (the first that fails refuses the whole decision,
-because opening only some of the cut lines does not form the intended islands):
-1. a decision id is executed at most once (a repeat is refused as 'duplicate');
-2. the decision must be well formed and stamped, and not older than `max_decision_age_s` on this node's clock;
-3. the node must be armed (SetArmed service; `armed` parameter at start);
-4. every cut branch must map to a breaker in `breakers_file`.
-Every command and every refusal is appended to `audit_log` as one JSON line and fsync'ed BEFORE the command
-is published, so the log never misses a command that reached the field.
+It follows the remedial-action-scheme yardstick: no misoperation, and no single failure causes one. The rules,
+in the order they are checked, are listed in docs/nodes.md ("Breaker rules"), each with the test that proves
+it. In short: a decision is executed only if it is signed by the decision key, new (never handled before,
+even before a restart: the audit log is read back at start-up), answers a request that is fresh on this
+node's clock, the node is armed by a signed operator request, and its cut is exactly the set of in-service
+branches between its islands in the network this node holds, within `max_breakers`, with generation in
+every island. Then every breaker is commanded once, after one fsync'ed audit record that lists them all.
+If the audit log cannot be read or written, nothing is commanded and diagnostics say ERROR.
+
+Arming is a state visible to standard ROS tools as the read-only parameter `armed`. A lifecycle node was
+the alternative (active = armed), but its change_state service is unauthenticated: anyone on the domain
+could arm through it. So arming stays a signed service and the node always starts disarmed.
 """
 
 from __future__ import annotations
 
-import json
-import os
+import math
 import sys
 import time
 from pathlib import Path
 
 import yaml
-from controlled_islanding_msgs.msg import BreakerCommand, IslandingDecision
+from controlled_islanding_msgs.msg import BranchStatus, BreakerCommand, IslandingDecision
+from controlled_islanding_msgs.msg import NetworkSnapshot as NetworkSnapshotMsg
 from controlled_islanding_msgs.srv import SetArmed
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 
-from controlled_islanding import topics
-from controlled_islanding.messages import stamp_s
+from controlled_islanding import signing, topics
+from controlled_islanding.actuation import Refusal, plan_commands
+from controlled_islanding.audit import AuditError, AuditLog
+from controlled_islanding.messages import Limits, MessageError, grid_from_snapshot, stamp_s
 from controlled_islanding.node_common import Diagnostics, NodeSetupError, qos_for, spin_node
 from controlled_islanding.supervisor import config_dir
+from controlled_islanding.timebounds import StampError, StampGate
+from controlled_islanding.topology import Topology, TopologyError
+
+_MAX_ID_CHARS = 128
+_NOT_DECIDED = {
+    IslandingDecision.STATUS_REFUSED_STALE_GROUPS: 'stale groups',
+    IslandingDecision.STATUS_REFUSED_NO_SNAPSHOT: 'no snapshot',
+    IslandingDecision.STATUS_REFUSED_TOPOLOGY_PENDING: 'topology pending',
+    IslandingDecision.STATUS_REFUSED_FAILED: 'failed',
+}
 
 
 def load_breaker_map(path: str | Path) -> dict[str, str]:
-    """Read a breakers file: a YAML mapping `breakers: {branch_id: breaker_id}`.
+    """Read an optional override file: a YAML mapping `breakers: {branch_id: breaker_id}`.
 
     Raises:
         NodeSetupError: The file is missing, not YAML, or not a mapping of strings.
@@ -46,129 +65,339 @@ def load_breaker_map(path: str | Path) -> dict[str, str]:
     return {str(k): str(v) for k, v in table.items()}
 
 
-class AuditLog:
-    """Append-only JSON-lines file; every record is fsync'ed before append() returns."""
-
-    def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-
-    def append(self, record: dict) -> None:
-        """Write one record as a JSON line and fsync it."""
-        os.write(self._fd, (json.dumps(record, sort_keys=True) + '\n').encode())
-        os.fsync(self._fd)
-
-    def close(self) -> None:
-        """Close the file."""
-        os.close(self._fd)
+def _descriptor(text: str, low: float | None = None, high: float | None = None, integer: bool = False,
+                ) -> ParameterDescriptor:
+    # Every parameter is read-only: anyone on the domain can call the standard SetParameters service, and
+    # none of these may be loosened at run time.
+    desc = ParameterDescriptor(description=text, read_only=True)
+    if low is not None and integer:
+        desc.integer_range = [IntegerRange(from_value=int(low), to_value=int(high), step=1)]
+    elif low is not None:
+        desc.floating_point_range = [FloatingPointRange(from_value=low, to_value=high, step=0.0)]
+    return desc
 
 
 class BreakerCommandNode(Node):
-    """Executes islanding decisions as breaker commands, at most once each, only while armed."""
+    """Executes signed islanding decisions as breaker commands, at most once each, only while armed."""
 
     def __init__(self) -> None:
         super().__init__('breaker_command')
-        self.declare_parameter('breakers_file', '')
-        self.declare_parameter('audit_log', 'breaker_audit.jsonl')
-        self.declare_parameter('armed', False)
-        self.declare_parameter('max_decision_age_s', 1.0)
-        breakers_file = self.get_parameter('breakers_file').value
-        if not breakers_file:
-            raise NodeSetupError('parameter breakers_file is empty; it must name a YAML branch -> breaker map')
-        if not Path(breakers_file).is_absolute():
-            breakers_file = config_dir() / breakers_file
-        self.breakers = load_breaker_map(breakers_file)
-        self.max_age_s = float(self.get_parameter('max_decision_age_s').value)
-        self.armed = bool(self.get_parameter('armed').value)
-        self.audit = AuditLog(self.get_parameter('audit_log').value)
-        self.seen: set[str] = set()
-        self.diag = Diagnostics(self)
-        self.diag.values['armed'] = str(self.armed)
-        self.pub = self.create_publisher(BreakerCommand, topics.BREAKER_COMMANDS, qos_for(topics.BREAKER_COMMANDS))
-        self.create_subscription(IslandingDecision, topics.ISLANDING_DECISION, self.on_decision,
-                                 qos_for(topics.ISLANDING_DECISION))
-        self.create_service(SetArmed, '~/set_armed', self.on_set_armed)
-        self.get_logger().info(f'{len(self.breakers)} breakers mapped, armed={self.armed}, audit={self.audit.path}')
+        self._armed_descriptor = _descriptor('true while armed; read-only: arm and disarm through the signed '
+                                             '~/set_armed service. The node always starts disarmed.')
+        self.declare_parameter('armed', False, self._armed_descriptor, ignore_override=True)
+        self.declare_parameter('breakers_file', '', _descriptor(
+            'optional YAML {breakers: {branch_id: breaker_id}} overriding the snapshot breaker ids; a relative '
+            'path is relative to config/'))
+        self.declare_parameter('audit_log', 'breaker_audit.jsonl', _descriptor(
+            'append-only JSON lines, fsync per record; read back at start-up so a restart never repeats a command'))
+        self.declare_parameter('key_dir', '', _descriptor(
+            'directory with partitioning.pub (decisions) and operator.pub (arm/disarm); empty = '
+            '$CONTROLLED_ISLANDING_KEYS or ~/.config/controlled_islanding/keys'))
+        self.declare_parameter('max_decision_age_s', 1.0, _descriptor(
+            'refuse a decision whose request is older than this on the node clock, s', 0.001, 3600.0))
+        self.declare_parameter('future_tolerance_s', 1.0, _descriptor(
+            'refuse stamps further than this ahead of the node clock, s', 0.0, 60.0))
+        self.declare_parameter('max_arm_request_age_s', 30.0, _descriptor(
+            'refuse an arm/disarm request signed longer ago than this on the wall clock, s', 0.1, 3600.0))
+        self.declare_parameter('max_breakers', 20, _descriptor(
+            'the most breakers one decision may open', 1, 100000, integer=True))
+        self.declare_parameter('max_remembered_decisions', 100000, _descriptor(
+            'decision ids kept in memory; beyond, ids too old to pass the age rule are forgotten', 100, 10**7,
+            integer=True))
+        self.declare_parameter('max_buses', Limits().max_buses, _descriptor(
+            'largest network snapshot or island map accepted, buses', 2, 10**7, integer=True))
+        p = {name: self.get_parameter(name).value for name in (
+            'breakers_file', 'audit_log', 'key_dir', 'max_decision_age_s', 'future_tolerance_s',
+            'max_arm_request_age_s', 'max_breakers', 'max_remembered_decisions', 'max_buses')}
+        self.max_age_s = float(p['max_decision_age_s'])
+        self.future_tolerance_s = float(p['future_tolerance_s'])
+        self.max_arm_age_s = float(p['max_arm_request_age_s'])
+        self.max_breakers = int(p['max_breakers'])
+        self.max_remembered = int(p['max_remembered_decisions'])
+        self.limits = Limits(max_buses=int(p['max_buses']))
+        self.override: dict[str, str] = {}
+        if p['breakers_file']:
+            path = Path(p['breakers_file'])
+            self.override = load_breaker_map(path if path.is_absolute() else config_dir() / path)
+        key_dir = Path(p['key_dir']) if p['key_dir'] else signing.default_key_dir()
+        try:
+            self.decision_key = signing.load_public_key(signing.key_paths(key_dir, 'partitioning').public)
+            self.operator_key = signing.load_public_key(signing.key_paths(key_dir, 'operator').public)
+        except signing.SigningError as exc:
+            raise NodeSetupError(f'{exc} (make keys with: controlled-islanding keys init {key_dir})') from exc
+        self.decision_key_id = signing.fingerprint(self.decision_key)
+        self.operator_key_id = signing.fingerprint(self.operator_key)
 
-    def _record(self, event: str, decision: IslandingDecision | None = None, **fields: str) -> None:
-        record = {'event': event, 'wall_time_s': time.time(), 'ros_time_s': self.get_clock().now().nanoseconds * 1e-9}
-        if decision is not None:
-            record.update(decision_id=decision.decision_id, request_id=decision.request_id)
-        record.update(fields)
-        self.audit.append(record)
+        self.armed = False
+        self.diag = Diagnostics(self)
+        self.diag.values['armed'] = 'false'
+        self.audit: AuditLog | None = None
+        try:
+            self.audit = AuditLog(p['audit_log'])
+        except AuditError as exc:
+            self.diag.fault('audit', f'{exc}; nothing will be commanded')
+        self.topology = Topology(future_tolerance_s=self.future_tolerance_s)
+        self.gate: StampGate = StampGate(self.future_tolerance_s, max_held=200)
+        self.reclosed_s: dict[str, float] = {}  # breaker id -> newest in-service stamp of its branch, s
+        self.pub = self.create_publisher(BreakerCommand, topics.BREAKER_COMMANDS, qos_for(topics.BREAKER_COMMANDS))
+        self.create_subscription(IslandingDecision, topics.ISLANDING_DECISION, self.diag.guard(self.on_decision),
+                                 qos_for(topics.ISLANDING_DECISION))
+        self.create_subscription(NetworkSnapshotMsg, topics.NETWORK_SNAPSHOT, self.diag.guard(self.on_snapshot),
+                                 qos_for(topics.NETWORK_SNAPSHOT))
+        self.create_subscription(BranchStatus, topics.BRANCH_STATUS, self.diag.guard(self.on_branch_status),
+                                 qos_for(topics.BRANCH_STATUS))
+        self.create_service(SetArmed, '~/set_armed', self.diag.guard(self.on_set_armed))
+        self.create_timer(0.2, self.diag.guard(self._release_held), clock=Clock(clock_type=ClockType.STEADY_TIME))
+        if self.audit is not None:
+            state = self.audit.state
+            self._record('start', records_read=state.records, decisions_known=len(state.decisions),
+                         breakers_commanded=len(state.commanded), repaired_tail=state.repaired_tail)
+        self.get_logger().info(f'disarmed; audit {p["audit_log"]}; decision key {self.decision_key_id}, '
+                               f'operator key {self.operator_key_id}; {len(self.override)} breaker overrides')
+
+    # --- time and records ---------------------------------------------------------------------------------------
+    def _now_s(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _record(self, event: str, **fields: object) -> bool:
+        """Append an audit record; on failure raise the audit fault and return False (nothing may be commanded)."""
+        if self.audit is None:
+            return False
+        record = {'event': event, 'wall_time_s': time.time(), 'ros_time_s': self._now_s(), **fields}
+        try:
+            self.audit.append(record)
+        except AuditError as exc:
+            self.audit.close()
+            self.audit = None
+            self.diag.fault('audit', f'{exc}; nothing will be commanded until the log is fixed and the node '
+                                     f'restarted')
+            return False
+        return True
+
+    def _refuse(self, reason: str, detail: str, **fields: object) -> None:
+        self._record('refusal', reason=reason, detail=detail, **fields)
+        self.diag.reject(reason, detail)
+
+    # --- network ------------------------------------------------------------------------------------------------
+    def on_snapshot(self, msg: NetworkSnapshotMsg) -> None:
+        """Hold the network the decisions are checked against."""
+        self.diag.arrived()
+        try:
+            grid = grid_from_snapshot(msg, self.limits)
+            stamp = stamp_s(msg.header.stamp)
+            if self.gate.offer('network snapshot', stamp, self._now_s(), ('snapshot', grid, stamp)):
+                self._apply(('snapshot', grid, stamp))
+        except (MessageError, StampError, TopologyError) as exc:
+            self.diag.reject(exc.reason, f'network snapshot: {exc}')
+
+    def on_branch_status(self, msg: BranchStatus) -> None:
+        """Follow trips and reclosures."""
+        self.diag.arrived()
+        item = ('status', str(msg.branch_id), bool(msg.in_service), stamp_s(msg.header.stamp))
+        try:
+            if self.gate.offer(f'branch {msg.branch_id} status', item[3], self._now_s(), item):
+                self._apply(item)
+        except (StampError, TopologyError) as exc:
+            self.diag.reject(exc.reason, str(exc))
+
+    def _apply(self, item: tuple) -> None:
+        if item[0] == 'snapshot':
+            self.topology.offer_snapshot(item[1], item[2], self._now_s())
+            self.diag.values['buses'] = str(len(item[1].buses))
+            return
+        _, branch_id, in_service, stamp = item
+        self.topology.offer_status(branch_id, in_service, stamp, self._now_s())
+        if in_service and self.topology.snapshot is not None:
+            branch = next(b for b in self.topology.snapshot.branches if b.branch_id == branch_id)
+            breaker = self.override.get(branch_id) or branch.breaker
+            self.reclosed_s[breaker] = max(self.reclosed_s.get(breaker, 0.0), stamp)
+
+    def _release_held(self) -> None:
+        def refuse(exc: StampError) -> None:
+            self.diag.reject(exc.reason, str(exc))
+
+        def use(item: tuple) -> None:
+            try:
+                self._apply(item)
+            except TopologyError as exc:
+                self.diag.reject(exc.reason, str(exc))
+
+        self.gate.release(self._now_s(), use, refuse)
+
+    def _open_breakers(self) -> set[str]:
+        assert self.audit is not None
+        return {b for b, (_, t) in self.audit.state.commanded.items() if self.reclosed_s.get(b, -math.inf) <= t}
+
+    # --- arming -------------------------------------------------------------------------------------------------
+    def _set_armed(self, armed: bool) -> None:
+        self.armed = armed
+        self.diag.values['armed'] = str(armed).lower()
+        # Read-only for everyone else; the node itself updates it with the descriptor it declared (rclpy skips
+        # the read-only check only when the descriptor is given, which is what this private call does).
+        self._set_parameters_atomically_common([Parameter('armed', Parameter.Type.BOOL, armed)],
+                                               descriptors={'armed': self._armed_descriptor})
+
+    def _check_arm(self, request: SetArmed.Request) -> str:
+        if request.action not in (SetArmed.Request.ACTION_ARM, SetArmed.Request.ACTION_DISARM):
+            raise Refusal('unset_action', f'action={request.action}: neither ACTION_ARM (1) nor ACTION_DISARM (2)')
+        if request.key_id != self.operator_key_id:
+            raise Refusal('unknown_key', f'signed by key {request.key_id[:32]!r}, not the operator key '
+                                         f'{self.operator_key_id}')
+        try:
+            signing.verify(self.operator_key, signing.arm_payload(request, self.get_fully_qualified_name()),
+                           request.signature)
+        except signing.SigningError as exc:
+            raise Refusal(exc.reason, str(exc)) from exc
+        now_s, stamp = time.time(), stamp_s(request.stamp)
+        if not 0 < len(request.nonce) <= _MAX_ID_CHARS:
+            raise Refusal('bad_value', f'nonce must have 1 to {_MAX_ID_CHARS} characters')
+        if stamp > now_s + self.future_tolerance_s:
+            raise Refusal('future_stamp', f'arm request stamped {stamp - now_s:.3f} s ahead of the wall clock')
+        if now_s - stamp > self.max_arm_age_s:
+            raise Refusal('stale', f'arm request signed {now_s - stamp:.3f} s ago, more than '
+                                   f'max_arm_request_age_s={self.max_arm_age_s}')
+        nonces = self.audit.state.nonces if self.audit is not None else {}
+        if request.nonce in nonces:
+            raise Refusal('replay', f'nonce {request.nonce!r} was used before')
+        for old in [n for n, s in nonces.items() if now_s - s > self.max_arm_age_s + self.future_tolerance_s]:
+            del nonces[old]  # they can never pass the age rule again
+        return 'armed' if request.action == SetArmed.Request.ACTION_ARM else 'disarmed'
 
     def on_set_armed(self, request: SetArmed.Request, response: SetArmed.Response) -> SetArmed.Response:
-        """Arm or disarm; audited."""
-        self.armed = bool(request.armed)
-        self.diag.values['armed'] = str(self.armed)
-        self._record('armed' if self.armed else 'disarmed')
-        response.armed = self.armed
-        response.message = 'armed: decisions will be executed' if self.armed else 'disarmed: nothing is commanded'
+        """Arm or disarm on a signed operator request; disarm takes effect even when the audit log is broken."""
+        try:
+            event = self._check_arm(request)
+        except Refusal as exc:
+            self._refuse(exc.reason, f'arm/disarm request: {exc}', nonce=request.nonce[:_MAX_ID_CHARS])
+            response.accepted, response.armed, response.message = False, self.armed, f'refused ({exc.reason}): {exc}'
+            return response
+        if event == 'disarmed':
+            self._set_armed(False)  # before the record: a broken log must never keep the node armed
+            self._record(event, nonce=request.nonce, stamp_s=stamp_s(request.stamp), key_id=request.key_id)
+            response.accepted, response.armed, response.message = True, False, 'disarmed: nothing is commanded'
+        elif self._record(event, nonce=request.nonce, stamp_s=stamp_s(request.stamp), key_id=request.key_id):
+            self._set_armed(True)
+            response.accepted, response.armed, response.message = True, True, 'armed: valid decisions are executed'
+        else:
+            self.diag.reject('audit_unavailable', 'arm request: the audit log cannot be written')
+            response.accepted, response.armed = False, False
+            response.message = f'refused (audit_unavailable): {self.diag.faults.get("audit", "no audit log")}'
         self.get_logger().info(response.message)
         return response
 
-    def _refuse(self, decision: IslandingDecision, reason: str, detail: str) -> None:
-        self._record('refusal', decision, reason=reason, detail=detail)
-        self.diag.reject(reason, f'decision {decision.decision_id!r}: {detail}')
+    # --- decisions ----------------------------------------------------------------------------------------------
+    def _authenticate(self, msg: IslandingDecision) -> None:
+        if len(msg.bus_numbers) > self.limits.max_buses or len(msg.cut_branch_ids) > 4 * self.max_breakers:
+            raise Refusal('too_large', f'{len(msg.bus_numbers)} buses and {len(msg.cut_branch_ids)} cut entries')
+        if msg.key_id != self.decision_key_id:
+            raise Refusal('unknown_key', f'signed by key {msg.key_id[:32]!r}, not the decision key '
+                                         f'{self.decision_key_id}')
+        try:
+            signing.verify(self.decision_key, signing.decision_payload(msg), msg.signature)
+        except signing.SigningError as exc:
+            raise Refusal(exc.reason, str(exc)) from exc
+        if not 0 < len(msg.decision_id) <= _MAX_ID_CHARS:
+            raise Refusal('bad_value', f'decision_id must have 1 to {_MAX_ID_CHARS} characters')
 
-    def _check(self, decision: IslandingDecision) -> tuple[str, str] | None:
-        if not decision.decision_id:
-            return 'empty_message', 'decision_id is empty'
-        if decision.decision_id in self.seen:
-            return 'duplicate', 'already handled; a decision is executed at most once'
-        n = len(decision.cut_branch_ids)
-        if len(decision.cut_from_bus) != n or len(decision.cut_to_bus) != n:
-            return 'array_length', (f'{n} cut_branch_ids but {len(decision.cut_from_bus)} cut_from_bus and '
-                                    f'{len(decision.cut_to_bus)} cut_to_bus')
-        if decision.split and n == 0:
-            return 'empty_message', 'split is true but there are no cut branches'
-        made_s = stamp_s(decision.header.stamp)
-        if made_s <= 0.0:
-            return 'missing_stamp', 'header.stamp is zero'
-        age_s = self.get_clock().now().nanoseconds * 1e-9 - made_s
-        if age_s > self.max_age_s:
-            return 'stale', f'made {age_s:.3f} s ago, more than max_decision_age_s={self.max_age_s}'
-        if age_s < -self.max_age_s:
-            return 'time_backwards', f'stamped {-age_s:.3f} s in the future of this node clock'
-        return None
+    def _check(self, msg: IslandingDecision, request_s: float) -> None:
+        if msg.status not in _NOT_DECIDED and msg.status not in (IslandingDecision.STATUS_SPLIT,
+                                                                  IslandingDecision.STATUS_NO_SPLIT):
+            raise Refusal('unset_status', f'status={msg.status} is not a decision status')
+        if msg.split != (msg.status == IslandingDecision.STATUS_SPLIT):
+            raise Refusal('inconsistent_status', f'split={msg.split} but status={msg.status}')
+        now_s = self._now_s()
+        if request_s <= 0:
+            raise Refusal('missing_stamp', 'request_stamp is zero')
+        if now_s <= 0:
+            raise Refusal('no_clock', 'this node clock has not started (no /clock yet)')
+        if request_s - now_s > self.future_tolerance_s:
+            raise Refusal('future_stamp', f'request stamped {request_s - now_s:.3f} s ahead of this node clock')
+        if now_s - request_s > self.max_age_s:
+            raise Refusal('stale', f'request made {now_s - request_s:.3f} s ago, more than '
+                                   f'max_decision_age_s={self.max_age_s}')
 
-    def on_decision(self, decision: IslandingDecision) -> None:
-        """Validate a decision and, when armed and valid, command and audit each cut breaker."""
+    def _forget_old(self) -> None:
+        assert self.audit is not None
+        known = self.audit.state.decisions
+        if len(known) < self.max_remembered:
+            return
+        horizon_s = self._now_s() - self.max_age_s - self.future_tolerance_s
+        for decision_id in [d for d, s in known.items() if s < horizon_s]:
+            del known[decision_id]  # too old to pass the age rule again
+        if len(known) >= self.max_remembered:
+            raise Refusal('overloaded', f'{len(known)} fresh decision ids held, max_remembered_decisions='
+                                        f'{self.max_remembered}')
+
+    def on_decision(self, msg: IslandingDecision) -> None:
+        """Check a decision against every rule; command its breakers only if all hold."""
         t0 = time.perf_counter()
         self.diag.arrived()
-        problem = self._check(decision)
-        if problem is None or problem[0] != 'duplicate':
-            self.seen.add(decision.decision_id)
-        if problem is not None:
-            self._refuse(decision, *problem)
+        ids = {'decision_id': msg.decision_id[:_MAX_ID_CHARS], 'request_id': msg.request_id[:_MAX_ID_CHARS]}
+        if self.audit is None:
+            self.diag.reject('audit_unavailable', f'decision {ids["decision_id"]!r}: '
+                                                  f'{self.diag.faults.get("audit", "no audit log")}')
             return
-        if not decision.split:
-            self._record('no_split', decision)
+        try:
+            self._authenticate(msg)
+        except Refusal as exc:
+            self._refuse(exc.reason, f'decision {ids["decision_id"]!r}: {exc}', authenticated=False, **ids)
+            return
+        request_s = stamp_s(msg.request_stamp)
+        if msg.decision_id in self.audit.state.decisions:
+            self.diag.reject('duplicate', f'decision {msg.decision_id!r} was handled before')
+            self._record('refusal', reason='duplicate', **ids)
+            return
+        seen = {'authenticated': True, 'request_stamp_s': request_s, **ids}
+        try:
+            self._forget_old()
+            self._check(msg, request_s)
+        except Refusal as exc:
+            self._refuse(exc.reason, f'decision {msg.decision_id!r}: {exc}', **seen)
+            return
+        if msg.status == IslandingDecision.STATUS_NO_SPLIT:
+            self._record('no_split', **seen)
+            return
+        if msg.status in _NOT_DECIDED:
+            self._record('not_decided', status=int(msg.status), detail=msg.status_detail[:500], **seen)
             return
         if not self.armed:
-            self._refuse(decision, 'not_armed', 'node is disarmed; call ~/set_armed to arm it')
+            self._refuse('not_armed', f'decision {msg.decision_id!r}: node is disarmed', **seen)
             return
-        unknown = [b for b in decision.cut_branch_ids if b not in self.breakers]
-        if unknown:
-            self._refuse(decision, 'unknown_breaker', f'no breaker mapped for branches {", ".join(unknown)}')
+        try:
+            grid, _ = self.topology.grid_at(self._now_s())
+        except TopologyError:
+            self._refuse('no_snapshot', f'decision {msg.decision_id!r}: no network snapshot to check it against',
+                         **seen)
+            return
+        try:
+            plan = plan_commands(grid, msg.bus_numbers, msg.bus_island, msg.cut_branch_ids, msg.cut_from_bus,
+                                 msg.cut_to_bus, max_breakers=self.max_breakers,
+                                 open_breakers=self._open_breakers(), breaker_override=self.override)
+        except Refusal as exc:
+            self._refuse(exc.reason, f'decision {msg.decision_id!r}: {exc}', **seen)
+            return
+        commands = [{'command_id': f'{msg.decision_id}/{c.breaker_id}', 'breaker_id': c.breaker_id,
+                     'branch_id': c.branch_id, 'action': 'open'} for c in plan.commands]
+        # One record for the whole cut, on disk before the first command leaves: a crash can lose commands
+        # but never repeat one, and never leaves a half-recorded cut.
+        if not self._record('command', commands=commands, islands=plan.n_islands, **seen):
+            self.diag.reject('audit_unavailable', f'decision {msg.decision_id!r}: the command record could not '
+                                                  f'be written; nothing commanded')
             return
         stamp = self.get_clock().now().to_msg()
-        for branch_id in decision.cut_branch_ids:
-            breaker_id = self.breakers[branch_id]
-            command = BreakerCommand(command_id=f'{decision.decision_id}/{breaker_id}',
-                                     decision_id=decision.decision_id, breaker_id=breaker_id, branch_id=branch_id,
-                                     action=BreakerCommand.ACTION_OPEN)
-            command.header.stamp = stamp
-            self._record('command', decision, command_id=command.command_id, breaker_id=breaker_id,
-                         branch_id=branch_id, action='open')
-            self.pub.publish(command)
+        for c in commands:
+            out = BreakerCommand(command_id=c['command_id'], decision_id=msg.decision_id, breaker_id=c['breaker_id'],
+                                 branch_id=c['branch_id'], action=BreakerCommand.ACTION_OPEN)
+            out.header.stamp = stamp
+            self.pub.publish(out)
         self.diag.computed(time.perf_counter() - t0)
-        self.get_logger().info(f'decision {decision.decision_id}: opened {len(decision.cut_branch_ids)} breakers')
+        self.get_logger().info(f'decision {msg.decision_id}: opened {len(commands)} breakers '
+                               f'{", ".join(c["breaker_id"] for c in commands)}')
 
     def close(self) -> None:
         """Close the audit log."""
-        self.audit.close()
+        if self.audit is not None:
+            self.audit.close()
 
 
 def main(args: list[str] | None = None) -> int:

@@ -1,35 +1,48 @@
-"""partitioning: on an islanding request, split the current network for the latest coherent groups.
+"""partitioning: on an islanding request, split the network for the coherent groups of the request's time.
 
-The network is the latest snapshot with every branch status change stamped after it applied, in stamp order
-(so the order the two topics arrive in does not matter). A request waits for groups at least as new as the
-request (within `groups_tolerance_s`: the coherency node recomputes on every request), at most
-`groups_wait_s` of wall time, then uses the latest groups it has.
+Every request gets exactly one signed decision, and its `status` says what it is: SPLIT, NO_SPLIT, or why
+there is no answer (REFUSED_STALE_GROUPS, REFUSED_NO_SNAPSHOT, REFUSED_FAILED); never a silent "no split".
 
-To keep the request path short, decisions are cached by (groups, tripped branches): every time new groups
-or a topology change arrive, the decision for them is computed ahead of any request. A request whose fresh
-groups equal the warm ones is answered from the cache.
+Freshness is a precondition: a request stamped T is decided only on groups computed from samples reaching T
+(stamped within `groups_tolerance_s` of T; the coherency node recomputes on every request). The node waits
+at most `groups_wait_s` of wall time for them, then refuses. The network is the latest snapshot with every
+branch status change stamped after it and at or before T (`controlled_islanding.topology`). Every stamp from
+the wire is bounded by the node clock (`future_tolerance_s`), so no single message can become "the newest"
+for good.
+
+To keep the request path short, decisions are cached by (groups, tripped branches): whenever new groups or a
+topology change arrive, the decision for them is computed ahead of any request.
 """
 
 from __future__ import annotations
 
+import bisect
 import sys
 import time
 import uuid
+from collections import OrderedDict, deque
 from dataclasses import dataclass
+from pathlib import Path
 
 from controlled_islanding_msgs.msg import BranchStatus, CoherentGroups, IslandingDecision, IslandingRequest
 from controlled_islanding_msgs.msg import NetworkSnapshot as NetworkSnapshotMsg
 from controlled_islanding_msgs.srv import RequestIslanding
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
-from controlled_islanding import topics
-from controlled_islanding.core.grid import Grid
+from controlled_islanding import signing, topics
 from controlled_islanding.core.islanding import IslandingDecision as Decision
 from controlled_islanding.core.islanding import decide
 from controlled_islanding.core.spectral import ConstrainedSpectralPartition  # noqa: F401  imported now, not mid-request
-from controlled_islanding.messages import Groups, MessageError, grid_from_snapshot, groups_from_msg, stamp_s
-from controlled_islanding.node_common import Diagnostics, qos_for, settle_heap, spin_node
+from controlled_islanding.messages import Groups, Limits, MessageError, grid_from_snapshot, groups_from_msg, stamp_s
+from controlled_islanding.node_common import Diagnostics, NodeSetupError, qos_for, settle_heap, spin_node
+from controlled_islanding.timebounds import StampError, StampGate
+from controlled_islanding.topology import Topology, TopologyError
+
+_KEEP_GROUPS = 16
+_KEEP_ANSWERED = 10_000
+_KEEP_CACHED = 64
 
 
 @dataclass
@@ -40,90 +53,140 @@ class _Pending:
 
 def decision_to_msg(decision: Decision, request: IslandingRequest, method: str, compute_time_s: float,
                     ) -> IslandingDecision:
-    """Encode a core decision as an IslandingDecision message answering a request."""
+    """Encode a core decision as an (unsigned) IslandingDecision message answering a request."""
     buses = sorted(decision.bus_island)
-    msg = IslandingDecision(
+    return IslandingDecision(
         decision_id=str(uuid.uuid4()), request_id=request.request_id, request_stamp=request.header.stamp,
-        method=method, split=decision.split, bus_numbers=buses, bus_island=[decision.bus_island[b] for b in buses],
+        method=method, split=decision.split,
+        status=IslandingDecision.STATUS_SPLIT if decision.split else IslandingDecision.STATUS_NO_SPLIT,
+        bus_numbers=buses, bus_island=[decision.bus_island[b] for b in buses],
         cut_branch_ids=[b.branch_id for b in decision.cut_branches],
         cut_from_bus=[b.from_bus for b in decision.cut_branches], cut_to_bus=[b.to_bus for b in decision.cut_branches],
         island_generation_mw=list(decision.island_generation_mw), island_load_mw=list(decision.island_load_mw),
         island_imbalance_mw=list(decision.island_imbalance_mw), island_shed_mw=list(decision.island_shed_mw),
         disrupted_mw=decision.disrupted_mw, compute_time_s=compute_time_s)
-    return msg
+
+
+def _range(text: str, low: float, high: float) -> ParameterDescriptor:
+    return ParameterDescriptor(description=text, read_only=True,
+                               floating_point_range=[FloatingPointRange(from_value=low, to_value=high, step=0.0)])
 
 
 class PartitioningNode(Node):
-    """Keeps the network and the groups; answers islanding requests with decisions."""
+    """Keeps the network and recent groups; answers every islanding request with one signed decision."""
 
     def __init__(self) -> None:
         super().__init__('partitioning')
-        self.declare_parameter('groups_tolerance_s', 0.05)
-        self.declare_parameter('groups_wait_s', 0.5)
-        self.declare_parameter('groups_method', 'dtw')
+        self.declare_parameter('groups_tolerance_s', 0.05, _range(
+            "groups whose newest sample is within this of the request stamp are the request's groups, s", 0.0, 10.0))
+        self.declare_parameter('groups_wait_s', 0.5, _range(
+            "wait at most this long (wall) for the request's groups, then refuse as stale, s", 0.0, 60.0))
+        self.declare_parameter('future_tolerance_s', 1.0, _range(
+            'refuse stamps further than this ahead of the node clock, s', 0.0, 60.0))
+        self.declare_parameter('groups_method', 'dtw', ParameterDescriptor(
+            description='only groups of this coherency method are used', read_only=True))
+        self.declare_parameter('key_dir', '', ParameterDescriptor(
+            description='directory with partitioning.key, the decision signing key; empty = '
+                        '$CONTROLLED_ISLANDING_KEYS or ~/.config/controlled_islanding/keys', read_only=True))
+        self.declare_parameter('max_pending_requests', 100, ParameterDescriptor(
+            description='requests waiting for groups at once; more are refused', read_only=True,
+            integer_range=[IntegerRange(from_value=1, to_value=100000, step=1)]))
         self.tolerance_s = float(self.get_parameter('groups_tolerance_s').value)
         self.wait_s = float(self.get_parameter('groups_wait_s').value)
+        self.future_tolerance_s = float(self.get_parameter('future_tolerance_s').value)
         self.method = str(self.get_parameter('groups_method').value)
-        self.snapshot: Grid | None = None
-        self.snapshot_stamp_s = 0.0
-        self.events: dict[str, tuple[float, bool]] = {}  # branch id -> (stamp s, in service) of its latest change
-        self.groups: Groups | None = None
-        self.cache: dict[tuple, Decision] = {}
+        self.max_pending = int(self.get_parameter('max_pending_requests').value)
+        key_dir = self.get_parameter('key_dir').value
+        key_path = signing.key_paths(Path(key_dir) if key_dir else signing.default_key_dir(), 'partitioning').private
+        try:
+            self.key = signing.load_private_key(key_path)
+        except signing.SigningError as exc:
+            raise NodeSetupError(f'{exc} (make keys with: controlled-islanding keys init {key_path.parent})') from exc
+        self.key_id = signing.fingerprint(self.key)
+        self.topology = Topology(future_tolerance_s=self.future_tolerance_s)
+        self.gate: StampGate = StampGate(self.future_tolerance_s, max_held=1000)
+        self.groups: list[Groups] = []  # recent groups, ordered by stamp
+        self.cache: OrderedDict[tuple, Decision] = OrderedDict()
         self.pending: list[_Pending] = []
-        self.answered: set[str] = set()
+        self.answered: deque[str] = deque(maxlen=_KEEP_ANSWERED)
+        self.answered_set: set[str] = set()
         self.diag = Diagnostics(self)
         self.decision_pub = self.create_publisher(IslandingDecision, topics.ISLANDING_DECISION,
                                                   qos_for(topics.ISLANDING_DECISION))
         self.request_pub = self.create_publisher(IslandingRequest, topics.ISLANDING_REQUEST,
                                                  qos_for(topics.ISLANDING_REQUEST))
-        self.create_subscription(NetworkSnapshotMsg, topics.NETWORK_SNAPSHOT, self.on_snapshot,
+        guard = self.diag.guard
+        self.create_subscription(NetworkSnapshotMsg, topics.NETWORK_SNAPSHOT, guard(self.on_snapshot),
                                  qos_for(topics.NETWORK_SNAPSHOT))
-        self.create_subscription(BranchStatus, topics.BRANCH_STATUS, self.on_branch_status,
+        self.create_subscription(BranchStatus, topics.BRANCH_STATUS, guard(self.on_branch_status),
                                  qos_for(topics.BRANCH_STATUS))
-        self.create_subscription(CoherentGroups, topics.COHERENT_GROUPS, self.on_groups,
+        self.create_subscription(CoherentGroups, topics.COHERENT_GROUPS, guard(self.on_groups),
                                  qos_for(topics.COHERENT_GROUPS))
-        self.create_subscription(IslandingRequest, topics.ISLANDING_REQUEST, self.on_request,
+        self.create_subscription(IslandingRequest, topics.ISLANDING_REQUEST, guard(self.on_request),
                                  qos_for(topics.ISLANDING_REQUEST))
-        self.create_service(RequestIslanding, '~/request', self.on_service)
+        self.create_service(RequestIslanding, '~/request', guard(self.on_service))
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
         # Polls for the wait deadlines only while a request waits (no 100 Hz wake-ups when idle).
-        self.pending_timer = self.create_timer(0.01, self._serve_pending, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.pending_timer = self.create_timer(0.01, guard(self._serve_pending), clock=steady)
+        self.create_timer(0.2, guard(self._release_held), clock=steady)
+        self.get_logger().info(f'signing decisions with key {self.key_id}')
+
+    def _now_s(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
 
     # --- inputs -------------------------------------------------------------------------------------------------
+    def _admit(self, what: str, stamp: float, item: tuple) -> None:
+        """Apply an input now, or hold it while the node clock has not started."""
+        try:
+            if self.gate.offer(what, stamp, self._now_s(), item):
+                self._apply(item)
+        except (StampError, TopologyError) as exc:
+            self.diag.reject(exc.reason, str(exc))
+
+    def _release_held(self) -> None:
+        def use(item: tuple) -> None:
+            try:
+                self._apply(item)
+            except (StampError, TopologyError) as exc:
+                self.diag.reject(exc.reason, str(exc))
+
+        self.gate.release(self._now_s(), use, lambda exc: self.diag.reject(exc.reason, str(exc)))
+
+    def _apply(self, item: tuple) -> None:
+        kind = item[0]
+        if kind == 'snapshot':
+            _, grid, stamp = item
+            self.topology.offer_snapshot(grid, stamp, self._now_s())
+            self.cache.clear()
+            self.diag.values['buses'] = str(len(grid.buses))
+            self._warm_up(grid)
+            self._warm()
+        elif kind == 'status':
+            _, branch_id, in_service, stamp = item
+            self.topology.offer_status(branch_id, in_service, stamp, self._now_s())
+            self._warm()
+        elif kind == 'groups':
+            self._take_groups(item[1])
+        elif kind == 'request':
+            self._queue(item[1])
+
     def on_snapshot(self, msg: NetworkSnapshotMsg) -> None:
-        """Replace the network snapshot."""
+        """Take a new network snapshot."""
         self.diag.arrived()
         try:
-            grid = grid_from_snapshot(msg)
+            grid = grid_from_snapshot(msg, Limits())
         except MessageError as exc:
             self.diag.reject(exc.reason, f'network snapshot: {exc}')
             return
         stamp = stamp_s(msg.header.stamp)
-        if self.snapshot is not None and stamp < self.snapshot_stamp_s:
-            self.diag.reject('time_backwards', f'snapshot stamped {stamp:.3f} s, older than the one held')
-            return
-        self.snapshot, self.snapshot_stamp_s = grid, stamp
-        self.cache.clear()
-        self.diag.values['buses'] = str(len(grid.buses))
-        self._warm_up(grid)
-        self._warm()
+        self._admit('network snapshot', stamp, ('snapshot', grid, stamp))
 
     def on_branch_status(self, msg: BranchStatus) -> None:
         """Record a branch status change."""
         self.diag.arrived()
         stamp = stamp_s(msg.header.stamp)
-        if not msg.branch_id:
-            self.diag.reject('empty_message', 'branch status without branch_id')
-            return
-        if self.snapshot is not None and msg.branch_id not in {b.branch_id for b in self.snapshot.branches}:
-            self.diag.reject('unknown_id', f'branch status for unknown branch {msg.branch_id!r}')
-            return
-        held = self.events.get(msg.branch_id)
-        if held is not None and stamp < held[0]:
-            self.diag.reject('time_backwards', f'branch {msg.branch_id} status stamped {stamp:.3f} s, '
-                                               f'before its last change at {held[0]:.3f} s')
-            return
-        self.events[msg.branch_id] = (stamp, bool(msg.in_service))
-        self._warm()
+        self._admit(f'branch {msg.branch_id[:64]} status', stamp, ('status', str(msg.branch_id), bool(msg.in_service),
+                                                                  stamp))
 
     def on_groups(self, msg: CoherentGroups) -> None:
         """Take new coherent groups; compute their decision ahead of a request."""
@@ -136,68 +199,85 @@ class PartitioningNode(Node):
         if self.method and groups.method != self.method:
             self.diag.reject('unknown_id', f'groups of method {groups.method!r}; this node uses {self.method!r}')
             return
-        if self.groups is not None and groups.stamp_s < self.groups.stamp_s:
-            self.diag.reject('time_backwards', f'groups stamped {groups.stamp_s:.3f} s, older than the ones held')
-            return
-        if self.snapshot is not None:
-            unknown = sorted(set(groups.names) ^ {g.name for g in self.snapshot.generators})
+        self._admit('coherent groups', groups.stamp_s, ('groups', groups))
+
+    def _take_groups(self, groups: Groups) -> None:
+        snapshot = self.topology.snapshot
+        if snapshot is not None:
+            unknown = sorted(set(groups.names) ^ {g.name for g in snapshot.generators})
             if unknown:
-                self.diag.reject('unknown_id', f'groups and network disagree on generators {unknown}')
+                self.diag.reject('unknown_id', f'groups and network disagree on generators {unknown[:10]}')
                 return
-        self.groups = groups
+        # Several recent groupings are kept, each for the requests of its own time: a grouping stamped ahead
+        # (within the tolerance) never hides the honest one a request needs.
+        stamps = [g.stamp_s for g in self.groups]
+        i = bisect.bisect_left(stamps, groups.stamp_s)
+        if i < len(stamps) and stamps[i] == groups.stamp_s:
+            self.groups[i] = groups
+        else:
+            self.groups.insert(i, groups)
+        del self.groups[:-_KEEP_GROUPS]
         self.diag.values['k'] = str(groups.k)
         self._serve_pending()
         self._warm()
 
     def on_request(self, msg: IslandingRequest) -> None:
-        """Queue a request until fresh groups arrive (or the wait ends)."""
+        """Queue a request until its groups arrive (or the wait ends)."""
         self.diag.arrived()
-        if not msg.request_id:
-            self.diag.reject('empty_message', 'islanding request without request_id')
+        if not 0 < len(msg.request_id) <= 128:
+            self.diag.reject('empty_message', 'islanding request without request_id (or longer than 128 characters)')
             return
         if stamp_s(msg.header.stamp) <= 0:
             self.diag.reject('missing_stamp', f'request {msg.request_id}: header.stamp is zero')
             return
-        if msg.request_id in self.answered or any(p.request.request_id == msg.request_id for p in self.pending):
+        self._admit(f'request {msg.request_id}', stamp_s(msg.header.stamp), ('request', msg))
+
+    def _queue(self, msg: IslandingRequest) -> None:
+        if msg.request_id in self.answered_set or any(p.request.request_id == msg.request_id for p in self.pending):
             return  # our own service requests come back on the topic; a repeat is answered once
+        if len(self.pending) >= self.max_pending:
+            self.diag.reject('overloaded', f'request {msg.request_id}: {len(self.pending)} requests already wait '
+                                           f'(max_pending_requests)')
+            return
         self.pending.append(_Pending(msg, time.monotonic() + self.wait_s))
         self.pending_timer.reset()
         self._serve_pending()
 
     def on_service(self, request: RequestIslanding.Request, response: RequestIslanding.Response,
                    ) -> RequestIslanding.Response:
-        """Publish a request on the topic (so the coherency node recomputes too) and queue it."""
-        if self.snapshot is None or self.groups is None:
-            response.accepted = False
-            response.message = 'no network snapshot or coherent groups yet; nothing to decide on'
-            self.diag.reject('no_data', f'service request: {response.message}')
-            return response
-        msg = IslandingRequest(request_id=str(uuid.uuid4()), reason=request.reason)
+        """Publish a request stamped now on the topic (so the coherency node recomputes too) and queue it."""
+        msg = IslandingRequest(request_id=str(uuid.uuid4()), reason=request.reason[:500])
         msg.header.stamp = self.get_clock().now().to_msg()
         if stamp_s(msg.header.stamp) <= 0:
-            msg.header.stamp.sec = max(1, int(self.groups.stamp_s))
+            response.accepted = False
+            response.message = 'this node clock has not started (no /clock yet); nothing to stamp a request with'
+            self.diag.reject('no_clock', f'service request: {response.message}')
+            return response
         self.request_pub.publish(msg)
-        self.on_request(msg)
+        self._queue(msg)
         response.accepted, response.request_id, response.message = True, msg.request_id, 'queued'
         return response
 
     # --- deciding -----------------------------------------------------------------------------------------------
-    def _grid_at(self, t_s: float) -> tuple[Grid, tuple[str, ...]]:
-        assert self.snapshot is not None
-        # Changes stamped at or before the snapshot are already in it.
-        out = tuple(sorted(b for b, (stamp, in_service) in self.events.items()
-                           if self.snapshot_stamp_s < stamp <= t_s and not in_service))
-        return self.snapshot.with_outages(out), out
+    def _groups_for(self, t_s: float) -> Groups | None:
+        """Return the earliest groups whose samples reach t_s (within groups_tolerance_s), if any.
+
+        The earliest, not the newest: a grouping stamped ahead of the honest one (within the clock tolerance)
+        is then never the one a request gets.
+        """
+        return next((g for g in self.groups if g.stamp_s >= t_s - self.tolerance_s), None)
 
     def _decide(self, groups: Groups, t_s: float) -> tuple[Decision, float]:
-        grid, out = self._grid_at(t_s)
+        grid, out = self.topology.grid_at(t_s)
         key = (groups.names, groups.labels, out)
         t0 = time.perf_counter()
         if key not in self.cache:
             self.cache[key] = decide(grid, groups.as_mapping())
+            while len(self.cache) > _KEEP_CACHED:
+                self.cache.popitem(last=False)
         return self.cache[key], time.perf_counter() - t0
 
-    def _warm_up(self, grid: Grid) -> None:
+    def _warm_up(self, grid: object) -> None:
         # The first split pays one-off costs (library set-up, caches) of about 1.5 s here: pay them now, on a
         # trial split of the first generator from the rest, not on the first request.
         if len(grid.generators) < 2:
@@ -212,10 +292,10 @@ class PartitioningNode(Node):
         settle_heap()
 
     def _warm(self) -> None:
-        if self.snapshot is None or self.groups is None or self.pending:
+        if self.topology.snapshot is None or not self.groups or self.pending:
             return
         try:
-            _, seconds = self._decide(self.groups, float('inf'))
+            _, seconds = self._decide(self.groups[-1], float('inf'))
         except Exception as exc:  # a failed warm-up is retried, and reported, when a request needs it
             self.get_logger().warning(f'precomputing the decision failed: {exc}')
             return
@@ -227,36 +307,50 @@ class PartitioningNode(Node):
             return
         now = time.monotonic()
         for item in list(self.pending):
-            req_s = stamp_s(item.request.header.stamp)
-            fresh = self.groups is not None and self.groups.stamp_s >= req_s - self.tolerance_s
-            if not fresh and now < item.deadline:
+            groups = self._groups_for(stamp_s(item.request.header.stamp))
+            if groups is None and now < item.deadline:
                 continue
             self.pending.remove(item)
-            self._answer(item.request, fresh)
+            self._answer(item.request, groups)
 
-    def _answer(self, request: IslandingRequest, fresh: bool) -> None:
-        if self.snapshot is None or self.groups is None:
-            self.diag.reject('no_data', f'request {request.request_id}: no network snapshot or coherent groups '
-                                        f'within groups_wait_s={self.wait_s}')
-            return
-        if not fresh:
-            self.get_logger().warning(f'request {request.request_id}: no groups newer than the request within '
-                                      f'{self.wait_s} s; deciding on groups from {self.groups.stamp_s:.3f} s')
+    def _refusal(self, request: IslandingRequest, status: int, detail: str) -> IslandingDecision:
+        self.diag.fault('last_request', f'request {request.request_id}: {detail}')
+        self.diag.reject('refused', f'request {request.request_id}: {detail}')
+        return IslandingDecision(decision_id=str(uuid.uuid4()), request_id=request.request_id,
+                                 request_stamp=request.header.stamp, method=self.method, status=status,
+                                 status_detail=detail, split=False)
+
+    def _answer(self, request: IslandingRequest, groups: Groups | None) -> None:
         t0 = time.perf_counter()
-        try:
-            decision, _ = self._decide(self.groups, stamp_s(request.header.stamp))
-        except Exception as exc:  # the core's errors name the bad input; the node must keep running
-            self.diag.reject('decision_failed', f'request {request.request_id}: {exc}')
-            return
-        msg = decision_to_msg(decision, request, self.groups.method, time.perf_counter() - t0)
-        now = self.get_clock().now().to_msg()
-        # A decision is never older than its request: under a replayed /clock this node's clock may lag.
-        msg.header.stamp = max(now, request.header.stamp, key=lambda t: (t.sec, t.nanosec))
+        req_s = stamp_s(request.header.stamp)
+        if self.topology.snapshot is None:
+            msg = self._refusal(request, IslandingDecision.STATUS_REFUSED_NO_SNAPSHOT, 'no network snapshot')
+        elif groups is None:
+            held = ', '.join(f'{g.stamp_s:.3f}' for g in self.groups[-3:]) or 'none'
+            msg = self._refusal(request, IslandingDecision.STATUS_REFUSED_STALE_GROUPS,
+                                f'no coherent groups from samples reaching the request stamp {req_s:.3f} s '
+                                f'(groups_tolerance_s={self.tolerance_s}) within groups_wait_s={self.wait_s} '
+                                f'(newest held: {held})')
+        else:
+            try:
+                decision, _ = self._decide(groups, req_s)
+                msg = decision_to_msg(decision, request, groups.method, time.perf_counter() - t0)
+                self.diag.fault('last_request', None)
+            except Exception as exc:  # the core's errors name the bad input; the node must keep running
+                msg = self._refusal(request, IslandingDecision.STATUS_REFUSED_FAILED, f'split failed: {exc}'[:500])
+        msg.compute_time_s = time.perf_counter() - t0
+        now = self.get_clock().now()
+        msg.header.stamp = now.to_msg() if now.nanoseconds > 0 else request.header.stamp
+        msg.key_id = self.key_id
+        msg.signature = signing.sign(self.key, signing.decision_payload(msg))
         self.decision_pub.publish(msg)
-        self.answered.add(request.request_id)
+        if len(self.answered) == self.answered.maxlen:
+            self.answered_set.discard(self.answered[0])
+        self.answered.append(request.request_id)
+        self.answered_set.add(request.request_id)
         self.diag.computed(msg.compute_time_s)
-        self.get_logger().info(f'request {request.request_id}: split={decision.split}, '
-                               f'cut {list(msg.cut_branch_ids)}, {msg.compute_time_s * 1e3:.1f} ms')
+        self.get_logger().info(f'request {request.request_id}: status {msg.status}, cut {list(msg.cut_branch_ids)}, '
+                               f'{msg.compute_time_s * 1e3:.1f} ms')
 
 
 def main(args: list[str] | None = None) -> int:
