@@ -7,8 +7,9 @@ published unless `publish_truth` is set, so the graph under test cannot see the 
 In as-fast-as-possible mode with `lockstep_on_requests` (the default), the player keeps the graph in step at
 each islanding request: before publishing it, it waits until /rotor_angles has caught up with the newest PMU
 frame played; after it, data keeps flowing in bag order (frames delayed past the request still arrive after
-it, as in real time) but /clock stays at the request time until a decision is out, plus `lockstep_settle_s`
-for its consumers to handle it (each wait at most `lockstep_timeout_s`). So the decision sees the data a
+it, as in real time, up to `lockstep_lead_s` of bag time past it) but /clock stays at the request time until a
+decision is out, plus `lockstep_settle_s` for its consumers to handle it (each wait at most
+`lockstep_timeout_s`). So the decision sees the data a
 real-time replay would, and no node sees it as stale on the replayed clock, however loaded the machine is.
 """
 
@@ -49,6 +50,7 @@ class BagPlayerNode(Node):
         self.declare_parameter('lockstep_on_requests', True)
         self.declare_parameter('lockstep_timeout_s', 5.0)
         self.declare_parameter('lockstep_settle_s', 0.1)
+        self.declare_parameter('lockstep_lead_s', 0.5)
         self.declare_parameter('report_file', '')
         self.declare_parameter('clock_min_step_s', 0.0)
         bag = self.get_parameter('bag').value
@@ -61,6 +63,7 @@ class BagPlayerNode(Node):
         self.lockstep = self.afap and bool(self.get_parameter('lockstep_on_requests').value)
         self.lockstep_timeout_s = float(self.get_parameter('lockstep_timeout_s').value)
         self.lockstep_settle_s = float(self.get_parameter('lockstep_settle_s').value)
+        self.lockstep_lead_ns = int(float(self.get_parameter('lockstep_lead_s').value) * 1e9)
         self.report_file = self.get_parameter('report_file').value
         self.clock_step_ns = int(float(self.get_parameter('clock_min_step_s').value) * 1e9)
         publish_truth = bool(self.get_parameter('publish_truth').value)
@@ -158,6 +161,10 @@ class BagPlayerNode(Node):
             if not self.afap:
                 self._spin_until(executor, start + (t_ns - t0_ns) * 1e-9 / self.rate)
             request = topic == topics.ISLANDING_REQUEST
+            if frozen_at_ns is not None and t_ns > frozen_at_ns + self.lockstep_lead_ns:
+                # Nodes refuse stamps far ahead of their clock: data may run ahead of the frozen clock by
+                # lockstep_lead_s, not more, so wait for the decision before going further.
+                self._hold(executor, 'decision', lambda w=waiting_for: self.decisions >= w)
             if self.lockstep and request and last_frame_ns >= 0:
                 self._hold(executor, 'rotor angles up to the newest frame',
                            lambda f=last_frame_ns: self.newest_angle_ns >= f)
