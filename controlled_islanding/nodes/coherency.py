@@ -68,6 +68,9 @@ class CoherencyNode(Node):
         self.max_window_samples = int(declare_bounded(
             self, 'max_window_samples', 10_000, 2, 1_000_000,
             'samples kept in the window (twice window_s of time tags); beyond it the oldest are dropped'))
+        if self.max_window_samples < self.min_samples:
+            raise NodeSetupError(f'max_window_samples={self.max_window_samples} < min_samples={self.min_samples}: '
+                                 'no window could ever be grouped')
         self.limits = declare_limits(self)
         self.gate: StampGate[tuple[str, object]] = StampGate(future_tolerance_s, self.max_held)
         self.early: deque[RotorAngles] = deque()  # samples that overtook the snapshot
