@@ -7,6 +7,7 @@ with its parameters, after a backoff, and the restart is recorded.
 from __future__ import annotations
 
 import ast
+import json
 import os
 import signal
 import subprocess
@@ -18,7 +19,15 @@ from pathlib import Path
 import pytest
 from nodes_harness import graph
 
-from controlled_islanding.supervisor import GRAPH, NodeSpec, Supervisor, SupervisorError, config_dir, node_command
+from controlled_islanding.supervisor import (
+    GRAPH,
+    NodeSpec,
+    RestartRecord,
+    Supervisor,
+    SupervisorError,
+    config_dir,
+    node_command,
+)
 from controlled_islanding.watchdog import RestartPolicy, Watchdog
 
 REPO = Path(__file__).resolve().parents[1]
@@ -205,3 +214,85 @@ def test_a_stopped_node_is_reported_hung_killed_and_restarted():
         assert len(sup.hangs) == len(sup.restarts) == 1
         new = sup.children['pmu_ingestion']
     assert wait_dead([old.pid, new.pid]) == []
+
+
+RECORD = {'name': 'coherency', 'cause': 'hung', 'reason': 'coherency hung: no heartbeat for 5.2 s; restart in 0.5 s',
+          'exit_status': -9, 'pid': 4242, 'failed_after_s': 12.0, 'failed_utc': '2025-01-01T00:00:00.000+00:00',
+          'log_tail': '', 'restarted_after_s': 12.5, 'new_pid': 4343}
+
+
+def test_a_clean_replay_reports_no_restarts_and_keeps_its_output(tmp_path):
+    from controlled_islanding.commands.replay import Observation, graph_failure, render, summarize
+
+    summary = summarize(tmp_path / 'bag', tmp_path, Observation(), {})
+    assert summary['restarts'] == [] and summary['hangs'] == []
+    assert graph_failure(summary) is None and 'FAILED' not in render(summary)
+
+
+@pytest.mark.parametrize('json_out', [False, True], ids=['text', 'json'])
+def test_a_replay_whose_graph_lost_a_node_exits_non_zero_with_one_line_why(monkeypatch, capsys, tmp_path, json_out):
+    import argparse
+
+    from controlled_islanding.commands import replay
+    from controlled_islanding.commands.replay import Observation, graph_failure, summarize
+
+    summary = summarize(tmp_path / 'bag', tmp_path, Observation(restarts=[RestartRecord(**RECORD)]), {})
+    monkeypatch.setattr(replay, 'replay', lambda *args, **kwargs: summary)
+    parser = argparse.ArgumentParser()
+    replay.add_arguments(parser)
+    assert replay.run(parser.parse_args([str(tmp_path / 'bag')] + (['--json'] if json_out else []))) == 1
+    out, err = capsys.readouterr()
+    why = graph_failure(summary)
+    assert why == 'graph not healthy during the replay: coherency hung (restarted); see restarts in summary.json ' \
+                  'and the node logs'
+    assert (json_out and err.strip() == f'replay: FAILED: {why}') or f'FAILED: {why}' in out.splitlines()
+
+
+def children_of(pid: int) -> dict[str, int]:
+    """Return the node processes a process started, by node module name."""
+    found = {}
+    for stat in Path('/proc').glob('[0-9]*/stat'):
+        try:
+            fields = stat.read_text().rsplit(')', 1)[1].split()
+            argv = (stat.parent / 'cmdline').read_bytes().split(b'\0')
+        except OSError:
+            continue
+        if int(fields[1]) == pid and b'-m' in argv:
+            module = argv[argv.index(b'-m') + 1].decode()
+            if module.startswith('controlled_islanding.nodes.'):
+                found[module.rsplit('.', 1)[1]] = int(stat.parent.name)
+    return found
+
+
+@pytest.mark.ros
+def test_the_replay_cli_fails_loudly_when_a_node_died_during_it():
+    """breaker_command is killed as the bag starts: the replay still ends, lists it and exits 1."""
+    from controlled_islanding.commands.demo import default_bag
+
+    bag = REPO / 'bags' / default_bag()['bag']
+    if not bag.exists():
+        pytest.skip(f'{bag} is not present')
+    results = BUILD / 'replay_killed' / str(time.time_ns())
+    cli = subprocess.Popen([sys.executable, '-m', 'controlled_islanding.cli', 'replay', str(bag), '--fast', '--json',
+                            '--no-figures', '--no-record', '--timeout', '60', '--results', str(results)],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        end = time.monotonic() + 60.0
+        while 'bag_player' not in children_of(cli.pid) and cli.poll() is None and time.monotonic() < end:
+            time.sleep(0.05)
+        victim = children_of(cli.pid).get('breaker_command')
+        assert victim is not None, 'the replay did not get as far as playing the bag'
+        os.kill(victim, signal.SIGKILL)
+        out, err = cli.communicate(timeout=90)
+    finally:
+        if cli.poll() is None:
+            cli.send_signal(signal.SIGINT)
+            cli.wait(timeout=30)
+    assert cli.returncode == 1, err
+    summary = json.loads(out)
+    assert [(r['name'], r['cause'], r['exit_status'], r['pid']) for r in summary['restarts']] == \
+        [('breaker_command', 'exited', -9, victim)]
+    assert summary['hangs'] == []
+    assert err.strip().splitlines()[-1].startswith('replay: FAILED: graph not healthy during the replay: '
+                                                   'breaker_command exited with status -9')
+    assert json.loads((results / 'summary.json').read_text())['restarts'] == summary['restarts']
