@@ -75,7 +75,7 @@ def plan_commands(grid: Grid, bus_numbers: Sequence[int], bus_island: Sequence[i
         Refusal: 'inconsistent_islands' (the island map does not cover exactly the snapshot's buses, or forms
             fewer than two islands), 'island_without_generation', 'unknown_branch', 'inconsistent_cut' (the cut
             is not exactly the in-service branches joining two islands), 'branch_out_of_service',
-            'too_many_breakers'.
+            'too_large' (more entries than twice the branches), 'too_many_breakers'.
 
     """
     if len(bus_numbers) != len(bus_island):
@@ -102,8 +102,8 @@ def plan_commands(grid: Grid, bus_numbers: Sequence[int], bus_island: Sequence[i
     for b in grid.branches:
         by_pair.setdefault(frozenset((b.from_bus, b.to_bus)), []).append(b)
     boundary = [b for b in grid.branches if b.in_service and island[b.from_bus] != island[b.to_bus]]
-    if len(cut_ids) > 4 * max_breakers:
-        raise Refusal('too_many_breakers', f'{len(cut_ids)} cut entries, far more than max_breakers={max_breakers}')
+    if len(cut_ids) > 2 * len(grid.branches):
+        raise Refusal('too_large', f'{len(cut_ids)} cut entries for a network of {len(grid.branches)} branches')
     # Bounded before any per-entry work: a decision naming 100,000 branches costs one comparison.
     chosen: dict[str, Branch] = {}
     for entry_id, f, t in zip(cut_ids, cut_from, cut_to, strict=True):
@@ -122,9 +122,9 @@ def plan_commands(grid: Grid, bus_numbers: Sequence[int], bus_island: Sequence[i
     for branch in sorted(chosen.values(), key=lambda b: b.branch_id):
         breaker = override.get(branch.branch_id) or branch.breaker
         commands.setdefault(breaker, Command(branch.branch_id, breaker))
+    if len(commands) > max_breakers:
+        raise Refusal('too_many_breakers', f'{len(commands)} breakers, more than max_breakers={max_breakers}')
     already = sorted(set(commands) & set(open_breakers))
     if already:
         raise Refusal('branch_out_of_service', f'breakers {already[:5]} were already commanded open')
-    if len(commands) > max_breakers:
-        raise Refusal('too_many_breakers', f'{len(commands)} breakers, more than max_breakers={max_breakers}')
     return CutPlan(tuple(commands.values()), len(islands), len(cut_ids) - len(chosen))

@@ -1,122 +1,340 @@
-"""breaker_command as a real process: arm switch, at-most-once, unknown breakers, stale and bad decisions, audit."""
+"""breaker_command as a real process: every breaker rule of docs/nodes.md, adversarially.
+
+The node runs on the system clock (no use_sim_time), so request stamps are 'now' in wall time. Decisions are
+signed with keys this test run made (breaker_cases.made_test_keys); a foreign key is made per test.
+"""
 
 from __future__ import annotations
 
 import json
+import os
+import random
+import signal
 import time
-import uuid
 from pathlib import Path
 
 import pytest
-from controlled_islanding_msgs.msg import BreakerCommand, IslandingDecision
+from breaker_cases import boundary, decision_msg, private_key, snapshot_msg, two_islands
+from controlled_islanding_msgs.msg import BreakerCommand, IslandingDecision, NetworkSnapshot
 from controlled_islanding_msgs.srv import SetArmed
-from nodes_harness import BUILD, graph
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+from nodes_harness import graph
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.msg import ParameterType, ParameterValue
+from rcl_interfaces.srv import GetParameters, SetParameters
 
-from controlled_islanding import topics
-from controlled_islanding.nodes.breaker_command import load_breaker_map
-from controlled_islanding.supervisor import GRAPH, config_dir
+from controlled_islanding import signing, topics
+from controlled_islanding.core.grid import Grid
+from controlled_islanding.supervisor import GRAPH
 
-pytestmark = pytest.mark.ros
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 BREAKER = next(s for s in GRAPH if s.executable == 'breaker_command')
 NODE = 'breaker_command'
-
-
-@pytest.fixture(scope='module')
-def breaker():
-    audit = BUILD / 'test_nodes' / f'breaker_audit_{uuid.uuid4().hex}.jsonl'
-    with graph('test_nodes_breaker', [(BREAKER, {'audit_log': audit, 'max_decision_age_s': 2.0})]) as (sup, probe):
-        probe.publisher(IslandingDecision, topics.ISLANDING_DECISION)
-        commands = probe.collect(BreakerCommand, topics.BREAKER_COMMANDS)
-        probe.wait_matched(topics.ISLANDING_DECISION)
-        yield sup, probe, commands, audit
-
-
-def decision(probe, branches=('3-4', '14-15'), age_s: float = 0.0, **fields) -> IslandingDecision:
-    msg = IslandingDecision(decision_id=str(uuid.uuid4()), request_id='r', split=True,
-                            cut_branch_ids=list(branches), cut_from_bus=[1] * len(branches),
-                            cut_to_bus=[2] * len(branches))
-    for k, v in fields.items():
-        setattr(msg, k, v)
-    t_ns = probe.node.get_clock().now().nanoseconds - int(age_s * 1e9)
-    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(t_ns, 1_000_000_000)
-    return msg
+SERVICE = '/breaker_command/set_armed'
+# A non-IEEE-39 network, breakers named by the data for some branches and by default for the rest.
+GRID = Grid.from_matpower('case14').with_flows()
+FIELD_NAMES = {'2-3': 'BRK-NORTH-7', '4-5': 'BRK-SOUTH-2'}
 
 
 def audit_lines(path: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
 
 
-def send(probe, msg: IslandingDecision) -> None:
+def now_ns(probe) -> int:
+    return probe.node.get_clock().now().nanoseconds
+
+
+def arm(probe, armed: bool, key=None, **changes):
+    request = signing.signed_arm_request(SetArmed.Request(), key or private_key('operator'), '/breaker_command', armed,
+                                         time.time())
+    for name, value in changes.items():
+        setattr(request, name, value)
+    return probe.call(SetArmed, SERVICE, request)
+
+
+def get_armed(probe) -> bool:
+    response = probe.call(GetParameters, '/breaker_command/get_parameters', GetParameters.Request(names=['armed']))
+    return response.values[0].bool_value
+
+
+def start(name: str, audit: Path | str, **overrides):
+    params = {'audit_log': audit, 'max_decision_age_s': 30.0, 'max_breakers': 8, **overrides}
+    return graph(name, [(BREAKER, params)])
+
+
+def wire(probe):
+    probe.publisher(IslandingDecision, topics.ISLANDING_DECISION)
+    probe.publisher(NetworkSnapshot, topics.NETWORK_SNAPSHOT)
+    commands = probe.collect(BreakerCommand, topics.BREAKER_COMMANDS)
+    probe.wait_matched(topics.ISLANDING_DECISION)
+    probe.wait_matched(topics.NETWORK_SNAPSHOT)
+    probe.pubs[topics.NETWORK_SNAPSHOT].publish(snapshot_msg(GRID, now_ns(probe), FIELD_NAMES))
+    assert probe.spin_until(lambda: probe.diagnostics.get(NODE, {}).get('buses') == str(len(GRID.buses)), 15.0)
+    return commands
+
+
+def send(probe, msg) -> None:
     probe.pubs[topics.ISLANDING_DECISION].publish(msg)
 
 
-def test_breaker_map_covers_every_ieee39_branch():
-    from controlled_islanding.core.grid import Grid
-
-    table = load_breaker_map(config_dir() / 'breakers.yaml')
-    assert {b.branch_id for b in Grid.from_matpower('case39').branches} <= set(table)
-    assert len(set(table.values())) == len(table), 'two branches share a breaker id'
+def handled(probe, n: int) -> bool:
+    return probe.wait_counter(NODE, 'received', n, timeout_s=15.0) >= n
 
 
-@pytest.mark.slow
-def test_breaker_rules_on_a_real_process(breaker):
-    sup, probe, commands, audit = breaker
+def test_arming_is_signed_audited_and_visible(tmp_path):
+    audit = tmp_path / 'audit.jsonl'
+    with start('breaker_arming', audit) as (sup, probe):
+        wire(probe)
+        assert get_armed(probe) is False
+        # Standard parameter service: refused, the state unchanged (as `ros2 param set` would see it).
+        result = probe.call(SetParameters, '/breaker_command/set_parameters', SetParameters.Request(parameters=[
+            ParameterMsg(name='armed', value=ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=True))]))
+        assert not result.results[0].successful and 'read-only' in result.results[0].reason
+        assert get_armed(probe) is False
+        # A foreign key, no signature, a forged signature, an unset action, a stale and a replayed request.
+        foreign = Ed25519PrivateKey.generate()
+        assert not arm(probe, True, key=foreign).accepted
+        assert not arm(probe, True, signature=[]).accepted
+        assert not arm(probe, True, signature=[1] * 64).accepted
+        assert not arm(probe, True, action=SetArmed.Request.ACTION_UNSET).accepted
+        old = signing.signed_arm_request(SetArmed.Request(), private_key('operator'), '/breaker_command', True,
+                                         time.time() - 3600)
+        assert not probe.call(SetArmed, SERVICE, old).accepted
+        assert get_armed(probe) is False
+        good = signing.signed_arm_request(SetArmed.Request(), private_key('operator'), '/breaker_command', True,
+                                          time.time())
+        assert probe.call(SetArmed, SERVICE, good).armed is True
+        assert get_armed(probe) is True
+        assert not probe.call(SetArmed, SERVICE, good).accepted, 'a replayed arm request was accepted'
+        assert arm(probe, False).armed is False and get_armed(probe) is False
+        sup.check_alive()
+    reasons = [r.get('reason') for r in audit_lines(audit) if r['event'] == 'refusal']
+    assert {'unknown_key', 'unsigned', 'bad_signature', 'unset_action', 'stale', 'replay'} <= set(reasons)
+    assert [r['event'] for r in audit_lines(audit) if r['event'] in ('armed', 'disarmed')] == ['armed', 'disarmed']
 
-    # Unarmed: nothing is commanded, the refusal is audited and counted.
-    first = decision(probe)
-    send(probe, first)
-    assert probe.wait_counter(NODE, 'rejected.not_armed', 1) == 1
-    probe.spin_for(0.3)
-    assert commands == []
-    assert [r['reason'] for r in audit_lines(audit) if r['event'] == 'refusal'] == ['not_armed']
 
-    assert probe.call(SetArmed, '/breaker_command/set_armed', SetArmed.Request(armed=True)).armed
+def test_breaker_rules_on_a_real_process(tmp_path):
+    audit = tmp_path / 'audit.jsonl'
+    island = two_islands(GRID)
+    cut = boundary(GRID, island)
+    with start('breaker_rules', audit) as (sup, probe):
+        commands = wire(probe)
+        base = probe.counter(NODE, 'received')
 
-    # The same decision after arming is still refused: each decision is handled at most once.
-    send(probe, first)
-    assert probe.wait_counter(NODE, 'rejected.duplicate', 1) == 1
+        first = decision_msg(island, cut, now_ns(probe))
+        send(probe, first)
+        assert probe.wait_counter(NODE, 'rejected.not_armed', 1) == 1
+        assert arm(probe, True).armed
+        send(probe, first)  # handled once already (refused while disarmed): never executed later
+        assert probe.wait_counter(NODE, 'rejected.duplicate', 1) == 1
 
-    good = decision(probe)
-    send(probe, good)
-    assert probe.spin_until(lambda: len(commands) == 2)
-    assert {c.breaker_id for c in commands} == {'CB-3-4', 'CB-14-15'}
-    assert all(c.decision_id == good.decision_id and c.action == BreakerCommand.ACTION_OPEN for c in commands)
-    audited = [r for r in audit_lines(audit) if r['event'] == 'command']
-    assert sorted(r['command_id'] for r in audited) == sorted(c.command_id for c in commands)
+        # Each cut entry five times and in the other spelling: one command per breaker, named by the data.
+        aliases = [(f'{b.to_bus}-{b.from_bus}', b.to_bus, b.from_bus) for b in cut]
+        good = decision_msg(island, cut * 5 + aliases, now_ns(probe))
+        send(probe, good)
+        assert probe.spin_until(lambda: len(commands) >= len(cut))
+        probe.spin_for(0.3)
+        want = {FIELD_NAMES.get(b.branch_id, f'CB-{b.branch_id}') for b in cut}
+        assert sorted(c.breaker_id for c in commands) == sorted(want)
+        assert all(c.action == BreakerCommand.ACTION_OPEN and c.decision_id == good.decision_id for c in commands)
 
-    # Nothing twice: the same decision again commands nothing more.
-    send(probe, good)
-    assert probe.wait_counter(NODE, 'rejected.duplicate', 2) == 2
+        # Nothing twice: the same decision, and a new decision on breakers already opened.
+        send(probe, good)
+        assert probe.wait_counter(NODE, 'rejected.duplicate', 2) == 2
+        send(probe, decision_msg(island, cut, now_ns(probe)))
+        assert probe.wait_counter(NODE, 'rejected.branch_out_of_service', 1) == 1
 
-    bad = {
-        'unknown_breaker': decision(probe, branches=('3-4', '99-100')),
-        'stale': decision(probe, age_s=30.0),
-        'array_length': decision(probe, cut_from_bus=[1]),
-        'empty_message': decision(probe, decision_id=''),
-        'time_backwards': decision(probe, age_s=-30.0),
-        'missing_stamp': decision(probe),
-    }
-    bad['missing_stamp'].header.stamp.sec, bad['missing_stamp'].header.stamp.nanosec = 0, 0
-    for reason, msg in bad.items():
-        send(probe, msg)
-        assert probe.wait_counter(NODE, f'rejected.{reason}', 1) == 1, reason
-    probe.spin_for(0.3)
-    assert len(commands) == 2, 'a refused decision produced a command'
-    refusals = {r['reason'] for r in audit_lines(audit) if r['event'] == 'refusal'}
-    assert set(bad) | {'not_armed', 'duplicate'} <= refusals
+        other = two_islands(GRID, seed_index=2)
+        other_cut = boundary(GRID, other)
+        year_s = 365 * 86400
+        inner = next(b for b in GRID.branches if island[b.from_bus] == island[b.to_bus])
+        each_bus = {b: i for i, b in enumerate(GRID.buses)}
+        parity = {b: b % 2 for b in GRID.buses}
+        assert len(boundary(GRID, parity)) > 8
+        bad = {
+            'unsigned': decision_msg(other, other_cut, now_ns(probe), sign=False),
+            'unknown_key': decision_msg(other, other_cut, now_ns(probe), key=Ed25519PrivateKey.generate()),
+            'stale': decision_msg(other, other_cut, now_ns(probe) - int(120e9)),
+            'future_stamp': decision_msg(other, other_cut, now_ns(probe) + int(year_s * 1e9)),
+            'unset_status': decision_msg(other, other_cut, now_ns(probe), status=0),
+            'unknown_branch': decision_msg(other, other_cut + [('99-100', 99, 100)], now_ns(probe)),
+            'inconsistent_cut': decision_msg(island, [inner], now_ns(probe)),
+            'island_without_generation': decision_msg(each_bus, boundary(GRID, each_bus), now_ns(probe)),
+            'too_many_breakers': decision_msg(parity, boundary(GRID, parity), now_ns(probe)),
+            'too_large': decision_msg(other, [('1-2', 1, 2)] * 100_000, now_ns(probe), sign=False),
+        }
+        forged = decision_msg(other, other_cut, now_ns(probe))
+        forged.cut_branch_ids = list(reversed(forged.cut_branch_ids))
+        bad['bad_signature'] = forged
+        for reason, msg in bad.items():
+            send(probe, msg)
+            assert probe.wait_counter(NODE, f'rejected.{reason}', 1) >= 1, reason
+        no_split = decision_msg(other, [], now_ns(probe), status=IslandingDecision.STATUS_NO_SPLIT)
+        stale_groups = decision_msg(other, [], now_ns(probe), status=IslandingDecision.STATUS_REFUSED_STALE_GROUPS)
+        send(probe, no_split)
+        send(probe, stale_groups)
+        assert handled(probe, base + 5 + len(bad) + 2)
+        probe.spin_for(0.3)
+        assert len(commands) == len(cut), 'a refused decision produced a command'
 
-    # Still running and still obeying: a good decision is executed, then disarming stops the next one.
-    again = decision(probe, branches=('16-17',))
-    send(probe, again)
-    assert probe.spin_until(lambda: len(commands) == 3)
-    assert commands[-1].breaker_id == 'CB-16-17'
-    assert not probe.call(SetArmed, '/breaker_command/set_armed', SetArmed.Request(armed=False)).armed
-    send(probe, decision(probe))
-    assert probe.wait_counter(NODE, 'rejected.not_armed', 2) == 2
-    probe.spin_for(0.2)
-    assert len(commands) == 3
-    sup.check_alive()
-    events = [r['event'] for r in audit_lines(audit)]
-    assert events.count('command') == 3 and 'armed' in events and 'disarmed' in events
-    assert time.time() - audit_lines(audit)[-1]['wall_time_s'] < 60
+        # Disarm wins: once the disarm is acknowledged, nothing more is commanded.
+        assert arm(probe, False).armed is False
+        send(probe, decision_msg(other, other_cut, now_ns(probe)))
+        assert probe.wait_counter(NODE, 'rejected.not_armed', 2) == 2
+        probe.spin_for(0.2)
+        assert len(commands) == len(cut)
+        sup.check_alive()
+    records = audit_lines(audit)
+    assert [r['event'] for r in records].count('command') == 1
+    assert {r['event'] for r in records} >= {'no_split', 'not_decided', 'armed', 'disarmed', 'start'}
+    refusals = {r['reason'] for r in records if r['event'] == 'refusal'}
+    assert set(bad) | {'not_armed', 'duplicate', 'branch_out_of_service'} <= refusals
+
+
+def test_restart_never_repeats_a_command(tmp_path):
+    audit = tmp_path / 'audit.jsonl'
+    island = two_islands(GRID)
+    cut = boundary(GRID, island)
+    with start('breaker_restart', audit) as (sup, probe):
+        commands = wire(probe)
+        assert arm(probe, True).armed
+        decision = decision_msg(island, cut, now_ns(probe))
+        send(probe, decision)
+        assert probe.spin_until(lambda: len(commands) == len(cut))
+        os.kill(sup.children[NODE].pid, signal.SIGKILL)
+        sup.children[NODE].wait()
+        sup.start(BREAKER, {'audit_log': audit, 'max_decision_age_s': 30.0, 'max_breakers': 8})
+        probe.diagnostics.pop(NODE, None)
+        probe.wait_matched(topics.ISLANDING_DECISION)
+        assert probe.spin_until(lambda: probe.diagnostics.get(NODE, {}).get('armed') == 'false', 15.0), \
+            'a restarted breaker node must start disarmed'
+        probe.pubs[topics.NETWORK_SNAPSHOT].publish(snapshot_msg(GRID, now_ns(probe), FIELD_NAMES))
+        assert arm(probe, True).armed
+        decision.request_stamp.sec, decision.request_stamp.nanosec = divmod(now_ns(probe), 1_000_000_000)
+        send(probe, decision)  # same id, fresh stamp: the signature no longer verifies, and the id is known
+        again = decision_msg(island, cut, now_ns(probe), decision_id=decision.decision_id)
+        send(probe, again)  # re-signed under the same id: refused as a duplicate
+        send(probe, decision_msg(island, cut, now_ns(probe)))  # new id, same breakers: already open
+        assert probe.wait_counter(NODE, 'rejected.duplicate', 1) == 1
+        assert probe.wait_counter(NODE, 'rejected.branch_out_of_service', 1) == 1
+        probe.spin_for(0.3)
+        assert len(commands) == len(cut)
+        sup.check_alive()
+    assert sum(1 for r in audit_lines(audit) if r['event'] == 'command') == 1
+
+
+def test_an_unusable_audit_log_refuses_and_the_node_lives():
+    with start('breaker_dev_full', '/dev/full') as (sup, probe):
+        commands = wire(probe)
+        response = arm(probe, True)
+        assert not response.accepted and not response.armed and 'audit' in response.message
+        island = two_islands(GRID)
+        send(probe, decision_msg(island, boundary(GRID, island), now_ns(probe)))
+        assert probe.wait_counter(NODE, 'rejected.audit_unavailable', 2) >= 2
+        assert 'not a regular file' in probe.diagnostics[NODE].get('fault.audit', '')
+        probe.spin_for(0.3)
+        assert commands == []
+        sup.check_alive()
+
+
+def test_randomized_adversary_never_breaks_a_rule(tmp_path):
+    """Throw a seeded random adversary at the node, then check the audit log and the commands against every rule.
+
+    Decisions, arm/disarm interleavings, duplicates, aliases, oversized and inconsistent cuts, stale and future
+    stamps, bad signatures, and a kill -9 restart in the middle.
+    """
+    rng = random.Random(int(os.environ.get('BREAKER_FUZZ_SEED', '7')))
+    trials = int(os.environ.get('BREAKER_FUZZ_TRIALS', '240'))
+    audit = tmp_path / 'audit.jsonl'
+    splits = []
+    for seed in range(len(GRID.generators)):
+        island = two_islands(GRID, seed_index=seed)
+        splits.append((island, boundary(GRID, island)))
+    valid: dict[str, set[str]] = {}  # decision id -> the breakers its exact, fresh, signed cut opens
+    sent = []
+    with start('breaker_fuzz', audit) as (sup, probe):
+        commands = wire(probe)
+        for trial in range(trials):
+            if trial == trials // 2:
+                os.kill(sup.children[NODE].pid, signal.SIGKILL)
+                sup.children[NODE].wait()
+                sup.start(BREAKER, {'audit_log': audit, 'max_decision_age_s': 30.0, 'max_breakers': 8})
+                probe.wait_matched(topics.ISLANDING_DECISION)
+                probe.spin_for(1.0)
+                probe.pubs[topics.NETWORK_SNAPSHOT].publish(snapshot_msg(GRID, now_ns(probe), FIELD_NAMES))
+                probe.spin_for(0.5)
+            if rng.random() < 0.12:
+                arm(probe, rng.random() < 0.7)
+                continue
+            island, cut = rng.choice(splits)
+            entries = list(cut)
+            kind = rng.choice(['good', 'good', 'alias', 'dup', 'stale', 'future', 'forged', 'foreign', 'missing',
+                               'extra', 'resend', 'unset'])
+            stamp = now_ns(probe)
+            if kind == 'alias':
+                entries = [(f'{b.to_bus}-{b.from_bus}', b.to_bus, b.from_bus) for b in cut] + entries
+            elif kind == 'dup':
+                entries = entries * rng.randint(2, 6)
+            elif kind == 'stale':
+                stamp -= int(rng.choice([45, 600, 86400, 365 * 86400]) * 1e9)
+            elif kind == 'future':
+                stamp += int(rng.choice([2, 3600, 365 * 86400]) * 1e9)
+            elif kind == 'missing' and len(entries) > 1:
+                entries = entries[1:]
+            elif kind == 'extra':
+                entries = entries + [next(b for b in GRID.branches if island[b.from_bus] == island[b.to_bus])]
+            if kind == 'resend' and sent:
+                msg = rng.choice(sent)
+            else:
+                msg = decision_msg(island, entries, stamp, key=Ed25519PrivateKey.generate() if kind == 'foreign'
+                                   else None, status=0 if kind == 'unset' else None)
+                if kind == 'forged':
+                    msg.bus_island = [1 - x for x in msg.bus_island]
+                if kind in ('good', 'alias', 'dup'):
+                    valid[msg.decision_id] = {FIELD_NAMES.get(b.branch_id, f'CB-{b.branch_id}') for b in cut}
+                sent.append(msg)
+            send(probe, msg)
+            if trial % 20 == 19:
+                probe.spin_for(0.05)
+        probe.spin_for(2.0)
+        sup.check_alive()
+    records = audit_lines(audit)
+    armed, opened, broken = False, set(), []
+    commanded_ids = set()
+    for r in records:
+        if r['event'] in ('armed', 'disarmed'):
+            armed = r['event'] == 'armed'
+        if r['event'] == 'start':
+            armed = False
+        if r['event'] != 'command':
+            continue
+        breakers = {c['breaker_id'] for c in r['commands']}
+        if not armed:
+            broken.append(f'command while disarmed: {r["decision_id"]}')
+        if r['decision_id'] not in valid:
+            broken.append(f'command for a decision that must be refused: {r["decision_id"]}')
+        elif breakers != valid[r['decision_id']]:
+            broken.append(f'cut {sorted(breakers)} differs from the boundary {sorted(valid[r["decision_id"]])}')
+        if r['decision_id'] in commanded_ids:
+            broken.append(f'decision {r["decision_id"]} commanded twice')
+        if breakers & opened:
+            broken.append(f'breakers {sorted(breakers & opened)} commanded twice')
+        if len(breakers) > 8:
+            broken.append(f'{len(breakers)} breakers > max_breakers')
+        commanded_ids.add(r['decision_id'])
+        opened |= breakers
+    published = sorted(c.command_id for c in commands)
+    logged = sorted(c['command_id'] for r in records if r['event'] == 'command' for c in r['commands'])
+    print(f'breaker fuzz: {trials} trials, {len(commanded_ids)} decisions commanded, {len(broken)} rules broken')
+    assert broken == []
+    assert set(published) <= set(logged), 'a published command is missing from the audit log'
+    assert commanded_ids, 'the adversarial run never commanded anything: it proves nothing'
+
+
+def test_no_private_key_is_tracked():
+    import subprocess
+
+    repo = Path(__file__).resolve().parents[1]
+    tracked = subprocess.run(['git', 'ls-files', '*.key', '*.pem'], cwd=repo, capture_output=True, text=True)
+    assert tracked.returncode != 0 or tracked.stdout == '', f'private keys in the repository: {tracked.stdout}'

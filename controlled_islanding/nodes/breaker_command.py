@@ -240,6 +240,8 @@ class BreakerCommandNode(Node):
     def _check_arm(self, request: SetArmed.Request) -> str:
         if request.action not in (SetArmed.Request.ACTION_ARM, SetArmed.Request.ACTION_DISARM):
             raise Refusal('unset_action', f'action={request.action}: neither ACTION_ARM (1) nor ACTION_DISARM (2)')
+        if not len(request.signature):
+            raise Refusal('unsigned', 'no signature; only requests signed by the operator key are accepted')
         if request.key_id != self.operator_key_id:
             raise Refusal('unknown_key', f'signed by key {request.key_id[:32]!r}, not the operator key '
                                          f'{self.operator_key_id}')
@@ -287,8 +289,12 @@ class BreakerCommandNode(Node):
 
     # --- decisions ----------------------------------------------------------------------------------------------
     def _authenticate(self, msg: IslandingDecision) -> None:
-        if len(msg.bus_numbers) > self.limits.max_buses or len(msg.cut_branch_ids) > 4 * self.max_breakers:
+        snapshot = self.topology.snapshot
+        max_entries = 2 * len(snapshot.branches) if snapshot is not None else self.limits.max_branches
+        if len(msg.bus_numbers) > self.limits.max_buses or len(msg.cut_branch_ids) > max_entries:
             raise Refusal('too_large', f'{len(msg.bus_numbers)} buses and {len(msg.cut_branch_ids)} cut entries')
+        if not len(msg.signature):
+            raise Refusal('unsigned', 'no signature; only decisions signed by the decision key are executed')
         if msg.key_id != self.decision_key_id:
             raise Refusal('unknown_key', f'signed by key {msg.key_id[:32]!r}, not the decision key '
                                          f'{self.decision_key_id}')
