@@ -79,11 +79,14 @@ def request(frame: PmuFrame, request_id: str) -> IslandingRequest:
     return msg
 
 
-def test_a_request_before_any_data_is_dropped_by_coherency_and_partitioning(pipeline):
-    sup, probe, _snapshot, frames, _out = pipeline
+def test_a_request_before_any_data_is_refused_with_a_reason_never_a_silent_no_split(pipeline):
+    sup, probe, _snapshot, frames, out = pipeline
     publish(probe, topics.ISLANDING_REQUEST, request(frames[0], 'too-early'))
     assert probe.wait_counter('coherency', 'rejected.no_data', 1) >= 1
-    assert probe.wait_counter('partitioning', 'rejected.no_data', 1) >= 1
+    assert probe.spin_until(lambda: any(d.request_id == 'too-early' for d in out['decisions']))
+    decision = next(d for d in out['decisions'] if d.request_id == 'too-early')
+    assert decision.status == IslandingDecision.STATUS_REFUSED_NO_SNAPSHOT and not decision.split
+    assert decision.signature, 'a refusal is a decision too, and signed'
     sup.check_alive()
 
 
@@ -189,15 +192,16 @@ def test_partitioning_drops_bad_network_and_groups_and_still_decides(pipeline):
     renamed.header.stamp.sec += 100  # newer than anything held: only the unknown names are judged
     publish(probe, topics.COHERENT_GROUPS, renamed)
     assert probe.wait_counter('partitioning', 'rejected.unknown_id', 2) >= 2
-    older = groups()
-    older.header.stamp.sec -= 60
-    publish(probe, topics.COHERENT_GROUPS, older)
-    assert probe.wait_counter('partitioning', 'rejected.time_backwards', 1) >= 1
+    ahead = groups(generator_names=list(reversed(good_groups.generator_names)))
+    ahead.header.stamp.sec = probe.node.get_clock().now().nanoseconds // 1_000_000_000 + 365 * 86400
+    publish(probe, topics.COHERENT_GROUPS, ahead)
+    assert probe.wait_counter('partitioning', 'rejected.future_stamp', 1) >= 1
 
     publish(probe, topics.ISLANDING_REQUEST, request(frames[59], 'partitioning-ok'))
     assert probe.spin_until(lambda: any(d.request_id == 'partitioning-ok' for d in out['decisions'])), \
         'partitioning stopped deciding'
     decision = next(d for d in out['decisions'] if d.request_id == 'partitioning-ok')
+    assert decision.status in (IslandingDecision.STATUS_SPLIT, IslandingDecision.STATUS_NO_SPLIT)
     assert len(decision.bus_numbers) == len(snapshot.bus_numbers)
     sup.check_alive()
 
@@ -210,6 +214,9 @@ def test_the_request_service_is_answered_with_a_decision(pipeline):
     assert response.accepted, response.message
     assert probe.spin_until(lambda: any(d.request_id == response.request_id for d in out['decisions'])), \
         'no decision for the service request'
+    # Stamped now, while the bag's groups are months old: refused, with the reason, never decided on them.
+    decision = next(d for d in out['decisions'] if d.request_id == response.request_id)
+    assert decision.status == IslandingDecision.STATUS_REFUSED_STALE_GROUPS, decision.status_detail
     sup.check_alive()
 
 
