@@ -1,0 +1,118 @@
+"""The fuzz soak on the real node processes: `controlled-islanding fuzz` run as a user runs it, with a small N.
+
+CI runs 30 messages per topic; the full soak (`--per-topic 10000`) is a benchmark whose figures are in
+docs/nodes.md, "Fuzz soak". The checks read the command's own JSON report, so a table that says PASS while a
+topic went uncounted, a node died or the replay disagreed cannot slip through.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import uuid
+from pathlib import Path
+
+import pytest
+
+from controlled_islanding import fuzzing
+from controlled_islanding.commands.demo import default_bag
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+REPO = Path(__file__).resolve().parents[1]
+PER_TOPIC = 30
+
+
+def test_help_teaches_the_checks() -> None:
+    out = subprocess.run([sys.executable, '-m', 'controlled_islanding.cli', 'fuzz', '--help'], capture_output=True,
+                         text=True, timeout=60, check=True).stdout
+    for words in ('--per-topic', '--seed', '--bag', '--json', 'VmRSS', 'SAME node processes', 'Exit status'):
+        assert words in out
+
+
+def test_fuzz_soak_counts_every_topic_and_keeps_the_manifest_decision() -> None:
+    results = REPO / 'build' / 'test_fuzz' / uuid.uuid4().hex[:8]
+    keys = REPO / 'build' / 'test_keys'
+    proc = subprocess.run(
+        [sys.executable, '-m', 'controlled_islanding.cli', 'fuzz', '--per-topic', str(PER_TOPIC), '--seed', '11',
+         '--json', '--results', str(results), '--keys', str(keys)],
+        capture_output=True, text=True, timeout=110)
+    assert proc.stdout.strip(), proc.stderr[-3000:]
+    report = json.loads(proc.stdout)
+    # One progress line per topic on stderr with --json: long work shows it is alive.
+    assert sum(1 for line in proc.stderr.splitlines() if line.startswith('fuzz: /')) == len(fuzzing.FUZZ_TOPICS)
+
+    by_topic = {t['topic']: t for t in report['topics']}
+    assert set(by_topic) == set(fuzzing.FUZZ_TOPICS)
+    for topic, row in by_topic.items():
+        assert row['sent'] == PER_TOPIC, topic
+        assert row['rejected'] > 0, (topic, row)
+        assert row['errors'] == 0, (topic, row['by_node'])
+        # Each count came from a node that subscribes to the topic.
+        assert set(row['by_node']) <= set(fuzzing.RECEIVERS[topic])
+    # Every forged or unsigned decision is refused by the breaker node, one count per message.
+    decision = by_topic['/islanding/decision']
+    assert decision['received'] == PER_TOPIC
+    assert decision['rejected'] == PER_TOPIC, decision['by_node']
+
+    assert {n['name'] for n in report['nodes']} == {'pmu_ingestion', 'coherency', 'partitioning', 'breaker_command'}
+    for node in report['nodes']:
+        assert node['deaths'] == 0, node
+        assert node['rss_growth_mb'] is not None and node['rss_growth_mb'] < fuzzing.RSS_LIMIT_MB, node
+    assert report['commands_during_fuzz'] == 0
+
+    expected = default_bag()['expected_decision']
+    replay = report['replay']
+    assert replay['graph'] == 'same'
+    assert replay['split'] == expected['split']
+    assert replay['cut'] == sorted(expected['cut_branches'])
+    assert replay['agrees']
+    assert report['passed'] and report['failures'] == []
+    assert proc.returncode == 0, proc.stderr[-3000:]
+
+
+def test_judge_fails_each_broken_check() -> None:
+    good = fuzzing.FuzzReport(
+        seed=1, per_topic=3,
+        topics=[fuzzing.TopicResult(t, sent=3, received=3, rejected=3) for t in fuzzing.FUZZ_TOPICS],
+        nodes=[fuzzing.NodeResult('coherency', rss_before_kb=1000, rss_after_fuzz_kb=2000, rss_growth_mb=1.0)],
+        replay=fuzzing.ReplayResult('b', expected_split=True, expected_cut=['6-11'], status=1, split=True,
+                                    cut=['6-11'], agrees=True))
+    assert fuzzing.judge(good) == []
+    cases = {
+        'no rejection': lambda r: setattr(r.topics[0], 'rejected', 0),
+        'exceptions escaped': lambda r: setattr(r.topics[1], 'errors', 2),
+        'died or hung': lambda r: setattr(r.nodes[0], 'deaths', 1),
+        'RSS grew': lambda r: setattr(r.nodes[0], 'rss_growth_mb', 25.0),
+        'breaker command': lambda r: setattr(r, 'commands_during_fuzz', 1),
+        'manifest expects': lambda r: setattr(r.replay, 'agrees', False),
+        'no decision': lambda r: setattr(r.replay, 'status', None),
+    }
+    for words, breaks in cases.items():
+        report = fuzzing.FuzzReport(**{**good.__dict__})
+        report.topics = [fuzzing.TopicResult(**t.__dict__) for t in good.topics]
+        report.nodes = [fuzzing.NodeResult(**n.__dict__) for n in good.nodes]
+        report.replay = fuzzing.ReplayResult(**good.replay.__dict__)
+        breaks(report)
+        failures = fuzzing.judge(report)
+        assert len(failures) == 1 and words in failures[0], (words, failures)
+
+
+def test_the_adversary_is_seeded_and_never_signs_with_a_trusted_key() -> None:
+    entry = default_bag()
+    seeds = fuzzing.load_seeds(REPO / 'bags' / entry['bag'], entry)
+
+    def kinds(seed: int) -> list[tuple[str, str]]:
+        adversary = fuzzing.Adversary(seeds, seed, lambda: seeds.bag_start_s, partitioning_key_id='trusted')
+        return [(topic, adversary.make(topic)[0]) for topic in fuzzing.FUZZ_TOPICS for _ in range(40)]
+
+    assert kinds(5) == kinds(5)
+    assert kinds(5) != kinds(6)
+    adversary = fuzzing.Adversary(seeds, 3, lambda: seeds.bag_start_s)
+    for _ in range(200):
+        kind, msg = adversary.make('/islanding/request')
+        stamp_s = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+        fresh = seeds.bag_start_s - 5.0 < stamp_s <= seeds.bag_start_s + 1.0
+        well_formed = 0 < len(msg.request_id) <= 128 and msg.header.stamp.sec > 0
+        assert not (fresh and well_formed), kind
