@@ -110,6 +110,11 @@ class Topology:
         out = self.outages_at(t_s)
         return self.snapshot.with_outages(out), out
 
+    def changes_known(self, t_s: float) -> int:
+        """Return how many changes stamped after the snapshot and at or before t_s are held."""
+        return sum(bisect.bisect_right(h, (t_s, True)) - bisect.bisect_right(h, (self.snapshot_stamp_s, True))
+                   for h in self._changes.values())
+
     def changes_after(self, t_s: float) -> int:
         """Return how many remembered changes are stamped after t_s (later than a request, for instance)."""
         return sum(len(h) - bisect.bisect_right(h, (t_s, True)) for h in self._changes.values())

@@ -130,7 +130,8 @@ def test_a_node_that_keeps_dying_is_restarted_with_backoff_then_given_up_on():
     assert sup.restarts[0].pid == first.pid and sup.restarts[-1].new_pid is None
     assert all('No module named' in r.log_tail for r in sup.restarts)
     waits = [r.restarted_after_s - r.failed_after_s for r in sup.restarts[:3]]
-    assert waits == pytest.approx([0.1, 0.2, 0.4], abs=0.05)
+    # The backoff is a lower bound: on a loaded machine a restart may come later, never sooner.
+    assert all(w >= want - 0.01 for w, want in zip(waits, (0.1, 0.2, 0.4), strict=True)), waits
     assert sup.hangs == []
 
 

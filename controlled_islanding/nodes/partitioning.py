@@ -1,7 +1,10 @@
 """partitioning: on an islanding request, split the network for the coherent groups of the request's time.
 
 Every request gets exactly one signed decision, and its `status` says what it is: SPLIT, NO_SPLIT, or why
-there is no answer (REFUSED_STALE_GROUPS, REFUSED_NO_SNAPSHOT, REFUSED_FAILED); never a silent "no split".
+there is no answer (REFUSED_STALE_GROUPS, REFUSED_NO_SNAPSHOT, REFUSED_TOPOLOGY_PENDING, REFUSED_FAILED);
+never a silent "no split". A request that says how many branch status changes up to it the requester knows
+of (`branch_changes_before`) waits until as many are applied: topics are not ordered against each other, so
+a trip stamped just before the request can arrive after it.
 
 Freshness is a precondition: a request stamped T is decided only on groups computed from samples reaching T
 (stamped within `groups_tolerance_s` of T; the coherency node recomputes on every request). The node waits
@@ -308,10 +311,19 @@ class PartitioningNode(Node):
         now = time.monotonic()
         for item in list(self.pending):
             groups = self._groups_for(stamp_s(item.request.header.stamp))
-            if groups is None and now < item.deadline:
+            if (groups is None or self._topology_pending(item.request)) and now < item.deadline:
                 continue
             self.pending.remove(item)
             self._answer(item.request, groups)
+
+    def _topology_pending(self, request: IslandingRequest) -> bool:
+        """Whether fewer branch changes up to the request are applied than the requester knows of.
+
+        Topics are not ordered against each other: a trip stamped just before a request can arrive after it.
+        """
+        if self.topology.snapshot is None:
+            return False
+        return self.topology.changes_known(stamp_s(request.header.stamp)) < int(request.branch_changes_before)
 
     def _refusal(self, request: IslandingRequest, status: int, detail: str) -> IslandingDecision:
         self.diag.fault('last_request', f'request {request.request_id}: {detail}')
@@ -325,6 +337,11 @@ class PartitioningNode(Node):
         req_s = stamp_s(request.header.stamp)
         if self.topology.snapshot is None:
             msg = self._refusal(request, IslandingDecision.STATUS_REFUSED_NO_SNAPSHOT, 'no network snapshot')
+        elif self._topology_pending(request):
+            msg = self._refusal(request, IslandingDecision.STATUS_REFUSED_TOPOLOGY_PENDING,
+                                f'{self.topology.changes_known(req_s)} branch status changes up to the request '
+                                f'applied, the requester knows of {request.branch_changes_before}, after '
+                                f'groups_wait_s={self.wait_s}')
         elif groups is None:
             held = ', '.join(f'{g.stamp_s:.3f}' for g in self.groups[-3:]) or 'none'
             msg = self._refusal(request, IslandingDecision.STATUS_REFUSED_STALE_GROUPS,

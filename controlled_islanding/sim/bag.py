@@ -170,7 +170,10 @@ def run_scenario(scenario: Scenario, out: Path, *, force: bool = False, progress
     records.append((_ns(scenario.request_s), 2, topics.ISLANDING_REQUEST,
                     m.new('IslandingRequest', header=m.header(_ns(scenario.request_s), 'scenario'),
                           request_id=request_id, reason=f'scenario {scenario.name}: islanding requested at '
-                                                        f'{scenario.request_s:g} s')))
+                                                        f'{scenario.request_s:g} s',
+                          branch_changes_before=len({(bid, trip.t_s) for trip, bid in zip(
+                              scenario.trips, sim.trip_branch_ids, strict=True)
+                              if 0.0 < trip.t_s <= scenario.request_s}))))
     for stamp, msg in _frame_msgs(m, pmu, scenario.rate_fps):
         records.append((stamp, 3, topics.PMU_FRAMES, msg))
     names = list(sim.generator_names)
