@@ -871,8 +871,17 @@ def _fuzz_topic(topic: str, n: int, adversary: Adversary, pub: object, diagnosti
         pub.publish(msg)
         result.sent += 1
         if result.sent - received() >= PACE_WINDOW:
-            # A reader's keep-last queue drops what it cannot take; wait for the node, at most 2 s.
-            spin(sup, 2.0, lambda: result.sent - received() < PACE_WINDOW // 2)
+            # Wait for the node to catch up, but only while it makes progress: a keep-last-1 reader drops
+            # what it cannot take, so its count may never reach what was sent.
+            progress_at, seen = time.monotonic(), received()
+
+            def caught_up() -> bool:
+                nonlocal progress_at, seen
+                if received() != seen:
+                    progress_at, seen = time.monotonic(), received()
+                return result.sent - seen < PACE_WINDOW // 2 or time.monotonic() - progress_at > 0.5
+
+            spin(sup, 5.0, caught_up)
         else:
             spin(sup, LATEST_ONLY_GAP_S if topic in (topics.NETWORK_SNAPSHOT, topics.COHERENT_GROUPS) else 0.0)
 

@@ -37,7 +37,7 @@ def test_fuzz_soak_counts_every_topic_and_keeps_the_manifest_decision() -> None:
     proc = subprocess.run(
         [sys.executable, '-m', 'controlled_islanding.cli', 'fuzz', '--per-topic', str(PER_TOPIC), '--seed', '11',
          '--json', '--results', str(results), '--keys', str(keys)],
-        capture_output=True, text=True, timeout=110)
+        capture_output=True, text=True, timeout=170)
     assert proc.stdout.strip(), proc.stderr[-3000:]
     report = json.loads(proc.stdout)
     # One progress line per topic on stderr with --json: long work shows it is alive.
