@@ -1,13 +1,15 @@
-"""The network as a node knows it: the latest snapshot plus every branch status change stamped after it.
+"""The network as a node knows it: recent snapshots plus every branch status change, each judged by its stamp.
 
 Both partitioning (to decide) and breaker_command (to check a decision before acting) hold one. No rclpy here.
 
 Time rules, because a value from the wire is never trusted for time:
-- A snapshot or status stamped more than `future_tolerance_s` ahead of the node clock is refused.
-- "Latest" is latest within that bound; an older snapshot than the one held is refused.
-- Each branch keeps a short history of its changes, and the state at time t is the last change stamped at or
-  before t. So a change stamped after t (a fake "back in service" a second ahead, say) never undoes a trip
-  that t should see, and a refused or expired value blocks nothing that follows.
+- A snapshot or status stamped more than `future_tolerance_s` ahead of the node clock is refused, and so is a
+  snapshot older than the newest held.
+- The network at time t is the newest snapshot stamped at or before t, so a snapshot stamped after t (a copy
+  replayed with a later stamp, say) never changes what t sees.
+- Explicit status changes are never hidden by a snapshot: a branch is out at t when the last change stamped at
+  or before t opened it, or the snapshot says so. Only an explicit "in service" undoes a trip. Each branch
+  keeps a short history, so a change stamped after t never undoes a trip t should see.
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ from dataclasses import dataclass, field
 
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.timebounds import StampError, check_not_future
+
+_KEEP_SNAPSHOTS = 4
 
 
 class TopologyError(ValueError):
@@ -29,7 +33,7 @@ class TopologyError(ValueError):
 
 @dataclass
 class Topology:
-    """Snapshot and status changes, bounded in time and in memory.
+    """Snapshots and status changes, bounded in time and in memory.
 
     Attributes:
         future_tolerance_s: How far a stamp may lead the node clock, s.
@@ -39,10 +43,19 @@ class Topology:
 
     future_tolerance_s: float = 1.0
     max_changes_per_branch: int = 32
-    snapshot: Grid | None = None
-    snapshot_stamp_s: float = 0.0
+    _snapshots: list[tuple[float, Grid]] = field(default_factory=list)
     _changes: dict[str, list[tuple[float, bool]]] = field(default_factory=dict)
     _known: frozenset[str] = frozenset()
+
+    @property
+    def snapshot(self) -> Grid | None:
+        """The newest snapshot held."""
+        return self._snapshots[-1][1] if self._snapshots else None
+
+    @property
+    def snapshot_stamp_s(self) -> float:
+        """The stamp of the newest snapshot held, s (0 when none)."""
+        return self._snapshots[-1][0] if self._snapshots else 0.0
 
     def _bound(self, what: str, stamp_s: float, now_s: float) -> None:
         if stamp_s <= 0.0:
@@ -53,19 +66,20 @@ class Topology:
             raise TopologyError(exc.reason, str(exc)) from exc
 
     def offer_snapshot(self, grid: Grid, stamp_s: float, now_s: float) -> None:
-        """Take a snapshot unless it is older than the one held or stamped in the future.
+        """Take a snapshot unless it is older than the newest held or stamped in the future.
 
         Raises:
             TopologyError: reason 'missing_stamp', 'future_stamp' or 'time_backwards'.
 
         """
         self._bound('network snapshot', stamp_s, now_s)
-        if self.snapshot is not None and stamp_s < self.snapshot_stamp_s:
+        if self._snapshots and stamp_s < self._snapshots[-1][0]:
             raise TopologyError('time_backwards', f'snapshot stamped {stamp_s:.3f} s, older than the one held '
-                                                  f'({self.snapshot_stamp_s:.3f} s)')
-        self._known = frozenset(b.branch_id for b in grid.branches)
+                                                  f'({self._snapshots[-1][0]:.3f} s)')
+        self._snapshots.append((stamp_s, grid))
+        del self._snapshots[:-_KEEP_SNAPSHOTS]
+        self._known = frozenset(b.branch_id for _, g in self._snapshots for b in g.branches)
         self._changes = {k: v for k, v in self._changes.items() if k in self._known}
-        self.snapshot, self.snapshot_stamp_s = grid, stamp_s
 
     def offer_status(self, branch_id: str, in_service: bool, stamp_s: float, now_s: float) -> None:
         """Record one branch status change.
@@ -78,7 +92,7 @@ class Topology:
         if not branch_id:
             raise TopologyError('empty_message', 'branch status without branch_id')
         self._bound(f'branch {branch_id} status', stamp_s, now_s)
-        if self.snapshot is None:
+        if not self._snapshots:
             raise TopologyError('no_data', f'branch {branch_id} status before any network snapshot')
         if branch_id not in self._known:
             raise TopologyError('unknown_id', f'branch status for unknown branch {branch_id!r}')
@@ -89,32 +103,39 @@ class Topology:
         bisect.insort(history, entry)
         del history[:-self.max_changes_per_branch]
 
-    def outages_at(self, t_s: float) -> tuple[str, ...]:
-        """Return the branches whose last change stamped after the snapshot and at or before t_s opened them."""
-        out = []
-        for branch_id, history in self._changes.items():
-            i = bisect.bisect_right(history, (t_s, True))
-            if i and history[i - 1][0] > self.snapshot_stamp_s and not history[i - 1][1]:
-                out.append(branch_id)
-        return tuple(sorted(out))
-
-    def grid_at(self, t_s: float) -> tuple[Grid, tuple[str, ...]]:
-        """Return the network at t_s and the branches tripped since the snapshot.
+    def snapshot_at(self, t_s: float) -> tuple[float, Grid]:
+        """Return (stamp, grid) of the newest snapshot stamped at or before t_s (else the oldest held).
 
         Raises:
             TopologyError: reason 'no_data' when no snapshot is held.
 
         """
-        if self.snapshot is None:
+        if not self._snapshots:
             raise TopologyError('no_data', 'no network snapshot')
-        out = self.outages_at(t_s)
-        return self.snapshot.with_outages(out), out
+        i = bisect.bisect_right([s for s, _ in self._snapshots], t_s)
+        return self._snapshots[max(i - 1, 0)]
+
+    def outages_at(self, t_s: float) -> tuple[str, ...]:
+        """Return the branches whose last change stamped at or before t_s opened them."""
+        out = []
+        for branch_id, history in self._changes.items():
+            i = bisect.bisect_right(history, (t_s, True))
+            if i and not history[i - 1][1]:
+                out.append(branch_id)
+        return tuple(sorted(out))
+
+    def grid_at(self, t_s: float) -> tuple[Grid, tuple[str, ...]]:
+        """Return the network at t_s and the branches explicitly tripped by then.
+
+        Raises:
+            TopologyError: reason 'no_data' when no snapshot is held.
+
+        """
+        _, grid = self.snapshot_at(t_s)
+        ids = {b.branch_id for b in grid.branches}
+        out = tuple(b for b in self.outages_at(t_s) if b in ids)
+        return grid.with_outages(out), out
 
     def changes_known(self, t_s: float) -> int:
-        """Return how many changes stamped after the snapshot and at or before t_s are held."""
-        return sum(bisect.bisect_right(h, (t_s, True)) - bisect.bisect_right(h, (self.snapshot_stamp_s, True))
-                   for h in self._changes.values())
-
-    def changes_after(self, t_s: float) -> int:
-        """Return how many remembered changes are stamped after t_s (later than a request, for instance)."""
-        return sum(len(h) - bisect.bisect_right(h, (t_s, True)) for h in self._changes.values())
+        """Return how many status changes stamped at or before t_s are held."""
+        return sum(bisect.bisect_right(h, (t_s, True)) for h in self._changes.values())

@@ -210,6 +210,7 @@ def test_restart_never_repeats_a_command(tmp_path):
         assert probe.spin_until(lambda: probe.diagnostics.get(NODE, {}).get('armed') == 'false', 15.0), \
             'a restarted breaker node must start disarmed'
         probe.pubs[topics.NETWORK_SNAPSHOT].publish(snapshot_msg(GRID, now_ns(probe), FIELD_NAMES))
+        assert probe.spin_until(lambda: probe.diagnostics.get(NODE, {}).get('buses') == str(len(GRID.buses)), 15.0)
         assert arm(probe, True).armed
         decision.request_stamp.sec, decision.request_stamp.nanosec = divmod(now_ns(probe), 1_000_000_000)
         send(probe, decision)  # same id, fresh stamp: the signature no longer verifies, and the id is known

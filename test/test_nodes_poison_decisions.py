@@ -398,11 +398,6 @@ def test_groups_half_a_second_ahead_never_hide_the_honest_groups_already_held(gr
     g.healthy()
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    'partitioning bug: a request is served at once with the earliest held grouping stamped at or after '
-    'T - groups_tolerance_s, and groups up to future_tolerance_s (1 s) ahead of the node clock are taken; so one '
-    'grouping stamped T + 0.5 s with GENROU_10 alone, held before coherency answers the request, decides it: '
-    'cut 1-2, 5-8, 6-7 instead of 6-11, and the armed breaker node opens CB-1-2, CB-5-8 and CB-6-7'))
 def test_groups_half_a_second_ahead_are_never_used_before_the_honest_groups_come(graph_under_test):
     """As in the live graph: coherency recomputes on the request, so its groups for T come after the request.
 
@@ -427,12 +422,6 @@ def test_groups_half_a_second_ahead_are_never_used_before_the_honest_groups_come
     g.healthy()
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    'topology.py bug: only the newest snapshot is kept and grid_at(T) drops every change stamped before it, even '
-    'when that snapshot is stamped after T; a copy of the snapshot stamped T + 0.5 s (within future_tolerance_s) '
-    'undoes the 13-14 trip of T0 + 5.21 s for a request stamped T: cut 4-14, 6-11, 15-16 instead of 6-11 (the '
-    'breaker node refuses it here only because CB-6-11 is already open; it holds the same copy, so it would '
-    'otherwise open CB-4-14, CB-6-11 and CB-15-16)'))
 def test_a_snapshot_copy_after_the_request_never_undoes_a_trip_before_it(graph_under_test):
     """A snapshot copy stamped AHEAD_S past T must not make the 13-14 trip, stamped before T, count as included."""
     g = graph_under_test

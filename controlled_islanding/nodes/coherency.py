@@ -256,8 +256,10 @@ class CoherencyNode(Node):
             if not self.t_s or self.t_s[0] > t:
                 self.diag.reject('no_data', f'request {request.request_id}: no rotor angles before its stamp')
                 continue
-            if self.computed_end_s >= t - self.tolerance_s and not self._changed_before(t):
-                continue  # the latched groups already cover this request: nothing new to compute
+            if abs(self.computed_end_s - t) <= self.tolerance_s and not self._changed_before(t):
+                continue  # the latched groups end at this request: nothing new to compute
+            # Groups ending later than the request are no answer to it: partitioning takes only groups whose
+            # samples end at the request, so that a grouping stamped ahead of it can never be the one used.
             self._compute(t)
 
     def _changed_before(self, t: float) -> bool:

@@ -6,12 +6,12 @@ never a silent "no split". A request that says how many branch status changes up
 of (`branch_changes_before`) waits until as many are applied: topics are not ordered against each other, so
 a trip stamped just before the request can arrive after it.
 
-Freshness is a precondition: a request stamped T is decided only on groups computed from samples reaching T
-(stamped within `groups_tolerance_s` of T; the coherency node recomputes on every request). The node waits
-at most `groups_wait_s` of wall time for them, then refuses. The network is the latest snapshot with every
-branch status change stamped after it and at or before T (`controlled_islanding.topology`). Every stamp from
-the wire is bounded by the node clock (`future_tolerance_s`), so no single message can become "the newest"
-for good.
+Freshness is a precondition: a request stamped T is decided only on groups computed from samples ending at T
+(stamped within `groups_tolerance_s` of T, on either side; the coherency node computes them on every request).
+The node waits at most `groups_wait_s` of wall time for them, then refuses. The network is the newest snapshot
+stamped at or before T with every branch status change stamped at or before T (`controlled_islanding.topology`).
+Every stamp from the wire is bounded by the node clock (`future_tolerance_s`), so no single message can become
+"the newest" for good.
 
 To keep the request path short, decisions are cached by (groups, tripped branches): whenever new groups or a
 topology change arrive, the decision for them is computed ahead of any request.
@@ -263,12 +263,13 @@ class PartitioningNode(Node):
 
     # --- deciding -----------------------------------------------------------------------------------------------
     def _groups_for(self, t_s: float) -> Groups | None:
-        """Return the earliest groups whose samples reach t_s (within groups_tolerance_s), if any.
+        """Return the groups whose samples end at t_s (stamped within groups_tolerance_s of it), if any.
 
-        The earliest, not the newest: a grouping stamped ahead of the honest one (within the clock tolerance)
-        is then never the one a request gets.
+        Never groups that end later: one stamped ahead of the honest answer (still within the clock tolerance)
+        could otherwise be served before the honest one arrives. The coherency node computes, on every request,
+        the groups of the window ending at its stamp.
         """
-        return next((g for g in self.groups if g.stamp_s >= t_s - self.tolerance_s), None)
+        return next((g for g in self.groups if abs(g.stamp_s - t_s) <= self.tolerance_s), None)
 
     def _decide(self, groups: Groups, t_s: float) -> tuple[Decision, float]:
         grid, out = self.topology.grid_at(t_s)
@@ -339,8 +340,8 @@ class PartitioningNode(Node):
             msg = self._refusal(request, IslandingDecision.STATUS_REFUSED_NO_SNAPSHOT, 'no network snapshot')
         elif self._topology_pending(request):
             msg = self._refusal(request, IslandingDecision.STATUS_REFUSED_TOPOLOGY_PENDING,
-                                f'{self.topology.changes_known(req_s)} branch status changes up to the request '
-                                f'applied, the requester knows of {request.branch_changes_before}, after '
+                                f'{self.topology.changes_known(req_s)} branch status changes stamped up to the '
+                                f'request applied, the requester knows of {request.branch_changes_before}, after '
                                 f'groups_wait_s={self.wait_s}')
         elif groups is None:
             held = ', '.join(f'{g.stamp_s:.3f}' for g in self.groups[-3:]) or 'none'
