@@ -26,7 +26,8 @@ class AuditState:
     Attributes:
         decisions: Decision id -> request stamp (s, node clock) of every authenticated decision handled,
             commanded or refused.
-        commanded: Breaker id -> (decision id, node clock s) of every open command issued.
+        commanded: Breaker id -> (decision id, node clock s) of every open command issued and not reported
+            closed again since (a branch status 'in service' stamped after the command).
         nonces: Arm/disarm nonce -> request stamp (s, wall clock) of every authenticated arm request.
         records: Number of records read.
         repaired_tail: A torn last line (a crash mid-write) was cut off; it described nothing published.
@@ -49,6 +50,8 @@ class AuditState:
         if event == 'command':
             for command in record['commands']:
                 self.commanded[str(command['breaker_id'])] = (str(decision_id), float(record.get('ros_time_s', 0.0)))
+        if event == 'reclosed':
+            self.commanded.pop(str(record['breaker_id']), None)
         if event in ('armed', 'disarmed') and record.get('nonce'):
             self.nonces[str(record['nonce'])] = float(record.get('stamp_s', 0.0))
 

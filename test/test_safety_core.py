@@ -24,10 +24,13 @@ def test_state_survives_a_restart(tmp_path):
         log.append({'event': 'command', 'decision_id': 'd1', 'authenticated': True, 'request_stamp_s': 9.0,
                     'ros_time_s': 9.5, 'commands': [{'breaker_id': 'CB-1', 'branch_id': '1-2'}]})
         log.append({'event': 'refusal', 'decision_id': 'forged', 'authenticated': False, 'reason': 'unsigned'})
+        log.append({'event': 'command', 'decision_id': 'd2', 'authenticated': True, 'request_stamp_s': 10.0,
+                    'ros_time_s': 10.5, 'commands': [{'breaker_id': 'CB-2', 'branch_id': '2-3'}]})
+        log.append({'event': 'reclosed', 'breaker_id': 'CB-2', 'branch_id': '2-3', 'stamp_s': 11.0})
     assert oct(path.stat().st_mode & 0o777) == '0o600'
     state = AuditLog(path).state
-    assert state.decisions == {'d1': 9.0}, 'an unauthenticated id must not block the real decision of that id'
-    assert state.commanded == {'CB-1': ('d1', 9.5)}
+    assert state.decisions == {'d1': 9.0, 'd2': 10.0}, 'an unauthenticated id must not block the real decision'
+    assert state.commanded == {'CB-1': ('d1', 9.5)}, 'a reclosed breaker must be closable again after a restart'
     assert state.nonces == {'n1': 5.0}
 
 

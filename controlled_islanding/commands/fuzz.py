@@ -33,8 +33,14 @@ Checks (exit status 0 only if all hold):
 Keys are made for the run under build/ (never your own); node logs, the breaker audit log and
 report.json go to the results folder. Exit status 1: a check failed; 2: the soak could not run.
 
+With --breaker-trials N, breaker_command alone gets N seeded adversarial decisions and signed arm and
+disarm requests (duplicates, other spellings, stale and future stamps, forged and foreign signatures,
+inconsistent cuts, resends, recloses, and kill -9 restarts); its audit log is then replayed against every
+breaker rule (docs/nodes.md) and the rules broken are printed. Exit status 1 if any.
+
 Examples:
   controlled-islanding fuzz --per-topic 30            a quick check (about a minute)
+  controlled-islanding fuzz --breaker-trials 20000    the breaker soak
   controlled-islanding fuzz --per-topic 10000 --seed 7 --json
 """
 
@@ -51,6 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--json', action='store_true', help='print one JSON report on stdout, progress on stderr')
     parser.add_argument('--results', type=Path, default=None,
                         help='results folder to create (default build/fuzz/<UTC time>)')
+    parser.add_argument('--breaker-trials', type=int, default=0, metavar='N',
+                        help='instead: soak breaker_command alone with N adversarial decisions and arm requests '
+                             '(kill -9 restarts included) and check its audit log against every breaker rule')
     parser.add_argument('--keys', type=Path, default=None,
                         help='signing key directory, made if missing (default build/fuzz/keys)')
 
@@ -71,6 +80,8 @@ def run(args: argparse.Namespace) -> int:
     """Run the soak and print its tables (or JSON)."""
     from controlled_islanding import fuzzing
 
+    if args.breaker_trials:
+        return _run_breaker_soak(args)
     if args.per_topic < 1:
         raise CliError(f'--per-topic {args.per_topic} must be at least 1')
     bag, entry = _manifest_entry(args.bag)
@@ -95,3 +106,19 @@ def run(args: argparse.Namespace) -> int:
         print()
         print(fuzzing.render(report))
     return 0 if report.passed else 1
+
+
+def _run_breaker_soak(args: argparse.Namespace) -> int:
+    from controlled_islanding import breaker_soak
+
+    if args.breaker_trials < 1:
+        raise CliError(f'--breaker-trials {args.breaker_trials} must be at least 1')
+    results = (args.results or REPO / 'build' / 'fuzz' / f'breaker-{datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")}')
+    keys = (args.keys or REPO / 'build' / 'fuzz' / 'keys').resolve()
+    try:
+        report = breaker_soak.run_breaker_soak(args.breaker_trials, args.seed, keys, results.resolve(),
+                                               lambda line: print(line, file=sys.stderr, flush=True))
+    except breaker_soak.SoakError as exc:
+        raise CliError(str(exc)) from exc
+    print(json.dumps(report.__dict__) if args.json else report.render())
+    return 0 if not report.broken else 1

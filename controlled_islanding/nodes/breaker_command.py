@@ -16,7 +16,6 @@ could arm through it. So arming stays a signed service and the node always start
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 from pathlib import Path
@@ -138,7 +137,6 @@ class BreakerCommandNode(Node):
             self.diag.fault('audit', f'{exc}; nothing will be commanded')
         self.topology = Topology(future_tolerance_s=self.future_tolerance_s)
         self.gate: StampGate = StampGate(self.future_tolerance_s, max_held=200)
-        self.reclosed_s: dict[str, float] = {}  # breaker id -> newest in-service stamp of its branch, s
         self.pub = self.create_publisher(BreakerCommand, topics.BREAKER_COMMANDS, qos_for(topics.BREAKER_COMMANDS))
         self.create_subscription(IslandingDecision, topics.ISLANDING_DECISION, self.diag.guard(self.on_decision),
                                  qos_for(topics.ISLANDING_DECISION))
@@ -207,10 +205,13 @@ class BreakerCommandNode(Node):
             return
         _, branch_id, in_service, stamp = item
         self.topology.offer_status(branch_id, in_service, stamp, self._now_s())
-        if in_service and self.topology.snapshot is not None:
+        if in_service and self.audit is not None:
             branch = next(b for b in self.topology.snapshot.branches if b.branch_id == branch_id)
             breaker = self.override.get(branch_id) or branch.breaker
-            self.reclosed_s[breaker] = max(self.reclosed_s.get(breaker, 0.0), stamp)
+            opened = self.audit.state.commanded.get(breaker)
+            if opened is not None and stamp > opened[1]:
+                # Audited, so a restarted node knows the breaker may be opened again.
+                self._record('reclosed', breaker_id=breaker, branch_id=branch_id, stamp_s=stamp)
 
     def _release_held(self) -> None:
         def refuse(exc: StampError) -> None:
@@ -226,7 +227,7 @@ class BreakerCommandNode(Node):
 
     def _open_breakers(self) -> set[str]:
         assert self.audit is not None
-        return {b for b, (_, t) in self.audit.state.commanded.items() if self.reclosed_s.get(b, -math.inf) <= t}
+        return set(self.audit.state.commanded)
 
     # --- arming -------------------------------------------------------------------------------------------------
     def _set_armed(self, armed: bool) -> None:
