@@ -17,6 +17,8 @@ BUILD = REPO / 'build'
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.setdefault('ROS_LOG_DIR', str(BUILD / 'ros_log'))
 os.environ.setdefault('MPLBACKEND', 'Agg')
+# Replays and demos run by the tests sign with keys made for the tests, never the user's own.
+os.environ['CONTROLLED_ISLANDING_KEYS'] = str(BUILD / 'test_keys')
 
 
 @pytest.fixture
