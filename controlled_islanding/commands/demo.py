@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     import json
     from datetime import datetime
 
-    from controlled_islanding.commands.replay import refused, render, replay
+    from controlled_islanding.commands.replay import graph_failure, refused, render, replay
 
     entry = default_bag()
     bag = REPO / 'bags' / entry['bag']
@@ -90,4 +90,5 @@ def run(args: argparse.Namespace) -> int:
         print(render(summary))
         print(f'manifest expects: cut {", ".join(expected.get("cut_branches", [])) or "nothing"} -> '
               f'{"agrees" if summary["manifest_agrees"] else "DIFFERS"}')
-    return 1 if summary['split'] is None or summary['undecided_requests'] or refused(summary) else 0
+    failed = summary['split'] is None or summary['undecided_requests'] or refused(summary) or graph_failure(summary)
+    return 1 if failed else 0
