@@ -7,9 +7,10 @@ Time rules, because a value from the wire is never trusted for time:
   snapshot older than the newest held.
 - The network at time t is the newest snapshot stamped at or before t, so a snapshot stamped after t (a copy
   replayed with a later stamp, say) never changes what t sees.
-- Explicit status changes are never hidden by a snapshot: a branch is out at t when the last change stamped at
-  or before t opened it, or the snapshot says so. Only an explicit "in service" undoes a trip. Each branch
-  keeps a short history, so a change stamped after t never undoes a trip t should see.
+- On top of that snapshot, a branch is out at t when its last change stamped after the snapshot and at or
+  before t opened it. Each branch keeps a short history, so a change stamped after t never undoes a trip t
+  should see. A snapshot stamped within the tolerance ahead becomes the network once the clock passes its
+  stamp: a snapshot is authoritative for its time, as a state estimator's is.
 """
 
 from __future__ import annotations
@@ -116,16 +117,17 @@ class Topology:
         return self._snapshots[max(i - 1, 0)]
 
     def outages_at(self, t_s: float) -> tuple[str, ...]:
-        """Return the branches whose last change stamped at or before t_s opened them."""
+        """Return the branches opened by their last change stamped after the snapshot valid at t_s, up to t_s."""
+        since_s = self.snapshot_at(t_s)[0] if self._snapshots else 0.0
         out = []
         for branch_id, history in self._changes.items():
             i = bisect.bisect_right(history, (t_s, True))
-            if i and not history[i - 1][1]:
+            if i and history[i - 1][0] > since_s and not history[i - 1][1]:
                 out.append(branch_id)
         return tuple(sorted(out))
 
     def grid_at(self, t_s: float) -> tuple[Grid, tuple[str, ...]]:
-        """Return the network at t_s and the branches explicitly tripped by then.
+        """Return the network at t_s and the branches tripped since its snapshot.
 
         Raises:
             TopologyError: reason 'no_data' when no snapshot is held.
@@ -137,5 +139,7 @@ class Topology:
         return grid.with_outages(out), out
 
     def changes_known(self, t_s: float) -> int:
-        """Return how many status changes stamped at or before t_s are held."""
-        return sum(bisect.bisect_right(h, (t_s, True)) for h in self._changes.values())
+        """Return how many status changes stamped after the snapshot valid at t_s, and at or before t_s, are held."""
+        since_s = self.snapshot_at(t_s)[0] if self._snapshots else 0.0
+        return sum(max(0, bisect.bisect_right(h, (t_s, True)) - bisect.bisect_right(h, (since_s, True)))
+                   for h in self._changes.values())

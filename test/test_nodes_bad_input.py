@@ -220,6 +220,25 @@ def test_the_request_service_is_answered_with_a_decision(pipeline):
     sup.check_alive()
 
 
+def test_with_coherency_stopped_a_request_is_refused_as_stale_never_no_split(pipeline):
+    import os
+    import signal
+
+    sup, probe, _snapshot, frames, out = pipeline
+    coherency = sup.children['coherency']
+    os.kill(coherency.pid, signal.SIGSTOP)
+    try:
+        # Half a second before the newest frame: no grouping held ends there, and none can be computed now.
+        publish(probe, topics.ISLANDING_REQUEST, request(frames[30], 'coherency-stopped'))
+        assert probe.spin_until(lambda: any(d.request_id == 'coherency-stopped' for d in out['decisions']), 15.0)
+    finally:
+        os.kill(coherency.pid, signal.SIGCONT)
+    decision = next(d for d in out['decisions'] if d.request_id == 'coherency-stopped')
+    assert decision.status == IslandingDecision.STATUS_REFUSED_STALE_GROUPS, decision.status_detail
+    assert not decision.split
+    sup.check_alive()
+
+
 def test_every_dropped_input_was_logged_by_its_node(pipeline):
     sup, probe, *_ = pipeline
     probe.spin_for(0.5)

@@ -266,6 +266,14 @@ def test_the_rule_checker_catches_each_broken_rule():
     assert breaker_soak.check_audit([armed, cmd], valid, ['ghost/CB-9'])[0], 'an unlogged command passed'
 
 
+def test_a_parameter_out_of_its_range_stops_the_node_with_the_reason(tmp_path):
+    with start('breaker_bad_parameter', tmp_path / 'audit.jsonl', max_decision_age_s=-5.0) as (sup, probe):
+        child = sup.children[NODE]
+        assert child.wait(timeout=30) == 1
+        log = sup.log_tail(NODE)
+        assert 'max_decision_age_s' in log and 'error' in log, log
+
+
 def test_no_private_key_is_tracked():
     import subprocess
 

@@ -9,7 +9,8 @@ a trip stamped just before the request can arrive after it.
 Freshness is a precondition: a request stamped T is decided only on groups computed from samples ending at T
 (stamped within `groups_tolerance_s` of T, on either side; the coherency node computes them on every request).
 The node waits at most `groups_wait_s` of wall time for them, then refuses. The network is the newest snapshot
-stamped at or before T with every branch status change stamped at or before T (`controlled_islanding.topology`).
+stamped at or before T with every branch status change stamped after it and at or before T
+(`controlled_islanding.topology`).
 Every stamp from the wire is bounded by the node clock (`future_tolerance_s`), so no single message can become
 "the newest" for good.
 
