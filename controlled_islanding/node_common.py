@@ -23,13 +23,15 @@ from collections.abc import Callable
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import ParameterException
+from rclpy.exceptions import InvalidParameterValueException, ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from controlled_islanding import topics
+from controlled_islanding.messages import Limits
 
 
 class NodeSetupError(ValueError):
@@ -194,6 +196,36 @@ class Diagnostics:
         array = DiagnosticArray(status=[status])
         array.header.stamp = self._node.get_clock().now().to_msg()
         self._pub.publish(array)
+
+
+def declare_bounded(node: Node, name: str, default: float | int, low: float | int, high: float | int,
+                    description: str, read_only: bool = False) -> float | int:
+    """Declare a parameter with its range and meaning (read-only: never changed at run time); return its value.
+
+    Raises:
+        NodeSetupError: The configured value is outside [low, high].
+
+    """
+    if isinstance(default, int):
+        bound = {'integer_range': [IntegerRange(from_value=int(low), to_value=int(high), step=1)]}
+    else:
+        bound = {'floating_point_range': [FloatingPointRange(from_value=float(low), to_value=float(high))]}
+    try:
+        node.declare_parameter(name, default,
+                               ParameterDescriptor(description=description, read_only=read_only, **bound))
+    except InvalidParameterValueException as exc:
+        raise NodeSetupError(f'parameter {name}: {exc}; it must be in [{low}, {high}]') from exc
+    return node.get_parameter(name).value
+
+
+def declare_limits(node: Node) -> Limits:
+    """Declare the snapshot size caps as parameters; return them as Limits."""
+    default = Limits()
+    return Limits(**{
+        field: int(declare_bounded(node, field, getattr(default, field), 1, 10 * getattr(default, field),
+                                   f'largest number of {field[4:]} accepted in one network snapshot; a '
+                                   'larger one is refused (too_large) before any per-element work'))
+        for field in ('max_buses', 'max_branches', 'max_generators', 'max_loads')})
 
 
 def settle_heap() -> None:

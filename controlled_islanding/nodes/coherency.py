@@ -30,8 +30,14 @@ from rclpy.node import Node
 from controlled_islanding import topics
 from controlled_islanding.core.coherency import DTWCoherency
 from controlled_islanding.messages import MessageError, grid_from_snapshot, split_stamp, stamp_s
-from controlled_islanding.node_common import Diagnostics, NodeSetupError, qos_for, spin_node
-from controlled_islanding.nodes.pmu_ingestion import declare_bounded, declare_limits
+from controlled_islanding.node_common import (
+    Diagnostics,
+    NodeSetupError,
+    declare_bounded,
+    declare_limits,
+    qos_for,
+    spin_node,
+)
 from controlled_islanding.timebounds import StampError, StampGate
 
 

@@ -31,7 +31,7 @@ from pathlib import Path
 from controlled_islanding_msgs.msg import BranchStatus, CoherentGroups, IslandingDecision, IslandingRequest
 from controlled_islanding_msgs.msg import NetworkSnapshot as NetworkSnapshotMsg
 from controlled_islanding_msgs.srv import RequestIslanding
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
@@ -40,7 +40,14 @@ from controlled_islanding.core.islanding import IslandingDecision as Decision
 from controlled_islanding.core.islanding import decide
 from controlled_islanding.core.spectral import ConstrainedSpectralPartition  # noqa: F401  imported now, not mid-request
 from controlled_islanding.messages import Groups, Limits, MessageError, grid_from_snapshot, groups_from_msg, stamp_s
-from controlled_islanding.node_common import Diagnostics, NodeSetupError, qos_for, settle_heap, spin_node
+from controlled_islanding.node_common import (
+    Diagnostics,
+    NodeSetupError,
+    declare_bounded,
+    qos_for,
+    settle_heap,
+    spin_node,
+)
 from controlled_islanding.timebounds import StampError, StampGate
 from controlled_islanding.topology import Topology, TopologyError
 
@@ -71,35 +78,29 @@ def decision_to_msg(decision: Decision, request: IslandingRequest, method: str, 
         disrupted_mw=decision.disrupted_mw, compute_time_s=compute_time_s)
 
 
-def _range(text: str, low: float, high: float) -> ParameterDescriptor:
-    return ParameterDescriptor(description=text, read_only=True,
-                               floating_point_range=[FloatingPointRange(from_value=low, to_value=high, step=0.0)])
-
-
 class PartitioningNode(Node):
     """Keeps the network and recent groups; answers every islanding request with one signed decision."""
 
     def __init__(self) -> None:
         super().__init__('partitioning')
-        self.declare_parameter('groups_tolerance_s', 0.05, _range(
-            "groups whose newest sample is within this of the request stamp are the request's groups, s", 0.0, 10.0))
-        self.declare_parameter('groups_wait_s', 0.5, _range(
-            "wait at most this long (wall) for the request's groups, then refuse as stale, s", 0.0, 60.0))
-        self.declare_parameter('future_tolerance_s', 1.0, _range(
-            'refuse stamps further than this ahead of the node clock, s', 0.0, 60.0))
+        self.tolerance_s = float(declare_bounded(
+            self, 'groups_tolerance_s', 0.05, 0.0, 10.0,
+            "groups whose newest sample is within this of the request stamp are the request's groups, s", True))
+        self.wait_s = float(declare_bounded(
+            self, 'groups_wait_s', 0.5, 0.0, 60.0,
+            "wait at most this long (wall) for the request's groups, then refuse as stale, s", True))
+        self.future_tolerance_s = float(declare_bounded(
+            self, 'future_tolerance_s', 1.0, 0.0, 60.0, 'refuse stamps further than this ahead of the node clock, s',
+            True))
+        self.max_pending = int(declare_bounded(
+            self, 'max_pending_requests', 100, 1, 100000, 'requests waiting for groups at once; more are refused',
+            True))
         self.declare_parameter('groups_method', 'dtw', ParameterDescriptor(
             description='only groups of this coherency method are used', read_only=True))
         self.declare_parameter('key_dir', '', ParameterDescriptor(
             description='directory with partitioning.key, the decision signing key; empty = '
                         '$CONTROLLED_ISLANDING_KEYS or ~/.config/controlled_islanding/keys', read_only=True))
-        self.declare_parameter('max_pending_requests', 100, ParameterDescriptor(
-            description='requests waiting for groups at once; more are refused', read_only=True,
-            integer_range=[IntegerRange(from_value=1, to_value=100000, step=1)]))
-        self.tolerance_s = float(self.get_parameter('groups_tolerance_s').value)
-        self.wait_s = float(self.get_parameter('groups_wait_s').value)
-        self.future_tolerance_s = float(self.get_parameter('future_tolerance_s').value)
         self.method = str(self.get_parameter('groups_method').value)
-        self.max_pending = int(self.get_parameter('max_pending_requests').value)
         key_dir = self.get_parameter('key_dir').value
         key_path = signing.key_paths(Path(key_dir) if key_dir else signing.default_key_dir(), 'partitioning').private
         try:

@@ -23,16 +23,21 @@ from collections import OrderedDict, deque
 
 import numpy as np
 from controlled_islanding_msgs.msg import NetworkSnapshot, PmuFrame, PmuMeasurement, RotorAngles
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import InvalidParameterValueException
 from rclpy.node import Node
 
 from controlled_islanding import topics
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.core.rotor_angle import RotorAngleError, estimate_rotor_angle_rad
-from controlled_islanding.messages import Limits, MessageError, grid_from_snapshot, stamp_s
-from controlled_islanding.node_common import Diagnostics, NodeSetupError, qos_for, spin_node
+from controlled_islanding.messages import MessageError, grid_from_snapshot, stamp_s
+from controlled_islanding.node_common import (
+    Diagnostics,
+    NodeSetupError,
+    declare_bounded,
+    declare_limits,
+    qos_for,
+    spin_node,
+)
 from controlled_islanding.timebounds import StampError, StampGate
 
 _UNUSABLE = 0x8000  # STAT bit 15: 10 = data invalid, 11 = PMU error
@@ -40,35 +45,6 @@ _FIELDS = ('voltage_magnitude_pu', 'voltage_angle_rad', 'current_magnitude_pu', 
 _MAX_STATION_ID_CHARS = 256  # a remembered key longer than any real PMU name only costs memory
 _MAX_STALE_NAMED = 50  # stale station ids listed in /diagnostics
 _RELEASE_PERIOD_S = 0.05  # wall time between looks at held inputs while the node clock has not started
-
-
-def declare_bounded(node: Node, name: str, default: float | int, low: float | int, high: float | int,
-                    description: str) -> float | int:
-    """Declare a parameter with its range and meaning; return its value.
-
-    Raises:
-        NodeSetupError: The configured value is outside [low, high].
-
-    """
-    if isinstance(default, int):
-        bound = {'integer_range': [IntegerRange(from_value=int(low), to_value=int(high), step=1)]}
-    else:
-        bound = {'floating_point_range': [FloatingPointRange(from_value=float(low), to_value=float(high))]}
-    try:
-        node.declare_parameter(name, default, ParameterDescriptor(description=description, **bound))
-    except InvalidParameterValueException as exc:
-        raise NodeSetupError(f'parameter {name}: {exc}; it must be in [{low}, {high}]') from exc
-    return node.get_parameter(name).value
-
-
-def declare_limits(node: Node) -> Limits:
-    """Declare the snapshot size caps as parameters; return them as Limits."""
-    default = Limits()
-    return Limits(**{
-        field: int(declare_bounded(node, field, getattr(default, field), 1, 10 * getattr(default, field),
-                                   f'largest number of {field[4:]} accepted in one network snapshot; a '
-                                   'larger one is refused (too_large) before any per-element work'))
-        for field in ('max_buses', 'max_branches', 'max_generators', 'max_loads')})
 
 
 class PmuIngestionNode(Node):
