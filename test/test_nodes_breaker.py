@@ -26,6 +26,8 @@ from controlled_islanding import breaker_soak, signing, topics
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.supervisor import GRAPH
 
+BUILD_DIR = Path(__file__).resolve().parents[1] / 'build'
+
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 BREAKER = next(s for s in GRAPH if s.executable == 'breaker_command')
@@ -264,6 +266,41 @@ def test_the_rule_checker_catches_each_broken_rule():
     again = {**cmd, 'decision_id': 'd2'}
     assert breaker_soak.check_audit([armed, cmd, reclosed, again], {**valid, 'd2': {'CB-1'}}, [])[0] == []
     assert breaker_soak.check_audit([armed, cmd], valid, ['ghost/CB-9'])[0], 'an unlogged command passed'
+
+
+def test_a_disk_that_fills_up_mid_run_refuses_and_the_node_lives():
+    import subprocess
+    import uuid
+
+    mount = BUILD_DIR / 'test_nodes' / f'fullfs-{uuid.uuid4().hex[:8]}'
+    mount.mkdir(parents=True)
+    # A 12 KiB tmpfs of which 8 KiB are taken: the audit log gets one 4 KiB page, then ENOSPC.
+    made = subprocess.run(['mount', '-t', 'tmpfs', '-o', 'size=12k', 'tmpfs', str(mount)], capture_output=True)
+    if made.returncode != 0:
+        pytest.skip(f'cannot mount a small tmpfs here: {made.stderr.decode().strip()}')
+    try:
+        (mount / 'filler').write_bytes(b'x' * 8192)
+        with start('breaker_disk_full', mount / 'audit.jsonl') as (sup, probe):
+            commands = wire(probe)
+            island = two_islands(GRID)
+            cut = boundary(GRID, island)
+            sent = 0
+            while 'fault.audit' not in probe.diagnostics.get(NODE, {}) and sent < 40:
+                send(probe, decision_msg(island, cut, now_ns(probe)))  # disarmed: each refusal is a record
+                sent += 1
+                probe.spin_for(0.1)
+            fault = probe.diagnostics[NODE].get('fault.audit', '')
+            assert 'No space left' in fault or 'short write' in fault, probe.diagnostics.get(NODE)
+            response = arm(probe, True)
+            assert not response.accepted and not response.armed
+            send(probe, decision_msg(island, cut, now_ns(probe)))
+            assert probe.wait_counter(NODE, 'rejected.audit_unavailable', 2) >= 2
+            probe.spin_for(0.3)
+            assert commands == []
+            sup.check_alive()
+            assert sup.children[NODE].poll() is None
+    finally:
+        subprocess.run(['umount', str(mount)], check=False)
 
 
 def test_a_parameter_out_of_its_range_stops_the_node_with_the_reason(tmp_path):
