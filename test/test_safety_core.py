@@ -154,14 +154,27 @@ def test_status_memory_is_bounded_and_needs_a_snapshot():
 
 
 def test_stamp_gate_holds_until_the_clock_runs():
-    gate = StampGate(future_tolerance_s=0.5, max_held=3)
+    gate = StampGate(future_tolerance_s=0.5, max_held=3, hold_horizon_s=60.0)
     assert not gate.offer('a', 10.0, 0.0, 'a')
-    for item in 'bcd':
-        gate.offer(item, 20.0, 0.0, item)
+    for item, stamp in (('b', 20.0), ('c', 500.0), ('d', 10.1)):
+        gate.offer(item, stamp, 0.0, item)
     assert gate.held == 3 and gate.dropped_while_held == 1
     used, refused = [], []
     gate.release(10.2, used.append, refused.append)
-    assert used == [] and len(refused) == 3  # b, c, d lead the clock by 9.8 s; a was dropped as the oldest
+    # a was dropped as the oldest; d is due; b waits for the clock; c leads it by 490 s: never honest.
+    assert used == ['d'] and [e.reason for e in refused] == ['future_stamp'] and gate.held == 1
+    gate.release(19.6, used.append, refused.append)
+    assert used == ['d', 'b'] and gate.held == 0
+
+
+def test_a_clock_that_lags_the_data_delays_a_value_but_never_loses_or_uses_it_early():
+    gate = StampGate(future_tolerance_s=1.0, hold_horizon_s=60.0)
+    assert gate.offer('trip', 5.25, 5.0, 'trip')
+    assert not gate.offer('trip', 5.25, 0.001, 'trip-lagging')
+    used = []
+    gate.release(3.0, used.append, pytest.fail)
+    assert used == [], 'used 2.25 s before its time'
+    gate.release(4.3, used.append, pytest.fail)
+    assert used == ['trip-lagging']
     with pytest.raises(StampError):
-        gate.offer('e', 11.0, 10.2, 'e')
-    assert gate.offer('f', 10.6, 10.2, 'f')
+        gate.offer('poison', 4.3 + 86400.0, 4.3, 'poison')
