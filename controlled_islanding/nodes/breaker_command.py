@@ -25,7 +25,6 @@ from controlled_islanding_msgs.msg import BranchStatus, BreakerCommand, Islandin
 from controlled_islanding_msgs.msg import NetworkSnapshot as NetworkSnapshotMsg
 from controlled_islanding_msgs.srv import SetArmed
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
@@ -33,9 +32,8 @@ from controlled_islanding import signing, topics
 from controlled_islanding.actuation import Refusal, plan_commands
 from controlled_islanding.audit import AuditError, AuditLog
 from controlled_islanding.messages import Limits, MessageError, grid_from_snapshot, stamp_s
-from controlled_islanding.node_common import Diagnostics, NodeSetupError, qos_for, spin_node
+from controlled_islanding.node_common import ClockGate, Diagnostics, NodeSetupError, qos_for, spin_node
 from controlled_islanding.supervisor import config_dir
-from controlled_islanding.timebounds import StampError, StampGate
 from controlled_islanding.topology import Topology, TopologyError
 
 _MAX_ID_CHARS = 128
@@ -136,7 +134,7 @@ class BreakerCommandNode(Node):
         except AuditError as exc:
             self.diag.fault('audit', f'{exc}; nothing will be commanded')
         self.topology = Topology(future_tolerance_s=self.future_tolerance_s)
-        self.gate: StampGate = StampGate(self.future_tolerance_s, max_held=200)
+        self.inputs = ClockGate(self, self.diag, self.future_tolerance_s, 200, self._apply_input)
         self.pub = self.create_publisher(BreakerCommand, topics.BREAKER_COMMANDS, qos_for(topics.BREAKER_COMMANDS))
         self.create_subscription(IslandingDecision, topics.ISLANDING_DECISION, self.diag.guard(self.on_decision),
                                  qos_for(topics.ISLANDING_DECISION))
@@ -145,7 +143,6 @@ class BreakerCommandNode(Node):
         self.create_subscription(BranchStatus, topics.BRANCH_STATUS, self.diag.guard(self.on_branch_status),
                                  qos_for(topics.BRANCH_STATUS))
         self.create_service(SetArmed, '~/set_armed', self.diag.guard(self.on_set_armed))
-        self.create_timer(0.2, self.diag.guard(self._release_held), clock=Clock(clock_type=ClockType.STEADY_TIME))
         if self.audit is not None:
             state = self.audit.state
             self._record('start', records_read=state.records, decisions_known=len(state.decisions),
@@ -182,20 +179,22 @@ class BreakerCommandNode(Node):
         self.diag.arrived()
         try:
             grid = grid_from_snapshot(msg, self.limits)
-            stamp = stamp_s(msg.header.stamp)
-            if self.gate.offer('network snapshot', stamp, self._now_s(), ('snapshot', grid, stamp)):
-                self._apply(('snapshot', grid, stamp))
-        except (MessageError, StampError, TopologyError) as exc:
+        except MessageError as exc:
             self.diag.reject(exc.reason, f'network snapshot: {exc}')
+            return
+        stamp = stamp_s(msg.header.stamp)
+        self.inputs.admit('network snapshot', stamp, ('snapshot', grid, stamp))
 
     def on_branch_status(self, msg: BranchStatus) -> None:
         """Follow trips and reclosures."""
         self.diag.arrived()
         item = ('status', str(msg.branch_id), bool(msg.in_service), stamp_s(msg.header.stamp))
+        self.inputs.admit(f'branch {msg.branch_id[:64]} status', item[3], item)
+
+    def _apply_input(self, item: tuple) -> None:
         try:
-            if self.gate.offer(f'branch {msg.branch_id} status', item[3], self._now_s(), item):
-                self._apply(item)
-        except (StampError, TopologyError) as exc:
+            self._apply(item)
+        except TopologyError as exc:
             self.diag.reject(exc.reason, str(exc))
 
     def _apply(self, item: tuple) -> None:
@@ -212,18 +211,6 @@ class BreakerCommandNode(Node):
             if opened is not None and stamp > opened[1]:
                 # Audited, so a restarted node knows the breaker may be opened again.
                 self._record('reclosed', breaker_id=breaker, branch_id=branch_id, stamp_s=stamp)
-
-    def _release_held(self) -> None:
-        def refuse(exc: StampError) -> None:
-            self.diag.reject(exc.reason, str(exc))
-
-        def use(item: tuple) -> None:
-            try:
-                self._apply(item)
-            except TopologyError as exc:
-                self.diag.reject(exc.reason, str(exc))
-
-        self.gate.release(self._now_s(), use, refuse)
 
     def _open_breakers(self) -> set[str]:
         assert self.audit is not None

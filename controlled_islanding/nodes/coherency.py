@@ -31,6 +31,7 @@ from controlled_islanding import topics
 from controlled_islanding.core.coherency import DTWCoherency
 from controlled_islanding.messages import MessageError, grid_from_snapshot, split_stamp, stamp_s
 from controlled_islanding.node_common import (
+    ClockGate,
     Diagnostics,
     NodeSetupError,
     declare_bounded,
@@ -38,7 +39,6 @@ from controlled_islanding.node_common import (
     qos_for,
     spin_node,
 )
-from controlled_islanding.timebounds import StampError, StampGate
 
 
 class CoherencyNode(Node):
@@ -78,7 +78,6 @@ class CoherencyNode(Node):
             raise NodeSetupError(f'max_window_samples={self.max_window_samples} < min_samples={self.min_samples}: '
                                  'no window could ever be grouped')
         self.limits = declare_limits(self)
-        self.gate: StampGate[tuple[str, object]] = StampGate(future_tolerance_s, self.max_held)
         self.early: deque[RotorAngles] = deque()  # samples that overtook the snapshot
         self.snapshot_stamp_s = -math.inf
         self.names: tuple[str, ...] | None = None  # the snapshot's generators, in window column order
@@ -91,6 +90,7 @@ class CoherencyNode(Node):
         self.late_inserts_before_s = -1.0  # newest time tag of a sample inserted behind that, s
         self.pending: list[tuple[IslandingRequest, float]] = []
         self.diag = Diagnostics(self)
+        self.inputs = ClockGate(self, self.diag, future_tolerance_s, self.max_held, self._use)
         self.pub = self.create_publisher(CoherentGroups, topics.COHERENT_GROUPS, qos_for(topics.COHERENT_GROUPS))
         self.create_subscription(NetworkSnapshot, topics.NETWORK_SNAPSHOT, self.diag.guard(self.on_snapshot),
                                  qos_for(topics.NETWORK_SNAPSHOT))
@@ -103,22 +103,6 @@ class CoherencyNode(Node):
         # Polls for the wait deadlines only while a request waits (no 100 Hz wake-ups when idle).
         self.pending_timer = self.create_timer(0.01, self.diag.guard(self._serve_pending), clock=steady)
 
-    def _now_s(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
-
-    def _admit(self, what: str, t: float, item: tuple[str, object]) -> None:
-        """Use an input now, hold it for a clock that has not started, or refuse it as future-stamped."""
-        try:
-            usable = self.gate.offer(what, t, self._now_s(), item)
-        except StampError as exc:
-            self.diag.reject(exc.reason, str(exc))
-            return
-        if usable:
-            self._use(item)
-        else:
-            self.diag.values['held_for_clock'] = str(self.gate.held)
-            self.diag.values['dropped_before_clock'] = str(self.gate.dropped_while_held)
-
     def _use(self, item: tuple[str, object]) -> None:
         kind, msg = item
         if kind == 'snapshot':
@@ -128,16 +112,9 @@ class CoherencyNode(Node):
         else:
             self._take_request(msg)
 
-    def _release(self) -> None:
-        """Judge held inputs, in arrival order, once the node clock runs."""
-        if self.gate.held:
-            self.gate.release(self._now_s(), self._use, lambda exc: self.diag.reject(exc.reason, str(exc)))
-            self.diag.values['held_for_clock'] = str(self.gate.held)
-
     def on_snapshot(self, msg: NetworkSnapshot) -> None:
         """Take the generator set from a snapshot, once its stamp is within bounds."""
-        self._release()
-        self._admit('network snapshot', stamp_s(msg.header.stamp), ('snapshot', msg))
+        self.inputs.admit('network snapshot', stamp_s(msg.header.stamp), ('snapshot', msg))
 
     def _take_snapshot(self, msg: NetworkSnapshot) -> None:
         try:
@@ -168,7 +145,6 @@ class CoherencyNode(Node):
     def on_angles(self, msg: RotorAngles) -> None:
         """Check one sample's shape and stamp; use it, hold it, or refuse it."""
         self.diag.arrived()
-        self._release()
         n = len(msg.generator_names)
         lengths = (len(msg.generator_buses), len(msg.angle_rad), len(msg.valid))
         if n == 0:
@@ -185,7 +161,7 @@ class CoherencyNode(Node):
         if t <= 0:
             self.diag.reject('missing_stamp', 'rotor angles header.stamp is zero')
             return
-        self._admit('rotor angles', t, ('angles', msg))
+        self.inputs.admit('rotor angles', t, ('angles', msg))
 
     def _take_angles(self, msg: RotorAngles) -> None:
         """Insert one sample, within time bounds, into the window, after checking its generators and values."""
@@ -235,12 +211,11 @@ class CoherencyNode(Node):
 
     def on_request(self, msg: IslandingRequest) -> None:
         """Check a request's stamp; queue it, hold it, or refuse it."""
-        self._release()
         t = stamp_s(msg.header.stamp)
         if not msg.request_id or t <= 0:
             self.diag.reject('empty_message', 'islanding request without request_id or stamp')
             return
-        self._admit('islanding request', t, ('request', msg))
+        self.inputs.admit('islanding request', t, ('request', msg))
 
     def _take_request(self, msg: IslandingRequest) -> None:
         """Queue a request; it is served once data up to its stamp is in (or the wait ends)."""
@@ -272,8 +247,7 @@ class CoherencyNode(Node):
         return self.late_inserts_before_s >= 0 and self.late_inserts_before_s <= t
 
     def on_period(self) -> None:
-        """Judge inputs held for the clock; recompute on new data, so the groups are warm when a request comes."""
-        self._release()
+        """Recompute on new data, so the groups are warm when a request comes."""
         if self.dirty and not self.pending:
             self._compute(self.t_s[-1])
 

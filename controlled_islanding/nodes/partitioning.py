@@ -41,6 +41,7 @@ from controlled_islanding.core.islanding import decide
 from controlled_islanding.core.spectral import ConstrainedSpectralPartition  # noqa: F401  imported now, not mid-request
 from controlled_islanding.messages import Groups, Limits, MessageError, grid_from_snapshot, groups_from_msg, stamp_s
 from controlled_islanding.node_common import (
+    ClockGate,
     Diagnostics,
     NodeSetupError,
     declare_bounded,
@@ -48,7 +49,6 @@ from controlled_islanding.node_common import (
     settle_heap,
     spin_node,
 )
-from controlled_islanding.timebounds import StampError, StampGate
 from controlled_islanding.topology import Topology, TopologyError
 
 _KEEP_GROUPS = 16
@@ -109,13 +109,13 @@ class PartitioningNode(Node):
             raise NodeSetupError(f'{exc} (make keys with: controlled-islanding keys init {key_path.parent})') from exc
         self.key_id = signing.fingerprint(self.key)
         self.topology = Topology(future_tolerance_s=self.future_tolerance_s)
-        self.gate: StampGate = StampGate(self.future_tolerance_s, max_held=1000)
         self.groups: list[Groups] = []  # recent groups, ordered by stamp
         self.cache: OrderedDict[tuple, Decision] = OrderedDict()
         self.pending: list[_Pending] = []
         self.answered: deque[str] = deque(maxlen=_KEEP_ANSWERED)
         self.answered_set: set[str] = set()
         self.diag = Diagnostics(self)
+        self.inputs = ClockGate(self, self.diag, self.future_tolerance_s, 1000, self._apply_input)
         self.decision_pub = self.create_publisher(IslandingDecision, topics.ISLANDING_DECISION,
                                                   qos_for(topics.ISLANDING_DECISION))
         self.request_pub = self.create_publisher(IslandingRequest, topics.ISLANDING_REQUEST,
@@ -133,29 +133,17 @@ class PartitioningNode(Node):
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         # Polls for the wait deadlines only while a request waits (no 100 Hz wake-ups when idle).
         self.pending_timer = self.create_timer(0.01, guard(self._serve_pending), clock=steady)
-        self.create_timer(0.2, guard(self._release_held), clock=steady)
         self.get_logger().info(f'signing decisions with key {self.key_id}')
 
     def _now_s(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
     # --- inputs -------------------------------------------------------------------------------------------------
-    def _admit(self, what: str, stamp: float, item: tuple) -> None:
-        """Apply an input now, or hold it while the node clock has not started."""
+    def _apply_input(self, item: tuple) -> None:
         try:
-            if self.gate.offer(what, stamp, self._now_s(), item):
-                self._apply(item)
-        except (StampError, TopologyError) as exc:
+            self._apply(item)
+        except TopologyError as exc:
             self.diag.reject(exc.reason, str(exc))
-
-    def _release_held(self) -> None:
-        def use(item: tuple) -> None:
-            try:
-                self._apply(item)
-            except (StampError, TopologyError) as exc:
-                self.diag.reject(exc.reason, str(exc))
-
-        self.gate.release(self._now_s(), use, lambda exc: self.diag.reject(exc.reason, str(exc)))
 
     def _apply(self, item: tuple) -> None:
         kind = item[0]
@@ -184,14 +172,14 @@ class PartitioningNode(Node):
             self.diag.reject(exc.reason, f'network snapshot: {exc}')
             return
         stamp = stamp_s(msg.header.stamp)
-        self._admit('network snapshot', stamp, ('snapshot', grid, stamp))
+        self.inputs.admit('network snapshot', stamp, ('snapshot', grid, stamp))
 
     def on_branch_status(self, msg: BranchStatus) -> None:
         """Record a branch status change."""
         self.diag.arrived()
         stamp = stamp_s(msg.header.stamp)
-        self._admit(f'branch {msg.branch_id[:64]} status', stamp, ('status', str(msg.branch_id), bool(msg.in_service),
-                                                                  stamp))
+        item = ('status', str(msg.branch_id), bool(msg.in_service), stamp)
+        self.inputs.admit(f'branch {msg.branch_id[:64]} status', stamp, item)
 
     def on_groups(self, msg: CoherentGroups) -> None:
         """Take new coherent groups; compute their decision ahead of a request."""
@@ -204,7 +192,7 @@ class PartitioningNode(Node):
         if self.method and groups.method != self.method:
             self.diag.reject('unknown_id', f'groups of method {groups.method!r}; this node uses {self.method!r}')
             return
-        self._admit('coherent groups', groups.stamp_s, ('groups', groups))
+        self.inputs.admit('coherent groups', groups.stamp_s, ('groups', groups))
 
     def _take_groups(self, groups: Groups) -> None:
         snapshot = self.topology.snapshot
@@ -235,7 +223,7 @@ class PartitioningNode(Node):
         if stamp_s(msg.header.stamp) <= 0:
             self.diag.reject('missing_stamp', f'request {msg.request_id}: header.stamp is zero')
             return
-        self._admit(f'request {msg.request_id}', stamp_s(msg.header.stamp), ('request', msg))
+        self.inputs.admit(f'request {msg.request_id}', stamp_s(msg.header.stamp), ('request', msg))
 
     def _queue(self, msg: IslandingRequest) -> None:
         if msg.request_id in self.answered_set or any(p.request.request_id == msg.request_id for p in self.pending):

@@ -23,7 +23,6 @@ from collections import OrderedDict, deque
 
 import numpy as np
 from controlled_islanding_msgs.msg import NetworkSnapshot, PmuFrame, PmuMeasurement, RotorAngles
-from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from controlled_islanding import topics
@@ -31,6 +30,7 @@ from controlled_islanding.core.grid import Grid
 from controlled_islanding.core.rotor_angle import RotorAngleError, estimate_rotor_angle_rad
 from controlled_islanding.messages import MessageError, grid_from_snapshot, stamp_s
 from controlled_islanding.node_common import (
+    ClockGate,
     Diagnostics,
     NodeSetupError,
     declare_bounded,
@@ -38,13 +38,12 @@ from controlled_islanding.node_common import (
     qos_for,
     spin_node,
 )
-from controlled_islanding.timebounds import StampError, StampGate
 
 _UNUSABLE = 0x8000  # STAT bit 15: 10 = data invalid, 11 = PMU error
 _FIELDS = ('voltage_magnitude_pu', 'voltage_angle_rad', 'current_magnitude_pu', 'current_angle_rad')
 _MAX_STATION_ID_CHARS = 256  # a remembered key longer than any real PMU name only costs memory
 _MAX_STALE_NAMED = 50  # stale station ids listed in /diagnostics
-_RELEASE_PERIOD_S = 0.05  # wall time between looks at held inputs while the node clock has not started
+_RELEASE_PERIOD_S = 0.05  # wall time between looks at held inputs while any wait for the node clock
 
 
 class PmuIngestionNode(Node):
@@ -77,7 +76,6 @@ class PmuIngestionNode(Node):
         self.grid: Grid | None = None
         self.grid_stamp_s = -math.inf
         self.buses: frozenset[int] = frozenset()
-        self.gate: StampGate[tuple[str, object]] = StampGate(future_tolerance_s, max_held)
         # Topics are not ordered against each other: frames may overtake the snapshot. Hold them until it comes.
         self.early: deque[PmuFrame] = deque()
         self.max_early = max_held
@@ -91,31 +89,12 @@ class PmuIngestionNode(Node):
         self.stations_forgotten = 0
         self.last_angle_rad: dict[str, float] = {}
         self.diag = Diagnostics(self)
+        self.inputs = ClockGate(self, self.diag, future_tolerance_s, max_held, self._use, _RELEASE_PERIOD_S)
         self.pub = self.create_publisher(RotorAngles, topics.ROTOR_ANGLES, qos_for(topics.ROTOR_ANGLES))
         self.create_subscription(NetworkSnapshot, topics.NETWORK_SNAPSHOT, self.diag.guard(self.on_snapshot),
                                  qos_for(topics.NETWORK_SNAPSHOT))
         self.create_subscription(PmuFrame, topics.PMU_FRAMES, self.diag.guard(self.on_frame),
                                  qos_for(topics.PMU_FRAMES))
-        self.release_timer = self.create_timer(_RELEASE_PERIOD_S, self.diag.guard(self.on_release_timer),
-                                               clock=Clock(clock_type=ClockType.STEADY_TIME))
-        self.release_timer.cancel()  # runs only while something is held
-
-    def _now_s(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
-
-    def _admit(self, what: str, t: float, item: tuple[str, object]) -> None:
-        """Use an input now, hold it for a clock that has not started, or refuse it as future-stamped."""
-        try:
-            usable = self.gate.offer(what, t, self._now_s(), item)
-        except StampError as exc:
-            self.diag.reject(exc.reason, str(exc))
-            return
-        if usable:
-            self._use(item)
-        else:
-            self.release_timer.reset()
-            self.diag.values['held_for_clock'] = str(self.gate.held)
-            self.diag.values['dropped_before_clock'] = str(self.gate.dropped_while_held)
 
     def _use(self, item: tuple[str, object]) -> None:
         kind, msg = item
@@ -124,23 +103,9 @@ class PmuIngestionNode(Node):
         else:
             self._take_frame(msg)
 
-    def _release(self) -> None:
-        """Judge held inputs, in arrival order, once the node clock runs."""
-        if not self.gate.held:
-            return
-        self.gate.release(self._now_s(), self._use, lambda exc: self.diag.reject(exc.reason, str(exc)))
-        self.diag.values['held_for_clock'] = str(self.gate.held)
-
-    def on_release_timer(self) -> None:
-        """Judge held inputs even when no new input comes to do it."""
-        self._release()
-        if not self.gate.held:
-            self.release_timer.cancel()
-
     def on_snapshot(self, msg: NetworkSnapshot) -> None:
         """Take the generators (names, buses, reactances) from a snapshot, once its stamp is within bounds."""
-        self._release()
-        self._admit('network snapshot', stamp_s(msg.header.stamp), ('snapshot', msg))
+        self.inputs.admit('network snapshot', stamp_s(msg.header.stamp), ('snapshot', msg))
 
     def _take_snapshot(self, msg: NetworkSnapshot) -> None:
         try:
@@ -192,7 +157,6 @@ class PmuIngestionNode(Node):
     def on_frame(self, frame: PmuFrame) -> None:
         """Check a frame's shape and time tag; use it, hold it, or refuse it."""
         self.diag.arrived()
-        self._release()
         t = stamp_s(frame.header.stamp)
         if t <= 0:
             self.diag.reject('missing_stamp', 'PMU frame header.stamp (time tag) is zero')
@@ -204,7 +168,7 @@ class PmuIngestionNode(Node):
             self.diag.reject('too_large', f'PMU frame at {t:.3f} s has {len(frame.measurements)} measurements, '
                                           f'more than max_pmus_per_frame={self.max_pmus}')
             return
-        self._admit('PMU frame', t, ('frame', frame))
+        self.inputs.admit('PMU frame', t, ('frame', frame))
 
     def _take_frame(self, frame: PmuFrame) -> None:
         """Estimate each generator's rotor angle from a frame within bounds, publish."""
