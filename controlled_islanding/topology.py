@@ -39,11 +39,13 @@ class Topology:
     Attributes:
         future_tolerance_s: How far a stamp may lead the node clock, s.
         max_changes_per_branch: Changes remembered per branch; the oldest go first.
+        max_branches_before_snapshot: Distinct branches whose changes are kept while no snapshot is held.
 
     """
 
     future_tolerance_s: float = 1.0
     max_changes_per_branch: int = 32
+    max_branches_before_snapshot: int = 100_000
     _snapshots: list[tuple[float, Grid]] = field(default_factory=list)
     _changes: dict[str, list[tuple[float, bool]]] = field(default_factory=dict)
     _known: frozenset[str] = frozenset()
@@ -86,16 +88,21 @@ class Topology:
         """Record one branch status change.
 
         Raises:
-            TopologyError: reason 'empty_message', 'missing_stamp', 'future_stamp', 'no_data' (no snapshot
-                yet: its branch ids are what bounds the memory) or 'unknown_id'.
+            TopologyError: reason 'empty_message', 'missing_stamp', 'future_stamp', 'unknown_id', or
+                'too_large' (more than `max_branches_before_snapshot` branches named before any snapshot).
 
         """
         if not branch_id:
             raise TopologyError('empty_message', 'branch status without branch_id')
         self._bound(f'branch {branch_id} status', stamp_s, now_s)
         if not self._snapshots:
-            raise TopologyError('no_data', f'branch {branch_id} status before any network snapshot')
-        if branch_id not in self._known:
+            # Topics are not ordered against each other: a trip can arrive before the snapshot it applies to.
+            # It is kept, and judged against the snapshot's branch ids when that comes; until then only the
+            # number of branches bounds the memory.
+            if branch_id not in self._changes and len(self._changes) >= self.max_branches_before_snapshot:
+                raise TopologyError('too_large', f'branch {branch_id} status: {len(self._changes)} branches '
+                                                 f'already named before any network snapshot')
+        elif branch_id not in self._known:
             raise TopologyError('unknown_id', f'branch status for unknown branch {branch_id!r}')
         history = self._changes.setdefault(branch_id, [])
         entry = (stamp_s, bool(in_service))

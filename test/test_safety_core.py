@@ -138,12 +138,16 @@ def test_future_values_never_become_the_newest():
     assert info.value.reason == 'time_backwards'
 
 
-def test_status_memory_is_bounded_and_needs_a_snapshot():
-    topo = Topology(future_tolerance_s=1.0, max_changes_per_branch=8)
+def test_status_memory_is_bounded_and_a_trip_may_come_before_its_snapshot():
+    topo = Topology(future_tolerance_s=1.0, max_changes_per_branch=8, max_branches_before_snapshot=2)
+    # A trip that overtakes its snapshot is kept for it; ids the snapshot does not have are then dropped.
+    topo.offer_status('2-3', False, 1.5, now_s=1.5)
+    topo.offer_status('ghost', False, 1.5, now_s=1.5)
     with pytest.raises(TopologyError) as info:
-        topo.offer_status('2-3', False, 1.0, now_s=1.0)
-    assert info.value.reason == 'no_data'
-    topo.offer_snapshot(GRID, 1.0, now_s=1.0)
+        topo.offer_status('other-ghost', False, 1.5, now_s=1.5)
+    assert info.value.reason == 'too_large'
+    topo.offer_snapshot(GRID, 1.0, now_s=1.6)
+    assert topo.outages_at(2.0) == ('2-3',) and topo.changes_known(2.0) == 1
     with pytest.raises(TopologyError) as info:
         topo.offer_status('99-100', False, 1.0, now_s=1.0)
     assert info.value.reason == 'unknown_id'

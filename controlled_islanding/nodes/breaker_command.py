@@ -204,8 +204,11 @@ class BreakerCommandNode(Node):
             return
         _, branch_id, in_service, stamp = item
         self.topology.offer_status(branch_id, in_service, stamp, self._now_s())
-        if in_service and self.audit is not None:
-            branch = next(b for b in self.topology.snapshot.branches if b.branch_id == branch_id)
+        snapshot = self.topology.snapshot
+        if not in_service or self.audit is None or snapshot is None:
+            return
+        branch = next((b for b in snapshot.branches if b.branch_id == branch_id), None)
+        if branch is not None:
             breaker = self.override.get(branch_id) or branch.breaker
             opened = self.audit.state.commanded.get(breaker)
             if opened is not None and stamp > opened[1]:
