@@ -179,11 +179,16 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 if not arm_client.wait_for_service(timeout_sec=20.0):
                     sup.check_alive()
                     raise CliError('breaker_command did not offer /breaker_command/set_armed within 20 s')
-                request = signing.signed_arm_request(SetArmed.Request(), operator_key, '/breaker_command', arm,
-                                                     time.time())
-                future = arm_client.call_async(request)
-                if not spin_for(10.0, future.done) or not future.result().accepted or future.result().armed != arm:
-                    why = future.result().message if future.done() else 'no answer within 10 s'
+                # The service can be discovered before it has matched our reply reader; Fast DDS then drops the
+                # response ("failed to send response"). Arming is idempotent, so ask again, with a fresh nonce.
+                for _attempt in range(3):
+                    request = signing.signed_arm_request(SetArmed.Request(), operator_key, '/breaker_command', arm,
+                                                         time.time())
+                    future = arm_client.call_async(request)
+                    if spin_for(5.0, future.done):
+                        break
+                if not future.done() or not future.result().accepted or future.result().armed != arm:
+                    why = future.result().message if future.done() else 'no answer to 3 requests within 15 s'
                     raise CliError(f'breaker_command did not switch to armed={arm}: {why}')
                 _say(quiet, f'replay: breaker_command {"armed" if arm else "left disarmed"}; playing the bag')
                 # The player starts once every subscriber now in the graph (this observer included) matches it.
