@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import yaml
@@ -60,6 +61,19 @@ def load_breaker_map(path: str | Path) -> dict[str, str]:
     if not isinstance(table, dict) or not table:
         raise NodeSetupError(f'breakers_file {path}: expected a non-empty mapping under "breakers:"')
     return {str(k): str(v) for k, v in table.items()}
+
+
+def _check_signature(role: str, key: object, key_id: str, claimed_key_id: str, payload: Callable[[], bytes],
+                     signature: object) -> None:
+    """Refuse a message not signed by the `role` key: 'unsigned', 'unknown_key' or 'bad_signature'."""
+    if not len(signature):
+        raise Refusal('unsigned', f'no signature; only messages signed by the {role} key are acted on')
+    if claimed_key_id != key_id:
+        raise Refusal('unknown_key', f'signed by key {claimed_key_id[:32]!r}, not the {role} key {key_id}')
+    try:
+        signing.verify(key, payload(), signature)
+    except signing.SigningError as exc:
+        raise Refusal(exc.reason, str(exc)) from exc
 
 
 def _descriptor(text: str, low: float | None = None, high: float | None = None, integer: bool = False,
@@ -231,16 +245,8 @@ class BreakerCommandNode(Node):
     def _check_arm(self, request: SetArmed.Request) -> str:
         if request.action not in (SetArmed.Request.ACTION_ARM, SetArmed.Request.ACTION_DISARM):
             raise Refusal('unset_action', f'action={request.action}: neither ACTION_ARM (1) nor ACTION_DISARM (2)')
-        if not len(request.signature):
-            raise Refusal('unsigned', 'no signature; only requests signed by the operator key are accepted')
-        if request.key_id != self.operator_key_id:
-            raise Refusal('unknown_key', f'signed by key {request.key_id[:32]!r}, not the operator key '
-                                         f'{self.operator_key_id}')
-        try:
-            signing.verify(self.operator_key, signing.arm_payload(request, self.get_fully_qualified_name()),
-                           request.signature)
-        except signing.SigningError as exc:
-            raise Refusal(exc.reason, str(exc)) from exc
+        _check_signature('operator', self.operator_key, self.operator_key_id, request.key_id,
+                         lambda: signing.arm_payload(request, self.get_fully_qualified_name()), request.signature)
         now_s, stamp = time.time(), stamp_s(request.stamp)
         if not 0 < len(request.nonce) <= _MAX_ID_CHARS:
             raise Refusal('bad_value', f'nonce must have 1 to {_MAX_ID_CHARS} characters')
@@ -284,15 +290,8 @@ class BreakerCommandNode(Node):
         max_entries = 2 * len(snapshot.branches) if snapshot is not None else self.limits.max_branches
         if len(msg.bus_numbers) > self.limits.max_buses or len(msg.cut_branch_ids) > max_entries:
             raise Refusal('too_large', f'{len(msg.bus_numbers)} buses and {len(msg.cut_branch_ids)} cut entries')
-        if not len(msg.signature):
-            raise Refusal('unsigned', 'no signature; only decisions signed by the decision key are executed')
-        if msg.key_id != self.decision_key_id:
-            raise Refusal('unknown_key', f'signed by key {msg.key_id[:32]!r}, not the decision key '
-                                         f'{self.decision_key_id}')
-        try:
-            signing.verify(self.decision_key, signing.decision_payload(msg), msg.signature)
-        except signing.SigningError as exc:
-            raise Refusal(exc.reason, str(exc)) from exc
+        _check_signature('decision', self.decision_key, self.decision_key_id, msg.key_id,
+                         lambda: signing.decision_payload(msg), msg.signature)
         if not 0 < len(msg.decision_id) <= _MAX_ID_CHARS:
             raise Refusal('bad_value', f'decision_id must have 1 to {_MAX_ID_CHARS} characters')
 
