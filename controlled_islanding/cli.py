@@ -13,6 +13,8 @@ import importlib
 import sys
 from collections.abc import Sequence
 
+from controlled_islanding.rosenv import RosEnvError
+
 SUBCOMMANDS = ('demo', 'replay', 'partition', 'simulate', 'evaluate', 'bench', 'keys', 'fuzz')
 
 DESCRIPTION = """\
@@ -64,7 +66,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser(chosen).parse_args(argv)
     try:
         return int(_load(args.command).run(args) or 0)
-    except CliError as exc:
+    except (CliError, RosEnvError) as exc:
         print(f'controlled-islanding {args.command}: error: {exc}', file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -1,8 +1,12 @@
-"""An isolated ROS 2 environment for every run that starts nodes: tests, demos, benchmarks.
+"""The ROS 2 environment of every run that starts nodes: tests, demos, benchmarks, replays.
 
-Traffic stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST), each concurrent
-run gets a ROS_DOMAIN_ID of its own (held by an advisory file lock, so two runs on one
-machine never share one), and logs go inside the build tree.
+Isolated (tests, the demo, benchmarks, and any run whose user set no ROS_DOMAIN_ID): traffic
+stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST), each concurrent run gets a
+ROS_DOMAIN_ID of its own (held by an advisory file lock, so two runs on one machine never
+share one), and logs go inside the build tree.
+
+A user who set ROS_DOMAIN_ID keeps it (graph_environment with isolate=False), so a replay
+shows up in their own tools; discovery still defaults to loopback unless they chose a range.
 """
 
 from __future__ import annotations
@@ -90,3 +94,32 @@ def isolated_ros_environment(log_dir: Path) -> Iterator[dict[str, str]]:
     """
     with reserved_domain_id() as domain_id:
         yield ros_environment(domain_id, log_dir)
+
+
+@contextmanager
+def graph_environment(log_dir: Path, isolate: bool) -> Iterator[dict[str, str]]:
+    """Yield the environment for a graph the user started: their ROS_DOMAIN_ID, or an isolated one.
+
+    Args:
+        log_dir: Directory for ROS_LOG_DIR.
+        isolate: Use a private domain and loopback even if the user set ROS_DOMAIN_ID.
+
+    Yields:
+        The environment, as isolated_ros_environment.
+
+    Raises:
+        RosEnvError: ROS_DOMAIN_ID is set but not an integer in 0..232.
+
+    """
+    user_domain = os.environ.get('ROS_DOMAIN_ID', '').strip()
+    if isolate or not user_domain:
+        with isolated_ros_environment(log_dir) as env:
+            yield env
+        return
+    if not user_domain.isdigit() or int(user_domain) > LAST_DOMAIN_ID:
+        raise RosEnvError(f'ROS_DOMAIN_ID={user_domain!r} is not an integer in 0..{LAST_DOMAIN_ID}')
+    env = ros_environment(int(user_domain), log_dir)
+    for chosen in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_STATIC_PEERS'):
+        if os.environ.get(chosen):
+            env[chosen] = os.environ[chosen]
+    yield env

@@ -43,13 +43,13 @@ def test_one_group_is_no_split(capsys: pytest.CaptureFixture[str]) -> None:
 def test_table_output(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(['partition', *CASE1]) == 0
     text = capsys.readouterr().out
-    assert 'island 1: buses 2,3,17,18,25,26,27,28,29,30,37,38' in text
+    assert 'island 0: buses 2,3,17,18,25,26,27,28,29,30,37,38' in text
     assert 'open lines (1): 3-4' in text
 
 
 @pytest.mark.parametrize(('args', 'named'), [
     (['--group', '30,37,38', '--group', '31,32,33,34,35,36,99'], 'bus 99'),
-    (['--group', '30,37,38', '--group', '31,32,33,34,35,36,39,38'], 'bus 38 is in group 1 and group 2'),
+    (['--group', '30,37,38', '--group', '31,32,33,34,35,36,39,38'], 'bus 38 is named by two --group options'),
     (['--outage', '5-9', *CASE1[4:]], "'5-9'"),
     (['--group', '30,37,38', '--group', '31,32,33,34,35,36'], '39 are in no --group'),
     (['--outage', '2-30', *CASE1[4:]], 'not connected'),

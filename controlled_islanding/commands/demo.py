@@ -58,7 +58,7 @@ def default_bag() -> dict:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the demo options."""
     parser.add_argument('--results', type=Path, default=None,
-                        help='results folder to create (default results/demo-<UTC time>)')
+                        help='results folder to create (default ./results/demo-<UTC time>)')
     parser.add_argument('--fast', action='store_true', help='play as fast as possible instead of real time')
     parser.add_argument('--json', action='store_true', help='print one JSON decision on stdout and nothing else')
 
@@ -76,10 +76,11 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f'default bag {bag} is missing; regenerate it with `controlled-islanding simulate`')
     results = args.results
     if results is None:
-        results = REPO / 'results' / f'demo-{datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")}'
+        results = Path('results') / f'demo-{datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")}'
     if not args.json:
         print(f'demo: {entry["name"]}: {" ".join(str(entry.get("description", "")).split())}\n', flush=True)
-    summary = replay(bag, results, fast=args.fast, quiet=args.json)
+    # The demo never joins the user's domain: it must behave the same on every machine.
+    summary = replay(bag, results, fast=args.fast, quiet=args.json, isolate=True)
     expected = entry.get('expected_decision', {})
     summary['manifest_agrees'] = (summary['split'] == expected.get('split')
                                   and sorted(summary.get('cut_branch_ids', [])) ==

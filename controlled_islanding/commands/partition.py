@@ -69,7 +69,7 @@ def _parse_groups(texts: list[str], grid) -> dict[str, int]:
                 raise CliError(f'--group {text!r}: bus {bus} has no generator '
                                f'(generator buses: {",".join(map(str, sorted(at_bus)))})')
             if bus in seen:
-                raise CliError(f'generator bus {bus} is in group {seen[bus] + 1} and group {k + 1}; '
+                raise CliError(f'generator bus {bus} is named by two --group options; '
                                'each generator belongs to one group')
             seen[bus] = k
             for gen in at_bus[bus]:
@@ -110,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
         'lines_cut': len(decision.cut_branches),
         'disrupted_mw': round(decision.disrupted_mw, 3),
         'island_balance': [
-            {'island': i + 1, 'generation_mw': round(g, 3), 'load_mw': round(ld, 3),
+            {'island': i, 'generation_mw': round(g, 3), 'load_mw': round(ld, 3),
              'imbalance_mw': round(im, 3), 'shed_mw': round(sh, 3)}
             for i, (g, ld, im, sh) in enumerate(zip(decision.island_generation_mw, decision.island_load_mw,
                                                     decision.island_imbalance_mw, decision.island_shed_mw,
@@ -121,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(f'{grid.name}: {len(islands)} island(s), flows {args.flows}, outages: {", ".join(outages) or "none"}')
     for i, buses in enumerate(islands):
-        print(f'  island {i + 1}: buses {",".join(map(str, buses))}')
+        print(f'  island {i}: buses {",".join(map(str, buses))}')
     cut = ', '.join(f'{a}-{b}' for a, b in result['cut_lines']) or 'none'
     print(f'  open lines ({result["lines_cut"]}): {cut}')
     print(f'  disrupted power (eq. 9): {decision.disrupted_mw:.2f} MW')

@@ -18,19 +18,25 @@ from controlled_islanding.cli import CliError
 HELP = 'replay a bag through the ROS 2 node graph and print its islanding decision'
 DESCRIPTION = """\
 Start pmu_ingestion, coherency, partitioning and breaker_command (each its own process, with its
-config/*.yaml, on a private ROS_DOMAIN_ID confined to loopback), plus a recorder; arm the breaker node;
+config/*.yaml), plus a recorder; arm the breaker node;
 play BAG with bag_player (ground truth withheld); then print the decision: coherent groups, islands
 with their buses, cut lines, disrupted MW, generation/load/shed per island, breaker commands, and the
 latency from the islanding request to the breaker command, measured by one observer across processes.
 
 The results folder holds the recorded output bag (output_bag/), the breaker audit log, every node's
 log, rotor_angles.png (estimated angles coloured by group), network.png (islands and cut lines) and
-summary.json. Every child process is stopped on exit, Ctrl-C or error.
+summary.json; by default it is made under results/ in the current directory. Every child process is
+stopped on exit, Ctrl-C or error.
 
-Examples:
-  controlled-islanding replay bags/ieee39_case1            real time
-  controlled-islanding replay bags/ieee39_case1 --fast --json
-  controlled-islanding replay bags/ieee39_case1 --probe-hz 20   extra requests: a latency benchmark
+DDS domain: if ROS_DOMAIN_ID is set, the graph joins it, so your own tools see its topics (discovery
+stays on loopback unless ROS_AUTOMATIC_DISCOVERY_RANGE says otherwise); another graph on that domain
+will see and disturb it. With --isolate, or with ROS_DOMAIN_ID unset, the graph gets a free private
+domain on loopback.
+
+Examples (bag names from bags/index.yaml):
+  controlled-islanding replay bags/ieee39_g6g7_unstable            real time
+  controlled-islanding replay bags/ieee39_g6g7_unstable --fast --json
+  controlled-islanding replay bags/ieee39_g6g7_unstable --probe-hz 20   extra requests: a latency benchmark
 """
 
 REPO = Path(__file__).resolve().parents[2]
@@ -46,7 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--fast', action='store_true', help='play as fast as possible (lockstep at requests)')
     parser.add_argument('--rate', type=float, default=1.0, help='playback speed factor (default 1 = real time)')
     parser.add_argument('--results', type=Path, default=None,
-                        help='results folder to create (default results/replay-<bag>-<UTC time>)')
+                        help='results folder to create (default ./results/replay-<bag>-<UTC time>)')
+    parser.add_argument('--isolate', action='store_true',
+                        help='run on a free private ROS_DOMAIN_ID on loopback even if ROS_DOMAIN_ID is set')
     parser.add_argument('--probe-hz', type=float, default=0.0,
                         help='also send islanding requests at this rate once the first decision is out, '
                              'to measure latency over many requests (a benchmark; default 0 = none)')
@@ -97,7 +105,7 @@ def _bag_topics(bag: Path) -> dict[str, int]:
 
 
 def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: float, timeout_s: float,
-              quiet: bool, arm: bool = True, record: bool = True) -> tuple[Observation, dict]:
+              quiet: bool, arm: bool = True, record: bool = True, isolate: bool = True) -> tuple[Observation, dict]:
     """Run the node graph on a bag; return what the observer saw and the player's speed report.
 
     Raises:
@@ -112,7 +120,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
 
     from controlled_islanding import signing
     from controlled_islanding.node_common import qos_for, settle_heap
-    from controlled_islanding.rosenv import isolated_ros_environment
+    from controlled_islanding.rosenv import graph_environment
     from controlled_islanding.supervisor import GRAPH, PIPELINE_POLICY, PLAYER, RECORDER, Supervisor, SupervisorError
 
     # The demo and replays sign with the user's keys, made on first use, outside the repository.
@@ -124,7 +132,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
     played = [t for t in bag_topics if t not in topics.TRUTH_TOPICS] + [topics.CLOCK]
     obs = Observation()
     logs = results / 'logs'
-    with isolated_ros_environment(REPO / 'build' / 'ros_log' / results.name) as env:
+    with graph_environment(results / 'ros_log', isolate) as env:
         saved = dict(os.environ)
         os.environ.update(env)
         context = rclpy.Context()
@@ -456,7 +464,7 @@ def write_figures(bag: Path, results: Path, summary: dict) -> list[Path]:
 
 def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float = 1.0, probe_hz: float = 0.0,
            timeout_s: float = 120.0, figures: bool = True, quiet: bool = False, arm: bool = True,
-           record: bool = True) -> dict:
+           record: bool = True, isolate: bool = True) -> dict:
     """Replay a bag through the graph; write the results folder; return the summary.
 
     Raises:
@@ -469,13 +477,13 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
         raise CliError(f'--rate {rate} must be positive')
     if results is None:
         stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
-        results = REPO / 'results' / f'replay-{bag.name}-{stamp}'
+        results = Path('results') / f'replay-{bag.name}-{stamp}'
     results = results.resolve()
     if results.exists():
         raise CliError(f'results folder {results} exists; name a new one')
     results.mkdir(parents=True)
     obs, report = run_graph(bag, results, fast=fast, rate=rate, probe_hz=probe_hz, timeout_s=timeout_s,
-                            quiet=quiet, arm=arm, record=record)
+                            quiet=quiet, arm=arm, record=record, isolate=isolate)
     summary = summarize(bag, results, obs, report)
     if figures and record:
         try:
@@ -497,7 +505,7 @@ def run(args: argparse.Namespace) -> int:
         return _run_repeated(args)
     summary = replay(args.bag, args.results, fast=args.fast, rate=args.rate, probe_hz=args.probe_hz,
                      timeout_s=args.timeout, figures=not args.no_figures, quiet=args.json, arm=not args.disarmed,
-                     record=not args.no_record)
+                     record=not args.no_record, isolate=args.isolate)
     if args.json:
         print(json.dumps(summary, default=str))
     else:
@@ -511,12 +519,12 @@ def run(args: argparse.Namespace) -> int:
 
 def _run_repeated(args: argparse.Namespace) -> int:
     stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
-    base = (args.results or REPO / 'results' / f'bench-{args.bag.name}-{stamp}').resolve()
+    base = (args.results or Path('results') / f'bench-{args.bag.name}-{stamp}').resolve()
     latencies, speeds, outcomes, failures = [], [], set(), []
     for i in range(args.repeat):
         summary = replay(args.bag, base / f'run-{i}', fast=args.fast, rate=args.rate, probe_hz=args.probe_hz,
                          timeout_s=args.timeout, figures=False, quiet=True, arm=not args.disarmed,
-                         record=not args.no_record)
+                         record=not args.no_record, isolate=args.isolate)
         outcomes.add((summary['split'], tuple(sorted(summary.get('cut_branch_ids', [])))))
         failures.append(graph_failure(summary))
         latencies += summary['latency_ms']['samples']  # the bag's requests and any --probe-hz ones

@@ -1,0 +1,49 @@
+"""Which DDS domain a graph joins: the user's ROS_DOMAIN_ID unless isolation is asked for or it is unset."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from controlled_islanding.commands import replay
+from controlled_islanding.rosenv import FIRST_DOMAIN_ID, LAST_DOMAIN_ID, RosEnvError, graph_environment
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_user_domain_wins_without_isolate(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setenv('ROS_DOMAIN_ID', '7')
+    monkeypatch.delenv('ROS_AUTOMATIC_DISCOVERY_RANGE', raising=False)
+    with graph_environment(tmp_path, isolate=False) as env:
+        assert env['ROS_DOMAIN_ID'] == '7'
+        assert env['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'LOCALHOST'
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'SUBNET')
+    with graph_environment(tmp_path, isolate=False) as env:
+        assert env['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'SUBNET'
+
+
+@pytest.mark.parametrize('user_domain', ['7', ''])
+def test_isolated_when_asked_or_unset(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, user_domain: str) -> None:
+    monkeypatch.setenv('ROS_DOMAIN_ID', user_domain)
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'SUBNET')
+    with graph_environment(tmp_path, isolate=bool(user_domain)) as env:
+        assert FIRST_DOMAIN_ID <= int(env['ROS_DOMAIN_ID']) <= LAST_DOMAIN_ID
+        assert env['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'LOCALHOST'
+        assert env['ROS_LOG_DIR'] == str(tmp_path)
+
+
+@pytest.mark.parametrize('bad', ['abc', '-1', '233', '1.5'])
+def test_bad_user_domain_is_named(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, bad: str) -> None:
+    monkeypatch.setenv('ROS_DOMAIN_ID', bad)
+    with pytest.raises(RosEnvError, match=rf'ROS_DOMAIN_ID={re.escape(repr(bad))}'):
+        with graph_environment(tmp_path, isolate=False):
+            pass
+
+
+def test_help_examples_name_real_bags() -> None:
+    named = re.findall(r'replay (bags/\S+)', replay.DESCRIPTION)
+    assert named
+    for bag in named:
+        assert (REPO / bag / 'metadata.yaml').is_file(), f'replay --help names {bag}, which is not a bag'
