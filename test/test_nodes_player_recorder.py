@@ -53,8 +53,13 @@ def write_bag(path):
 def recorded(path) -> dict[str, list[bytes]]:
     out: dict[str, list[bytes]] = {}
     with AnyReader([path], default_typestore=typestore()) as reader:
-        for conn, _, raw in reader.messages():
+        for conn, log_ns, raw in reader.messages():
+            # Sim time: messages that beat the first /clock must not be logged at 0 (a bag "56 years" long).
+            assert T0_NS <= log_ns <= T0_NS + int(SPAN_S * 1e9), f'{conn.topic} logged at {log_ns} ns'
             out.setdefault(conn.topic, []).append(bytes(raw))
+        latched = [c for c in reader.connections if c.topic == topics.ISLANDING_REQUEST]
+        # What `ros2 bag play` offers again: the publisher's own QoS, not an empty list.
+        assert latched and all(c.ext.offered_qos_profiles for c in latched)
     return out
 
 
@@ -65,8 +70,8 @@ def test_player_to_recorder_round_trip(fast):
     bag, out = run / 'in_bag', run / 'out_bag'
     written = write_bag(bag)
     played = [topics.PMU_FRAMES, topics.ISLANDING_REQUEST, topics.TRUTH_COHERENT_GROUPS]
-    with graph('test_nodes_player', [(RECORDER, {'output': out, 'topics': str(played + [topics.CLOCK])})]) as (
-            sup, probe):
+    with graph('test_nodes_player', [(RECORDER, {'output': out, 'topics': str(played + [topics.CLOCK]),
+                                                 'use_sim_time': True})]) as (sup, probe):
         clocks = probe.collect(Clock, topics.CLOCK)
         frames = probe.collect(PmuFrame, topics.PMU_FRAMES)
         probe.collect(IslandingRequest, topics.ISLANDING_REQUEST)
@@ -86,6 +91,8 @@ def test_player_to_recorder_round_trip(fast):
     assert topics.TRUTH_COHERENT_GROUPS not in got, 'ground truth was published without publish_truth'
     assert clocks and clocks[-1].clock.sec == (T0_NS + int(SPAN_S * 1e9)) // 1_000_000_000
     assert not list(run.glob('.out_bag.partial-*')), 'the recorder left a partial bag behind'
+    assert [f.name for f in out.glob('*.mcap')] == ['out_bag.mcap'], 'the storage file kept a temporary name'
+    assert 'ros_distro: jazzy' in (out / 'metadata.yaml').read_text()
     if not fast:
         assert wall_s >= SPAN_S, f'real-time replay of {SPAN_S} s took only {wall_s:.2f} s'
 

@@ -2,8 +2,14 @@
 
 Topics are subscribed once they appear in the graph (checked every `discovery_period_s`), with the QoS the
 publishers offer: transient local only when every publisher latches (a volatile writer and a transient local
-reader never match), best effort when any publisher is best effort. The bag is written under a temporary name
-and renamed to `output` when the node stops, so a half-written bag never carries the final name.
+reader never match), best effort when any publisher is best effort. Each connection records the QoS its
+publishers offered, as `ros2 bag record` does, so `ros2 bag play` offers it again and latched readers match.
+
+Log times are the node's clock at arrival. On sim time that clock reads 0 until the first /clock, and a
+message logged at 0 would start the bag in 1970; such early messages wait (at most `max_early_messages`)
+and are written at the first valid time. The bag is written inside a temporary directory under its final
+name, and that directory's content is renamed to `output` when the node stops, so a half-written bag never
+carries the final name and the storage file inside is named after the bag.
 """
 
 from __future__ import annotations
@@ -11,15 +17,25 @@ from __future__ import annotations
 import os
 import shutil
 import sys
+import time
 from pathlib import Path
 
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import StoragePlugin, Writer
 
+from controlled_islanding.bagmeta import set_ros_distro
 from controlled_islanding.interfaces import typestore
-from controlled_islanding.node_common import Diagnostics, NodeSetupError, message_class, qos_for, spin_node
+from controlled_islanding.node_common import (
+    Diagnostics,
+    NodeSetupError,
+    declare_bounded,
+    message_class,
+    qos_for,
+    spin_node,
+)
 
 
 class RecorderNode(Node):
@@ -30,6 +46,10 @@ class RecorderNode(Node):
         self.declare_parameter('output', '')
         self.declare_parameter('topics', [''])
         self.declare_parameter('discovery_period_s', 0.2)
+        self.max_early = int(declare_bounded(
+            self, 'max_early_messages', 10_000, 0, 1_000_000,
+            'messages held while the clock still reads 0 (sim time before the first /clock); more are dropped '
+            'and counted (rejected.before_clock)', read_only=True))
         output = self.get_parameter('output').value
         self.topics = [t for t in self.get_parameter('topics').value if t]
         if not output:
@@ -41,9 +61,10 @@ class RecorderNode(Node):
             raise NodeSetupError(f'output {self.output} exists; refusing to overwrite a bag')
         self.tmp = self.output.with_name(f'.{self.output.name}.partial-{os.getpid()}')
         shutil.rmtree(self.tmp, ignore_errors=True)
-        self.output.parent.mkdir(parents=True, exist_ok=True)
-        self.writer = Writer(self.tmp, version=9, storage_plugin=StoragePlugin.MCAP)
+        self.tmp.mkdir(parents=True)
+        self.writer = Writer(self.tmp / self.output.name, version=9, storage_plugin=StoragePlugin.MCAP)
         self.writer.open()
+        self.early: list[tuple[object, bytes]] = []
         self.connections = {}
         self.subs = {}
         self.diag = Diagnostics(self)
@@ -63,12 +84,14 @@ class RecorderNode(Node):
     def _discover(self) -> None:
         types = dict(self.get_topic_names_and_types())
         for topic in self.topics:
-            if topic in self.subs or topic not in types:
+            # A topic seen only through its readers has no offered QoS yet to record, or to match.
+            if topic in self.subs or topic not in types or not self.get_publishers_info_by_topic(topic):
                 continue
             msgtype = types[topic][0]
             try:
                 cls = message_class(msgtype)
-                conn = self.writer.add_connection(topic, msgtype, typestore=typestore())
+                conn = self.writer.add_connection(topic, msgtype, typestore=typestore(),
+                                                  offered_qos_profiles=self._offered(topic))
             except Exception as exc:  # an unknown type must not stop the other topics being recorded
                 self.diag.reject('unknown_type', f'{topic}: cannot record type {msgtype}: {exc}')
                 self.subs[topic] = None
@@ -78,15 +101,53 @@ class RecorderNode(Node):
                 cls, topic, lambda raw, c=conn: self._write(c, raw), self._qos(topic), raw=True)
             self.get_logger().info(f'recording {topic} ({msgtype})')
 
+    def _offered(self, topic: str) -> list[Qos]:
+        def duration(d: object) -> QosTime:
+            sec, nsec = divmod(int(d.nanoseconds), 1_000_000_000)
+            return QosTime(sec, nsec)
+
+        def enum(cls: type, policy: object) -> object:
+            try:
+                return cls(int(policy))
+            except ValueError:
+                return cls(0)  # "system default": a value rosbag2 can read, where Fast DDS reports one it cannot
+
+        return [Qos(history=enum(QosHistory, q.history), depth=int(q.depth),
+                    reliability=enum(QosReliability, q.reliability), durability=enum(QosDurability, q.durability),
+                    deadline=duration(q.deadline), lifespan=duration(q.lifespan),
+                    liveliness=enum(QosLiveliness, q.liveliness),
+                    liveliness_lease_duration=duration(q.liveliness_lease_duration),
+                    avoid_ros_namespace_conventions=bool(q.avoid_ros_namespace_conventions))
+                for q in (i.qos_profile for i in self.get_publishers_info_by_topic(topic))]
+
     def _write(self, conn, raw: bytes) -> None:
         self.diag.arrived()
         now_ns = self.get_clock().now().nanoseconds
-        self.writer.write(conn, now_ns if now_ns > 0 else 0, raw)
+        if now_ns <= 0:
+            if len(self.early) >= self.max_early:
+                self.diag.reject('before_clock', f'{conn.topic}: more than {self.max_early} messages before the '
+                                                 'first /clock; dropped')
+                return
+            self.early.append((conn, raw))
+            return
+        self._flush_early(now_ns)
+        self.writer.write(conn, now_ns, raw)
+
+    def _flush_early(self, at_ns: int) -> None:
+        for early_conn, early_raw in self.early:
+            self.writer.write(early_conn, at_ns, early_raw)
+        self.early.clear()
 
     def close(self) -> None:
         """Finish the bag and give it its final name."""
+        if self.early:
+            # No valid clock ever came: the wall clock is the only time these messages had.
+            self.get_logger().warning(f'{len(self.early)} messages arrived before any /clock; logged at wall time')
+            self._flush_early(time.time_ns())
         self.writer.close()
-        os.replace(self.tmp, self.output)
+        set_ros_distro(self.tmp / self.output.name)
+        os.replace(self.tmp / self.output.name, self.output)
+        self.tmp.rmdir()
         self.get_logger().info(f'wrote {self.output}')
 
 
