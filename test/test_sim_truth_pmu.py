@@ -13,7 +13,7 @@ from controlled_islanding.core.grid import Branch, Generator, Grid, Load
 from controlled_islanding.sim.andes_sim import Simulation, branch_ids
 from controlled_islanding.sim.pmu import STAT_DATA_INVALID, measure, time_tags
 from controlled_islanding.sim.scenario import Impairments, Scenario
-from controlled_islanding.sim.truth import truth_groups
+from controlled_islanding.sim.truth import first_pole_slip_s, pole_slip_groups, truth_groups
 
 
 def _angles(t: np.ndarray, amplitudes_rad: list[float], slip_rad_per_s: list[float]) -> np.ndarray:
@@ -24,20 +24,41 @@ def _angles(t: np.ndarray, amplitudes_rad: list[float], slip_rad_per_s: list[flo
 def test_truth_one_group_when_swings_stay_within_pi() -> None:
     t = np.linspace(0, 5, 301)
     delta = _angles(t, [0.0, 0.5, 1.2, -1.0], [0.0, 0.0, 0.0, 0.0])  # largest pair difference 2.2 rad < pi
-    assert truth_groups(t, delta, 5.0).tolist() == [0, 0, 0, 0]
+    assert truth_groups(t, delta).tolist() == [0, 0, 0, 0]
+    assert first_pole_slip_s(t, delta) is None
 
 
 def test_truth_separates_slipping_generators_and_numbers_groups_by_first_member() -> None:
     t = np.linspace(0, 5, 301)
     delta = _angles(t, [0.1, 0.1, 0.2, 0.1, 0.1], [4.0, 0.0, 4.0, 0.0, -6.0])
-    assert truth_groups(t, delta, 5.0).tolist() == [0, 1, 0, 1, 2]
+    assert truth_groups(t, delta).tolist() == [0, 1, 0, 1, 2]
 
 
-def test_truth_ignores_what_happens_after_the_request() -> None:
+def test_truth_is_the_final_grouping_even_when_the_slip_comes_after_the_request() -> None:
     t = np.linspace(0, 5, 301)
     delta = _angles(t, [0.1, 0.1], [0.0, 2.0])  # separates by pi only after t = 1 + pi/2 s
-    assert truth_groups(t, delta, 2.0).tolist() == [0, 0]
-    assert truth_groups(t, delta, 4.0).tolist() == [0, 1]
+    assert truth_groups(t, delta).tolist() == [0, 1]
+    # The former rule, kept as a diagnostic, only sees the slip once it has happened.
+    assert pole_slip_groups(t, delta, 2.0).tolist() == [0, 0]
+    assert pole_slip_groups(t, delta, 4.0).tolist() == [0, 1]
+    slip = first_pole_slip_s(t, delta)
+    assert slip == pytest.approx(1.0 + np.pi / 2.0, abs=t[1] - t[0] + 1e-9)
+
+
+def test_truth_forgives_a_swing_past_pi_that_comes_back() -> None:
+    t = np.linspace(0, 5, 501)
+    swing = 3.6 * np.sin(np.pi * t / 5.0) ** 2  # the pair is 3.6 rad apart at 2.5 s, back together at 5 s
+    delta = np.column_stack([np.zeros_like(t), swing])
+    assert pole_slip_groups(t, delta, 5.0).tolist() == [0, 1]
+    assert truth_groups(t, delta).tolist() == [0, 0]
+    assert first_pole_slip_s(t, delta) is not None
+
+
+def test_truth_keeps_machines_that_slip_together_in_one_group() -> None:
+    t = np.linspace(0, 5, 301)
+    # Machines 1 and 2 slip together (their difference swings by 1 rad); machine 0 stays.
+    delta = _angles(t, [0.0, 0.5, -0.5], [0.0, 5.0, 5.0])
+    assert truth_groups(t, delta).tolist() == [0, 1, 1]
 
 
 def _simulation() -> Simulation:

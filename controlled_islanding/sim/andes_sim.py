@@ -6,7 +6,13 @@ ANDES generates code on first use; it goes to `build/andes_pycode` in the source
 What is returned, on ANDES' own non-uniform time grid:
 - bus voltage magnitude (pu) and angle (rad, against the nominal-frequency reference) at every case bus;
 - every synchronous generator's rotor angle delta (rad) and terminal P and Q (pu on the system base);
-- the pre-fault power flow as a core Grid: branch flows at both ends (MW), generator dispatch, loads.
+- the pre-fault power flow as a core Grid: branch flows at both ends (MW), generator dispatch, loads;
+- the branch status changes of the case's own events that the scenario keeps.
+
+The case is anything ANDES reads (xlsx, json, MATPOWER .m, PSS/E .raw with a .dyr `addfile`). Devices the
+scenario disables get u = 0 before setup; disabled synchronous machines are left out of the generators.
+Each generator's reactance for the rotor angle estimate is its xq, or x'd for a classical machine (GENCLS),
+whose xq ANDES only copies from xd1 when the time-domain run initialises.
 """
 
 from __future__ import annotations
@@ -22,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from controlled_islanding.core.grid import Branch, Generator, Grid, Load
-from controlled_islanding.sim.scenario import Scenario, ScenarioError
+from controlled_islanding.sim.scenario import Disable, Scenario, ScenarioError
 
 # Synchronous machine models whose devices are the generators (ANDES group SynGen).
 _SYNGEN_GROUP = 'SynGen'
@@ -53,6 +59,7 @@ class Simulation:
         branch_ends: Branch id -> (from bus, to bus), for every case branch.
         trip_branch_ids: Branch id of each of the scenario's trips, in the scenario's order.
         wall_s: Wall time of the time-domain run, s.
+        case_branch_changes: (time s, branch id, in service after) of every case event kept, in time order.
 
     """
 
@@ -70,6 +77,7 @@ class Simulation:
     branch_ends: dict[str, tuple[int, int]]
     trip_branch_ids: tuple[str, ...]
     wall_s: float
+    case_branch_changes: tuple[tuple[float, str, bool], ...] = ()
 
 
 def pycode_dir() -> Path:
@@ -127,14 +135,70 @@ def _load_case(scenario: Scenario) -> Any:
     andes.config_logger(stream_level=logging.CRITICAL)
     pycode = pycode_dir()
     pycode.mkdir(parents=True, exist_ok=True)
+    extra = {} if scenario.addfile is None else {'addfile': str(scenario.addfile)}
+    field = 'case' if scenario.addfile is None else 'case/addfile'
     try:
         ss = andes.load(str(scenario.case), setup=False, no_output=True, default_config=True,
-                        pycode_path=str(pycode))
+                        pycode_path=str(pycode), **extra)
     except Exception as exc:  # ANDES raises assorted parser errors for a file it cannot read
-        raise ScenarioError(f'{scenario.path}: case: ANDES cannot read {scenario.case}: {exc}') from exc
+        raise ScenarioError(f'{scenario.path}: {field}: ANDES cannot read {scenario.case}: {exc}') from exc
     if ss is None:  # some input formats make andes.load log the problem and return None
-        raise ScenarioError(f'{scenario.path}: case: ANDES cannot read {scenario.case}')
+        raise ScenarioError(f'{scenario.path}: {field}: ANDES cannot read {scenario.case}')
     return ss
+
+
+def _apply_disable(ss: Any, where: str, entries: tuple[Disable, ...]) -> None:
+    """Set u = 0 on every model or device the scenario disables (before setup)."""
+    for entry in entries:
+        if entry.model is not None:
+            model = ss.models.get(entry.model)
+            if model is None:
+                raise ScenarioError(f'{where}: {entry.source}.model: the case has no model {entry.model!r}')
+            if entry.name not in list(model.idx.v):
+                raise ScenarioError(f'{where}: {entry.source}.idx: {entry.model} has no device {entry.name!r} '
+                                    f'(it has {model.n}, e.g. {list(model.idx.v)[:3]})')
+            model.u.v[list(model.idx.v).index(entry.name)] = 0
+            continue
+        model = ss.models.get(entry.name) if isinstance(entry.name, str) else None
+        if model is not None:
+            if model.n == 0:
+                raise ScenarioError(f'{where}: {entry.source}: the case has no {entry.name} device')
+            for i in range(model.n):
+                model.u.v[i] = 0
+            continue
+        owners = [m for m in ss.models.values() if m.n and entry.name in list(m.idx.v)]
+        if len(owners) != 1:
+            what = 'no model and no device' if not owners else \
+                f'a device of {len(owners)} models ({", ".join(m.class_name for m in owners)}); give {{model, idx}}'
+            raise ScenarioError(f'{where}: {entry.source}: {entry.name!r} is {what}')
+        owners[0].u.v[list(owners[0].idx.v).index(entry.name)] = 0
+
+
+def _case_events(ss: Any, scenario: Scenario, ids: list[str], line_idx: list[Any]) -> list[tuple[float, str, bool]]:
+    """Keep or disable the case's own Toggle/Alter events before end_s; return the kept line switchings."""
+    where = f'{scenario.path}'
+    events = [(model.class_name, i, float(model.t.v[i])) for model in (ss.Toggle, ss.Alter) for i in range(model.n)
+              if model.u.v[i] and float(model.t.v[i]) < scenario.end_s]
+    if not events:
+        return []
+    names = ', '.join(f'{m} {getattr(ss, m).idx.v[i]} at {t:g} s' for m, i, t in events)
+    if scenario.case_events is None:
+        raise ScenarioError(f'{where}: case_events: the case has its own events before end_s ({names}); say '
+                            'case_events: keep or case_events: disable')
+    if scenario.case_events == 'disable':
+        for model, i, _ in events:
+            getattr(ss, model).u.v[i] = 0
+        return []
+    status = {idx: int(u) for idx, u in zip(line_idx, ss.Line.u.v, strict=True)}
+    changes = []
+    for model, i, t in sorted(events, key=lambda e: e[2]):
+        dev = ss.Toggle.dev.v[i] if model == 'Toggle' else None
+        if model != 'Toggle' or ss.Toggle.model.v[i] != 'Line' or dev not in status:
+            raise ScenarioError(f'{where}: case_events: keep: {model} {getattr(ss, model).idx.v[i]} at {t:g} s does '
+                                'not switch a line, so the bag cannot record it; use case_events: disable')
+        status[dev] = 1 - status[dev]
+        changes.append((t, ids[line_idx.index(dev)], bool(status[dev])))
+    return changes
 
 
 def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
@@ -162,8 +226,13 @@ def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
     line_idx = list(ss.Line.idx.v)
     pairs = [(int(a), int(b)) for a, b in zip(ss.Line.bus1.v, ss.Line.bus2.v, strict=True)]
     ids = branch_ids(pairs)
-    syn_models = [m for m in ss.groups[_SYNGEN_GROUP].models.values() if m.n > 0]
-    gen_buses_all = [int(b) for m in syn_models for b in m.bus.v]
+    _apply_disable(ss, where, scenario.disable)
+    case_changes = _case_events(ss, scenario, ids, line_idx)
+    syn_models = [m for m in ss.groups[_SYNGEN_GROUP].models.values() if m.n > 0 and any(m.u.v)]
+    if not syn_models:
+        raise ScenarioError(f'{where}: case: {scenario.case.name} has no synchronous machine in service, so no rotor '
+                            'angles to record (a static case needs dynamic data: addfile)')
+    gen_buses_all = [int(b) for m in syn_models for b, u in zip(m.bus.v, m.u.v, strict=True) if u]
 
     def check_bus(field: str, bus: int) -> None:
         if bus not in bus_numbers:
@@ -257,17 +326,18 @@ def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
     bus_a = np.asarray(ts.get_data(ss.Bus.a))[keep][:, :n_case_bus]
     names, gbus, delta, pe, qe = [], [], [], [], []
     for model in syn_models:
-        names += [str(n) for n in model.name.v]
-        gbus += [int(b) for b in model.bus.v]
-        delta.append(np.asarray(ts.get_data(model.delta))[keep])
-        pe.append(np.asarray(ts.get_data(model.Pe))[keep])
-        qe.append(np.asarray(ts.get_data(model.Qe))[keep])
+        on = np.asarray(model.u.v, dtype=bool)
+        names += [str(n) for n, u in zip(model.name.v, on, strict=True) if u]
+        gbus += [int(b) for b, u in zip(model.bus.v, on, strict=True) if u]
+        delta.append(np.asarray(ts.get_data(model.delta))[keep][:, on])
+        pe.append(np.asarray(ts.get_data(model.Pe))[keep][:, on])
+        qe.append(np.asarray(ts.get_data(model.Qe))[keep][:, on])
     return Simulation(
         t_s=t[keep], freq_hz=float(ss.config.freq), bus_numbers=tuple(bus_numbers), bus_v_pu=bus_v,
         bus_angle_rad=bus_a, generator_names=tuple(names), generator_buses=tuple(gbus),
         delta_rad=np.hstack(delta), p_pu=np.hstack(pe), q_pu=np.hstack(qe), grid=grid,
         branch_ends=dict(zip(ids, pairs, strict=True)), trip_branch_ids=tuple(ids[r] for r in trip_rows),
-        wall_s=wall)
+        wall_s=wall, case_branch_changes=tuple(case_changes))
 
 
 def _dispatch_plan(ss: Any, scenario: Scenario) -> list[tuple[str, str, Any, float]]:
@@ -359,6 +429,8 @@ def power_flow_grid(case: str | Path, addfile: str | Path | None = None) -> Grid
 
 def _snapshot(ss: Any, case_name: str, bus_numbers: list[int], ids: list[str], pairs: list[tuple[int, int]],
               midline_off: list[int]) -> Grid:
+    from andes.core.param import NumParam
+
     mva = float(ss.config.mva)
     line = ss.Line
     v = dict(zip(ss.Bus.idx.v, ss.Bus.v.v, strict=True))
@@ -401,8 +473,12 @@ def _snapshot(ss: Any, case_name: str, bus_numbers: list[int], ids: list[str], p
             static_pmax[idx] = float(pmax) * mva
     generators = []
     for model in (m for m in ss.groups[_SYNGEN_GROUP].models.values() if m.n > 0):
-        xq = model.xq.v if hasattr(model, 'xq') else model.xd1.v
-        for name, bus, gen, x, r in zip(model.name.v, model.bus.v, model.gen.v, xq, model.ra.v, strict=True):
+        # A classical machine's xq is a service copied from xd1 only when the time-domain run initialises.
+        xq = model.xq.v if isinstance(model.xq, NumParam) else model.xd1.v
+        for name, bus, gen, x, r, u in zip(model.name.v, model.bus.v, model.gen.v, xq, model.ra.v, model.u.v,
+                                           strict=True):
+            if not u:
+                continue
             generators.append(Generator(name=str(name), bus=int(bus), p_mw=static_p.get(gen, float('nan')),
                                         p_max_mw=static_pmax.get(gen, float('nan')), xq_pu=float(x),
                                         ra_pu=float(r)))

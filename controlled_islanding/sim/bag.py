@@ -7,12 +7,15 @@ START_TIME_UNIX_S, so the simulation start is 2026-01-01T00:00:00Z):
 |---|---|---|---|
 | /network/snapshot | NetworkSnapshot, pre-fault power flow | 0 s | 0 s |
 | /pmu/frames | PmuFrame per time tag with a PMU's data in it | time tag | delivery time |
-| /network/branch_status | BranchStatus per trip, in_service false | trip time | trip time |
+| /network/branch_status | BranchStatus per trip (in_service false) and per kept case event | event time | event time |
 | /islanding/request | IslandingRequest | request time | request time |
 | /truth/rotor_angles | RotorAngles, simulated delta at every time tag | time tag | time tag |
 | /truth/coherent_groups | CoherentGroups, method "truth" (sim/truth.py) | last tag <= request | request time |
 
-The truth groups' `distance` is the separation matrix max |d_p - d_q| (rad) of sim/truth.py.
+The truth groups are the final grouping of sim/truth.py (the clusters of the rotor angle deviations at the end of
+the run), published at the request because that is what the nodes should find then; `distance` is the final
+separation |d_p(T) - d_q(T)| (rad) and `window_s` the end time T.
+PMU channels: `PMU_<bus>`, or `PMU_<bus>/<generator>` per machine where several share a bus (sim/pmu.py).
 The bag is written to a temporary directory beside the target and renamed into place only when complete.
 """
 
@@ -32,7 +35,7 @@ from controlled_islanding.interfaces import msg_type_name, typestore
 from controlled_islanding.sim.andes_sim import Simulation, simulate
 from controlled_islanding.sim.pmu import PmuData, measure
 from controlled_islanding.sim.scenario import Scenario
-from controlled_islanding.sim.truth import separation_matrix, truth_groups
+from controlled_islanding.sim.truth import final_separation, truth_groups
 
 START_TIME_UNIX_S = 1_767_225_600
 PDC_FRAME_ID = 'pdc'
@@ -155,25 +158,26 @@ def run_scenario(scenario: Scenario, out: Path, *, force: bool = False, progress
         print(f'simulate {scenario.name}: reusing the ANDES run of an earlier scenario', file=sys.stderr)
     sim = _SIM_CACHE[key]
     pmu = measure(sim, scenario)
-    groups = truth_groups(pmu.tag_s, pmu.truth_delta_rad, scenario.request_s)
+    groups = truth_groups(pmu.tag_s, pmu.truth_delta_rad)
     group_of = dict(zip(sim.generator_names, (int(g) for g in groups), strict=True))
 
     m = _Messages()
     records: list[tuple[int, int, str, Any]] = []  # (timestamp, order, topic, msg)
     records.append((_ns(0.0), 0, topics.NETWORK_SNAPSHOT, _snapshot_msg(m, sim.grid, _ns(0.0))))
-    for trip, bid in zip(scenario.trips, sim.trip_branch_ids, strict=True):
+    changes = [(trip.t_s, bid, False) for trip, bid in zip(scenario.trips, sim.trip_branch_ids, strict=True)]
+    changes += list(sim.case_branch_changes)
+    for t_s, bid, in_service in changes:
         f, t = sim.branch_ends[bid]
-        records.append((_ns(trip.t_s), 1, topics.BRANCH_STATUS,
-                        m.new('BranchStatus', header=m.header(_ns(trip.t_s), 'andes'), branch_id=bid, from_bus=f,
-                              to_bus=t, in_service=False)))
+        records.append((_ns(t_s), 1, topics.BRANCH_STATUS,
+                        m.new('BranchStatus', header=m.header(_ns(t_s), 'andes'), branch_id=bid, from_bus=f,
+                              to_bus=t, in_service=in_service)))
     request_id = f'{scenario.name}/request-1'
     records.append((_ns(scenario.request_s), 2, topics.ISLANDING_REQUEST,
                     m.new('IslandingRequest', header=m.header(_ns(scenario.request_s), 'scenario'),
                           request_id=request_id, reason=f'scenario {scenario.name}: islanding requested at '
                                                         f'{scenario.request_s:g} s',
-                          branch_changes_before=len({(bid, trip.t_s) for trip, bid in zip(
-                              scenario.trips, sim.trip_branch_ids, strict=True)
-                              if 0.0 < trip.t_s <= scenario.request_s}))))
+                          branch_changes_before=len({(bid, t_s) for t_s, bid, _ in changes
+                                                     if 0.0 < t_s <= scenario.request_s}))))
     for stamp, msg in _frame_msgs(m, pmu, scenario.rate_fps):
         records.append((stamp, 3, topics.PMU_FRAMES, msg))
     names = list(sim.generator_names)
@@ -185,12 +189,12 @@ def run_scenario(scenario: Scenario, out: Path, *, force: bool = False, progress
                               generator_buses=gen_buses, angle_rad=pmu.truth_delta_rad[k].astype(np.float64),
                               valid=np.ones(len(names), dtype=bool))))
     last_tag = int(np.flatnonzero(pmu.tag_s <= scenario.request_s + 1e-9)[-1])
-    sep = separation_matrix(pmu.tag_s, pmu.truth_delta_rad, scenario.request_s)
+    sep = final_separation(pmu.tag_s, pmu.truth_delta_rad)
     records.append((_ns(scenario.request_s), 5, topics.TRUTH_COHERENT_GROUPS,
                     m.new('CoherentGroups', header=m.header(_tag_ns(last_tag, scenario.rate_fps), 'andes'),
                           generator_names=names, generator_buses=gen_buses, group=groups.astype(np.uint32),
                           k=int(groups.max()) + 1, method='truth', distance=sep.ravel().astype(np.float64),
-                          window_s=float(pmu.tag_s[last_tag]))))
+                          window_s=float(pmu.tag_s[-1]))))
     records.sort(key=lambda r: (r[0], r[1]))
 
     # rosbags names the .mcap after the bag directory, so the partial bag gets the final name in a scratch dir.

@@ -4,14 +4,19 @@ Measurement model (all seeded, independent streams per quantity so that turning 
 changes nothing else):
 - Time tags k / rate_fps from 0 to end_s. Simulated quantities are linearly interpolated from ANDES'
   non-uniform grid; angles are continuous and the current angle is unwrapped.
-- The voltage phasor is the bus voltage; the current phasor is the sum of the currents out of the
-  generators at the bus, I = conj((P + jQ) / V), pu on the system base (zero at a bus with no generator).
+- Channels: a PMU at a bus with at most one generator has one channel, station id `PMU_<bus>`, whose current
+  is that generator's, I = conj((P + jQ) / V), pu on the system base (zero at a bus with no generator). At a
+  bus with several generators the PMU has one channel per generator, station id `PMU_<bus>/<generator name>`,
+  each with the current that generator injects: a bus total belongs to none of them, and the rotor angle
+  estimate V + (ra + j xq) I needs the machine's own current.
+- The voltage phasor is the bus voltage, one measurement per bus shared by its channels (one PMU, one PT).
 - Each phasor is multiplied by (1 + e) with e complex Gaussian, |e| clipped to noise_tve, so the total
   vector error never exceeds noise_tve (<= 1 %).
 - Frequency is f0 + (d angle / dt) / (2 pi) of the noise-free voltage angle plus 1 mHz rms noise;
   ROCOF is its time derivative plus 10 mHz/s rms noise.
 
-Impairments and how lost data appears:
+Impairments and how lost data appears (loss, silence and voltage noise are per PMU, so per bus; current noise
+is per channel):
 - A lost measurement stays in its frame with STAT = STAT_DATA_INVALID and NaN values.
 - A frame in which every PMU's data is lost (for example during the initial gap) is absent from the bag.
 - Delivery time = time tag + max(0, N(delay_mean_s, delay_jitter_s)); frames are recorded in delivery
@@ -39,10 +44,11 @@ class PmuData:
     Attributes:
         tag_s: Time tags, s, shape (n,).
         delivery_s: Delivery time of each frame, s, shape (n,).
-        station_ids: Station id of each PMU.
-        buses: Bus of each PMU.
-        v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, frequency_hz, rocof_hz_per_s: shape (n, n_pmu); NaN where lost.
-        stat: STAT word, shape (n, n_pmu).
+        station_ids: Station id of each channel (see the module docstring).
+        buses: Bus of each channel; a bus with several generators has several channels.
+        v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, frequency_hz, rocof_hz_per_s: shape (n, n_channel); NaN where
+            lost.
+        stat: STAT word, shape (n, n_channel).
         frame_present: Whether the frame is recorded at all, shape (n,).
         truth_delta_rad: Simulated rotor angles at the time tags, rad, shape (n, n_gen).
 
@@ -101,11 +107,17 @@ def measure(sim: Simulation, scenario: Scenario) -> PmuData:
     a = _interp(tags, sim.t_s, sim.bus_angle_rad[:, columns])
     p = _interp(tags, sim.t_s, sim.p_pu)
     q = _interp(tags, sim.t_s, sim.q_pu)
-    current = np.zeros_like(v, dtype=complex)
-    for g, bus in enumerate(sim.generator_buses):
-        if bus in buses:
-            j = buses.index(bus)
-            current[:, j] += np.conj((p[:, g] + 1j * q[:, g]) / (v[:, j] * np.exp(1j * a[:, j])))
+    stations, channel_bus, channel_gens = [], [], []  # channel_bus indexes `buses`
+    for j, bus in enumerate(buses):
+        gens = [g for g, gb in enumerate(sim.generator_buses) if gb == bus]
+        for group in ([gens] if len(gens) <= 1 else [[g] for g in gens]):
+            stations.append(f'PMU_{bus}' if len(gens) <= 1 else f'PMU_{bus}/{sim.generator_names[group[0]]}')
+            channel_bus.append(j)
+            channel_gens.append(group)
+    current = np.zeros((len(tags), len(stations)), dtype=complex)
+    for c, (j, gens) in enumerate(zip(channel_bus, channel_gens, strict=True)):
+        for g in gens:
+            current[:, c] += np.conj((p[:, g] + 1j * q[:, g]) / (v[:, j] * np.exp(1j * a[:, j])))
     i_mag = np.abs(current)
     i_ang = np.unwrap(np.angle(current), axis=0)
 
@@ -123,6 +135,8 @@ def measure(sim: Simulation, scenario: Scenario) -> PmuData:
         lost[tags >= imp.silent_from_s, buses.index(imp.silent_pmu_bus)] = True
     delay = np.maximum(0.0, streams[5].normal(imp.delay_mean_s, imp.delay_jitter_s, tags.shape)) \
         if imp.delay_mean_s > 0 or imp.delay_jitter_s > 0 else np.zeros_like(tags)
+    # Per-bus quantities spread over the bus's channels.
+    v_mag, v_ang, freq, rocof, lost = (x[:, channel_bus] for x in (v_mag, v_ang, freq, rocof, lost))
     stat = np.where(lost, STAT_DATA_INVALID, 0).astype(np.uint16)
     out = []
     for arr in (v_mag, v_ang, i_mag, i_ang, freq, rocof):
@@ -130,7 +144,7 @@ def measure(sim: Simulation, scenario: Scenario) -> PmuData:
         arr[lost] = np.nan
         out.append(arr)
     return PmuData(
-        tag_s=tags, delivery_s=tags + delay, station_ids=tuple(f'PMU_{b}' for b in buses), buses=tuple(buses),
+        tag_s=tags, delivery_s=tags + delay, station_ids=tuple(stations), buses=tuple(buses[j] for j in channel_bus),
         v_mag_pu=out[0], v_angle_rad=out[1], i_mag_pu=out[2], i_angle_rad=out[3], frequency_hz=out[4],
         rocof_hz_per_s=out[5], stat=stat, frame_present=~lost.all(axis=1),
         truth_delta_rad=_interp(tags, sim.t_s, sim.delta_rad))

@@ -4,7 +4,16 @@ A scenario is a YAML mapping. Every key except `case`, `end_s` and `islanding_re
 
     name: ieee39_case1_unstable          # bag and manifest name; default: the file name without .yaml
     description: Why this scenario exists.
-    case: ieee39/ieee39_full.xlsx        # ANDES case: a path relative to this file, else a case ANDES bundles
+    case: ieee39/ieee39_full.xlsx        # ANDES case: a path relative to this file, else a case ANDES bundles;
+                                         # any format ANDES reads: .xlsx, .json, MATPOWER .m, PSS/E .raw
+    addfile: ieee14/ieee14.dyr           # PSS/E dynamic data for a .raw case (resolved like case)
+    disable:                             # switched off (u = 0) before the power flow, e.g. a device that fails
+      - IEEEST                           #   initialisation: a model name disables all its devices,
+      - IEEEG1_9                         #   a device idx that only one model has disables that device,
+      - {model: GENCLS, idx: 3}          #   a model and an idx (or a list of them) for idx several models share
+    case_events: keep                    # the case's own Toggle/Alter events that fall before end_s: keep or
+                                         # disable; required when there are any. Kept ones must switch lines,
+                                         # and are recorded in the bag as branch status changes
     dispatch: case39                     # optional MATPOWER case (a PYPOWER case name, or a .m / .py file relative
                                          # to this file): its loads and generator P replace the case's, matched by
                                          # bus (voltage set points stay the ANDES case's)
@@ -33,6 +42,9 @@ A scenario is a YAML mapping. Every key except `case`, `end_s` and `islanding_re
 Branches are named `"<from>-<to>"` by the bus numbers of the case's Line data, `"<from>-<to>#<n>"` for the n-th
 parallel line; either bus order is accepted in a scenario. A mid-line fault's `position` is the fraction of the
 line's length from its from bus.
+
+A case without synchronous machine models (a static MATPOWER .m, say) loads, but has no rotor angles to
+record: `simulate` refuses it, naming `case`.
 
 Checks that need only the file are made by `load_scenario`; checks against the case (unknown bus or branch) are
 made when the case is loaded, before anything is written.
@@ -116,6 +128,25 @@ class Impairments:
 
 
 @dataclass(frozen=True)
+class Disable:
+    """A model, or one device of it, to switch off before the power flow.
+
+    Attributes:
+        name: A model name, or a device idx (model None) that only one model may have.
+        model: The model of a device given as {model, idx}, else None.
+        source: Where the scenario file gives it, e.g. ``disable[1]``, for error messages.
+
+    """
+
+    name: str | int
+    model: str | None = None
+    source: str = field(default='', compare=False)
+
+
+CASE_EVENT_CHOICES = ('keep', 'disable')
+
+
+@dataclass(frozen=True)
 class Scenario:
     """A validated scenario file.
 
@@ -125,6 +156,9 @@ class Scenario:
         path: The YAML file.
         case: The ANDES case file, resolved.
         case_ref: `case` as written in the file.
+        addfile: PSS/E dynamic data file for a .raw case, resolved, or None.
+        disable: Models (idx None) and devices switched off before the power flow, as written.
+        case_events: 'keep' or 'disable' the case's own events before end_s; None when not given.
         dispatch: MATPOWER case whose loads and dispatch replace the case's (a PYPOWER name or a resolved path),
             or None.
         load_scale: Load and PV dispatch multiplier.
@@ -158,14 +192,18 @@ class Scenario:
     seed: int
     impairments: Impairments = field(default_factory=Impairments)
     request_s: float = 0.0
+    addfile: Path | None = None
+    disable: tuple[Disable, ...] = ()
+    case_events: str | None = None
 
     def simulation_key(self) -> tuple[Any, ...]:
         """Return what determines the ANDES run (not the PMUs), so runs can be shared between scenarios."""
-        return (str(self.case), self.dispatch, self.load_scale, self.step_s, self.end_s, self.faults, self.trips)
+        return (str(self.case), str(self.addfile), self.disable, self.case_events, self.dispatch, self.load_scale,
+                self.step_s, self.end_s, self.faults, self.trips)
 
 
-_TOP_KEYS = {'name', 'description', 'case', 'dispatch', 'load_scale', 'step_s', 'end_s', 'events', 'pmu', 'seed',
-             'impairments', 'islanding_request_s'}
+_TOP_KEYS = {'name', 'description', 'case', 'addfile', 'disable', 'case_events', 'dispatch', 'load_scale', 'step_s',
+             'end_s', 'events', 'pmu', 'seed', 'impairments', 'islanding_request_s'}
 _PMU_KEYS = {'rate_fps', 'buses', 'noise_tve'}
 _IMPAIRMENT_KEYS = {'frame_loss_rate', 'initial_gap_s', 'delay_mean_s', 'delay_jitter_s', 'silent_pmu_bus',
                     'silent_from_s'}
@@ -199,12 +237,13 @@ def _branch(where: str, value: Any) -> str:
     return value.strip()
 
 
-def resolve_case(ref: str, base_dir: Path) -> Path:
+def resolve_case(ref: str, base_dir: Path, key: str = 'case') -> Path:
     """Find an ANDES case file: relative to the scenario's directory first, then among ANDES' bundled cases.
 
     Args:
         ref: The `case` value.
         base_dir: The scenario file's directory.
+        key: The scenario key, for the error message.
 
     Returns:
         The existing case file.
@@ -221,7 +260,7 @@ def resolve_case(ref: str, base_dir: Path) -> Path:
     bundled = Path(andes.get_case(ref, check=False))
     if bundled.is_file():
         return bundled
-    raise ScenarioError(f'case: unknown case file {ref!r}: neither {local} nor an ANDES bundled case')
+    raise ScenarioError(f'{key}: unknown case file {ref!r}: neither {local} nor an ANDES bundled case')
 
 
 def _dispatch(ref: Any, base_dir: Path) -> str | None:
@@ -241,6 +280,31 @@ def _dispatch(ref: Any, base_dir: Path) -> str | None:
     except GridError as exc:
         raise ScenarioError(f'dispatch: unknown MATPOWER case {ref!r}: {exc}') from None
     return ref
+
+
+def _disable(raw: Any) -> tuple[Disable, ...]:
+    if raw is None:
+        return ()
+    if not isinstance(raw, list):
+        raise ScenarioError('disable: expected a list of model names, device idx or {model, idx} mappings')
+    out: list[Disable] = []
+    for i, item in enumerate(raw):
+        where = f'disable[{i}]'
+        if isinstance(item, dict):
+            _mapping(where, item, {'model', 'idx'})
+            if not isinstance(item.get('model'), str) or 'idx' not in item:
+                raise ScenarioError(f'{where}: expected {{model: <model name>, idx: <device idx or list>}}, '
+                                    f'got {item!r}')
+            idxs = item['idx'] if isinstance(item['idx'], list) else [item['idx']]
+            for idx in idxs:
+                if isinstance(idx, bool) or not isinstance(idx, str | int) or idx == '':
+                    raise ScenarioError(f'{where}.idx: expected a device idx (string or integer), got {idx!r}')
+                out.append(Disable(name=idx, model=item['model'], source=where))
+        elif isinstance(item, str | int) and not isinstance(item, bool) and item != '':
+            out.append(Disable(name=item, source=where))
+        else:
+            raise ScenarioError(f'{where}: expected a model name, a device idx or {{model, idx}}, got {item!r}')
+    return tuple(out)
 
 
 def load_scenario(path: str | Path) -> Scenario:
@@ -277,6 +341,11 @@ def _parse(raw: Any, path: Path) -> Scenario:
             raise ScenarioError(f'{key}: missing (required)')
     if not isinstance(top['case'], str):
         raise ScenarioError(f'case: expected a file name, got {top["case"]!r}')
+    if 'addfile' in top and not isinstance(top['addfile'], str):
+        raise ScenarioError(f'addfile: expected a file name, got {top["addfile"]!r}')
+    case_events = top.get('case_events')
+    if case_events is not None and case_events not in CASE_EVENT_CHOICES:
+        raise ScenarioError(f'case_events: expected one of {list(CASE_EVENT_CHOICES)}, got {case_events!r}')
     end_s = _number('end_s', top['end_s'], low=0.0, low_open=True)
     step_s = _number('step_s', top.get('step_s', 1 / 120), low=0.0, high=0.05, low_open=True)
     request_s = _number('islanding_request_s', top['islanding_request_s'], low=0.0, high=end_s)
@@ -366,6 +435,8 @@ def _parse(raw: Any, path: Path) -> Scenario:
     return Scenario(
         name=name, description=description.strip(), path=path.resolve(),
         case=resolve_case(top['case'], path.resolve().parent), case_ref=top['case'],
+        addfile=None if 'addfile' not in top else resolve_case(top['addfile'], path.resolve().parent, 'addfile'),
+        disable=_disable(top.get('disable')), case_events=case_events,
         dispatch=_dispatch(top.get('dispatch'), path.resolve().parent),
         load_scale=_number('load_scale', top.get('load_scale', 1.0), low=0.0, high=3.0, low_open=True),
         step_s=step_s, end_s=end_s,
