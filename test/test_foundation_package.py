@@ -40,6 +40,40 @@ def test_package_xml_is_format_3_ament_python_with_runtime_depends():
     assert msgs.findtext('member_of_group') == 'rosidl_interface_packages'
 
 
+# rosdep keys of the Python modules the package imports; ROS packages are imported under their own names.
+ROSDEP_KEY = {'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'sklearn': 'python3-sklearn',
+              'networkx': 'python3-networkx', 'matplotlib': 'python3-matplotlib', 'yaml': 'python3-yaml',
+              'cryptography': 'python3-cryptography', 'rosbags': 'python3-rosbags-pip', 'numba': 'python3-numba'}
+# No rosdep key exists for these: package.xml names them in a comment, and the README installs them with pip.
+PIP_ONLY = {'pypower', 'dtaidistance', 'kmedoids', 'andes'}
+
+
+def imported_modules() -> set[str]:
+    """Top-level third-party modules imported by the package and the launch file."""
+    found = set()
+    for path in [*(REPO / 'controlled_islanding').rglob('*.py'), LAUNCH]:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                found |= {a.name.split('.')[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                found.add(node.module.split('.')[0])
+    return {m for m in found if m not in sys.stdlib_module_names and m != 'controlled_islanding'}
+
+
+def test_package_xml_declares_what_is_imported_and_nothing_unused():
+    root = ET.parse(REPO / 'package.xml').getroot()
+    declared = {e.text for e in root.findall('exec_depend')}
+    comments = (REPO / 'package.xml').read_text()
+    imported = imported_modules()
+    for module in sorted(imported):
+        if module in PIP_ONLY:
+            assert module.lower() in comments.lower(), f'{module}: pip-only, but package.xml does not say so'
+        else:
+            assert ROSDEP_KEY.get(module, module) in declared, f'{module} is imported but not an exec_depend'
+    unused = {key for module, key in ROSDEP_KEY.items() if key in declared and module not in imported}
+    assert not unused, f'declared but never imported: {sorted(unused)}'
+
+
 def test_every_msg_file_is_listed_in_cmakelists():
     cmake = (REPO / 'msg_schemas' / 'CMakeLists.txt').read_text()
     files = sorted(p.relative_to(REPO / 'msg_schemas').as_posix()
