@@ -27,7 +27,7 @@ def colcon_list(cwd: Path, log_base: Path) -> dict[str, str]:
 
 @pytest.fixture
 def workspace(tmp_path: Path) -> Path:
-    """A ~/ws/src layout as the README sets it up: the clone, and msg_schemas linked beside it."""
+    """Make a ~/ws/src layout as the README sets it up: the clone, and msg_schemas linked beside it."""
     src = tmp_path / 'ws' / 'src'
     src.mkdir(parents=True)
     (src / 'controlled_islanding').symlink_to(REPO, target_is_directory=True)
