@@ -6,5 +6,4 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export ROS_LOG_DIR=$PWD/build/ros_log
 export MPLBACKEND=Agg
 
-# The slowest tests are printed so that the 15-minute budget is watched on every run.
-exec .venv/bin/python -m pytest --durations=15 "$@"
+exec .venv/bin/python -m pytest "$@"
