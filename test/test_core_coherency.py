@@ -9,6 +9,7 @@ import pytest
 import yaml
 
 from controlled_islanding.core.coherency import CoherencyError, DTWCoherency
+from controlled_islanding.core.k_rules import pair_drift_rad
 from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
 
 REPO = Path(__file__).resolve().parents[1]
@@ -49,12 +50,12 @@ CASES = [
 ]
 
 
-def impaired(angles: np.ndarray, how: str, seed: int) -> list[np.ndarray]:
+def impaired(angles: np.ndarray, how: str, seed: int, rate_fps: float = RATE_FPS) -> list[np.ndarray]:
     rng = np.random.default_rng(seed)
     cols = [angles[:, i].copy() for i in range(angles.shape[1])]
     if how == 'first second lost':
         for c in cols:
-            c[:int(RATE_FPS)] = np.nan
+            c[:int(rate_fps)] = np.nan
     elif how == '20% frames dropped':
         for c in cols:
             c[rng.random(len(c)) < 0.2] = np.nan
@@ -86,9 +87,9 @@ def test_stable_swings_are_one_group(how: str) -> None:
 def test_fixed_k_and_outputs() -> None:
     angles = swings([0, 0, 1, 1, 1], {1}, seed=5)
     est = DTWCoherency(n_groups=2).fit(list(angles.T))
-    assert est.labels_.tolist() == [0, 0, 1, 1, 1]
+    assert est.labels_.tolist() == [0, 0, 1, 1, 1] and est.rule_ is None
     assert est.distance_matrix_.shape == (5, 5) and np.allclose(est.distance_matrix_, est.distance_matrix_.T)
-    assert est.rms_distance_rad_[0, 2] > est.coherence_threshold_rad > est.rms_distance_rad_[0, 1]
+    assert est.rms_distance_rad_[0, 2] > est.rms_distance_rad_[0, 1]
 
 
 def test_silent_pmu_is_compared_over_the_span_it_covers() -> None:
@@ -102,11 +103,12 @@ def test_silent_pmu_is_compared_over_the_span_it_covers() -> None:
 
 
 def test_two_machines_slipping_apart_are_two_groups() -> None:
-    # Both run away from the rest but drift apart from each other by more than the threshold.
+    # Both run away from the rest but drift apart from each other by more than pi rad over the window.
     t = np.arange(0.0, 3.0, 1.0 / RATE_FPS)
     rest = [0.1 * np.sin(2 * np.pi * 0.8 * t + p) for p in (0.0, 0.2, 0.4, 0.1)]
-    est = DTWCoherency().fit([*rest, 3.0 * t ** 2, 3.0 * t ** 2 + 2.5 * t])
-    assert est.rms_distance_rad_[4, 5] > est.coherence_threshold_rad
+    series = [*rest, 3.0 * t ** 2, 3.0 * t ** 2 + 2.5 * t]
+    est = DTWCoherency().fit(series)
+    assert abs(pair_drift_rad(np.array(series))[4, 5]) > np.pi
     assert partition(est.labels_) == partition([0, 0, 0, 0, 1, 2])
 
 
@@ -161,5 +163,5 @@ def test_scenario_bags_truth_groups(entry: dict) -> None:
                                                            'unequal lengths']
     for how in hows:
         for window in (None, 30):
-            est = DTWCoherency(window=window).fit(impaired(angles, how, seed=1))
+            est = DTWCoherency(window=window).fit(impaired(angles, how, seed=1, rate_fps=bag.rate_fps))
             assert partition(est.labels_) == partition(truth), (how, window)

@@ -17,23 +17,11 @@ Dissimilarity: DTW (eq. 3, rad^2) grows with the number of samples, so groups ar
 difference along the optimal warping path, r_pq = sqrt(DTW_pq / max(n_p, n_q)) in rad, with n the valid
 samples of each series. It is comparable across window lengths and PMU rates.
 
-Coherence threshold: two generators farther apart than ``coherence_threshold_rad`` (default 1.0 rad,
-57 deg) are not coherent and never share a group; closer ones may. It mirrors the truth rule (a pole slip,
-relative drift past pi rad, separates two machines) with a margin for the stable swings. Measured on SIM's
-bags with 3 s windows and a 30-sample band: coherent pairs reach at most 0.56 rad (the paper's case 1,
-stable, peak spread about 85 deg); a slipping machine's r against the rest passes 1 rad once its drift in
-the window reaches about 250 to 330 deg, i.e. 0.25 to 0.5 s after the truth rule's pi crossing, and is
-over 4 rad a second later. A lower threshold detects earlier at the cost of that margin.
-
-Choosing k:
-- k = 1 ("no split") when every pair is within the threshold.
-- Otherwise the k in 2 .. max_groups whose k-medoids clustering keeps every group within the threshold
-  and has the highest mean silhouette (Rousseeuw 1987) on the precomputed r matrix. The paper's
-  "minimising inter-coherent group distances" [23] alone always prefers more groups; the silhouette weighs
-  each generator's distance to its own group against the nearest other group, works on any precomputed
-  dissimilarity, and is the standard index for k-medoids. It is undefined for k = 1, hence the threshold.
-- If no such k exists, complete-linkage clusters cut at the threshold (every group within it, as few
-  groups as the linkage finds; may exceed max_groups).
+Choosing k, and whether to split at all: a rule from core/k_rules.py, named by ``k_rule``. The default,
+``separation``, splits generators whose angle difference trends, over the window, towards a pole slip (pi rad
+within one more window at the window's rate); it needs no threshold measured on one system. The former fixed
+1.0 rad RMS threshold, calibrated on IEEE 39 bags, is the ``threshold`` rule. docs/coherency_rules.md compares
+the rules on every scenario bag.
 
 Grouping: k-medoids (PAM, BUILD initialisation, so deterministic) on the precomputed r matrix. k-means
 needs coordinates and a mean, which a DTW matrix does not have; PAM is the paper's step-9 algorithm too.
@@ -46,52 +34,22 @@ from collections.abc import Sequence
 
 import kmedoids
 import numpy as np
-from scipy.cluster.hierarchy import fcluster, linkage
-from scipy.spatial.distance import squareform
 
 from controlled_islanding.core.dtw import clean_series, dtw_distance, dtw_distance_matrix
+from controlled_islanding.core.k_rules import DEFAULT_RULE, Evidence, KRuleError, canonical, make_rule, silhouette
+
+__all__ = ['CoherencyError', 'DTWCoherency', 'silhouette']
 
 
 class CoherencyError(ValueError):
     """Series or settings the coherency estimator cannot use."""
 
 
-def silhouette(r: np.ndarray, labels: np.ndarray) -> float:
-    """Return the mean silhouette (Rousseeuw 1987) of a clustering on a precomputed dissimilarity matrix.
+def _distances(series: Sequence[np.ndarray], window: int | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return the DTW matrix (rad^2) of mean-referenced series, the RMS matrix r (rad), and the series on one grid.
 
-    Singleton clusters score 0, as in scikit-learn's silhouette_score (which this equals; it is written
-    out here because scikit-learn's input checks cost a millisecond per call on the decision path).
-
-    Args:
-        r: Symmetric dissimilarities, zero diagonal.
-        labels: Cluster of each item; at least two clusters.
-
-    Returns:
-        The mean silhouette, in [-1, 1].
-
+    The third is (n, longest length), rad, NaN where lost or past a series' end; see the module doc.
     """
-    ks = np.unique(labels)
-    member = labels[None, :] == ks[:, None]
-    sizes = member.sum(axis=1)
-    mean_to = (r @ member.T.astype(float)) / sizes[None, :]
-    own = np.searchsorted(ks, labels)
-    n = len(labels)
-    own_size = sizes[own]
-    a = mean_to[np.arange(n), own] * own_size / np.maximum(own_size - 1, 1)
-    mean_to[np.arange(n), own] = np.inf
-    b = mean_to.min(axis=1)
-    s = np.where(own_size > 1, (b - a) / np.maximum(np.maximum(a, b), 1e-300), 0.0)
-    return float(s.mean())
-
-
-def _diameter(r: np.ndarray, labels: np.ndarray) -> float:
-    """Return the largest distance between two members of one group."""
-    same = labels[:, None] == labels[None, :]
-    return float(np.max(np.where(same, r, 0.0)))
-
-
-def _distances(series: Sequence[np.ndarray], window: int | None) -> tuple[np.ndarray, np.ndarray]:
-    """Return the DTW matrix (rad^2) of mean-referenced series and the RMS matrix r (rad); see the module doc."""
     clean = [clean_series(x, f'series {i}') for i, x in enumerate(series)]
     n = len(clean)
     # Start-aligned on one time grid: a shorter series lost its end (or it is not delivered yet).
@@ -104,7 +62,7 @@ def _distances(series: Sequence[np.ndarray], window: int | None) -> tuple[np.nda
         centred = [c - c.mean() for c in clean]
         dtw = dtw_distance_matrix(centred, window=window)
         lengths = np.array([len(c) for c in clean], dtype=float)
-        return dtw, np.sqrt(dtw / np.maximum.outer(lengths, lengths))
+        return dtw, np.sqrt(dtw / np.maximum.outer(lengths, lengths)), np.array(arrays)
     # Different spans: each pair over the span both cover.
     dtw, rms = np.zeros((n, n)), np.zeros((n, n))
     for p in range(n):
@@ -116,43 +74,35 @@ def _distances(series: Sequence[np.ndarray], window: int | None) -> tuple[np.nda
                 a, b = clean[p], clean[q]
             dtw[p, q] = dtw[q, p] = dtw_distance(a - a.mean(), b - b.mean(), window)
             rms[p, q] = rms[q, p] = np.sqrt(dtw[p, q] / max(len(a), len(b)))
-    return dtw, rms
-
-
-def _canonical(labels: np.ndarray) -> np.ndarray:
-    """Renumber groups in order of their first member."""
-    order: dict[int, int] = {}
-    for lab in labels.tolist():
-        order.setdefault(lab, len(order))
-    return np.array([order[lab] for lab in labels.tolist()], dtype=int)
+    return dtw, rms, np.array(arrays)
 
 
 class DTWCoherency:
     """Group generators whose rotor angles swing together, by DTW.
 
     Args:
-        n_groups: Fixed number of groups, or None to choose it (see the module docstring).
-        max_groups: Largest k tried when choosing.
+        n_groups: Fixed number of groups, or None to let ``k_rule`` choose it.
+        max_groups: Largest k a rule may choose.
         window: Sakoe-Chiba half-width in samples for DTW, or None for none.
-        coherence_threshold_rad: Generators farther apart than this (RMS along the warping path, rad) never share
-            a group; all pairs closer means k = 1.
+        k_rule: Name of a rule in core.k_rules.RULES, or a rule instance (its settings in its constructor).
         random_state: Passed to k-medoids (BUILD initialisation makes it irrelevant; kept for the API).
 
     Attributes:
         labels_: Group of each generator, 0-based, numbered in order of first member.
         n_groups_: Number of groups chosen.
         distance_matrix_: DTW distances, eq. 3, rad^2.
-        rms_distance_rad_: The r matrix groups were formed on, rad.
-        silhouette_: Mean silhouette per k tried (k -> score), empty when k = 1 by threshold.
+        rms_distance_rad_: The r matrix groups are formed on, rad.
+        rule_: The rule instance used (its scores_ say what it measured); None when n_groups is fixed.
+        silhouette_: Mean silhouette per k the rule scored (k -> score); empty when it scored none.
 
     """
 
     def __init__(self, n_groups: int | None = None, max_groups: int = 4, window: int | None = None,
-                 coherence_threshold_rad: float = 1.0, random_state: int = 0) -> None:
+                 k_rule=DEFAULT_RULE, random_state: int = 0) -> None:
         self.n_groups = n_groups
         self.max_groups = max_groups
         self.window = window
-        self.coherence_threshold_rad = coherence_threshold_rad
+        self.k_rule = k_rule
         self.random_state = random_state
 
     def fit(self, series: Sequence[np.ndarray]) -> DTWCoherency:
@@ -165,7 +115,8 @@ class DTWCoherency:
             self.
 
         Raises:
-            CoherencyError: No series, a bad setting, or n_groups larger than the number of generators.
+            CoherencyError: No series, a bad setting (unknown rule included), or n_groups larger than the number
+                of generators.
             DTWError: A series with no valid sample.
 
         """
@@ -176,30 +127,28 @@ class DTWCoherency:
             raise CoherencyError(f'n_groups must be in 1 .. {n} (the number of generators), got {self.n_groups}')
         if self.max_groups < 2:
             raise CoherencyError(f'max_groups must be >= 2, got {self.max_groups}')
-        if not self.coherence_threshold_rad > 0:
-            raise CoherencyError(f'coherence_threshold_rad must be > 0, got {self.coherence_threshold_rad}')
-        self.distance_matrix_, self.rms_distance_rad_ = _distances(series, self.window)
-        self.silhouette_: dict[int, float] = {}
-        r = self.rms_distance_rad_
-        if self.n_groups is not None:
-            k = self.n_groups
-        elif r.max() < self.coherence_threshold_rad:
-            k = 1
+        try:
+            rule = None if self.n_groups is not None else make_rule(self.k_rule)
+        except KRuleError as exc:
+            raise CoherencyError(str(exc)) from exc
+        self.distance_matrix_, self.rms_distance_rad_, angles = _distances(series, self.window)
+        cache: dict[int, np.ndarray] = {}
+
+        def cluster(k: int) -> np.ndarray:
+            if k not in cache:
+                cache[k] = self._cluster(self.rms_distance_rad_, k)
+            return cache[k]
+
+        if rule is None:
+            labels = cluster(self.n_groups)
         else:
-            admissible: list[int] = []
-            for cand in range(2, min(self.max_groups, n - 1) + 1):
-                labels = self._cluster(r, cand)
-                self.silhouette_[cand] = silhouette(r, labels)
-                if _diameter(r, labels) < self.coherence_threshold_rad:
-                    admissible.append(cand)
-            if admissible:
-                k = max(admissible, key=lambda c: (self.silhouette_[c], -c))
-            else:
-                tree = linkage(squareform(r, checks=False), method='complete')
-                self.labels_ = _canonical(fcluster(tree, t=self.coherence_threshold_rad, criterion='distance'))
-                self.n_groups_ = int(self.labels_.max()) + 1
-                return self
-        self.labels_ = self._cluster(r, k)
+            try:
+                labels = rule.choose(Evidence(self.rms_distance_rad_, angles, self.max_groups, cluster))
+            except KRuleError as exc:
+                raise CoherencyError(str(exc)) from exc
+        self.rule_ = rule
+        self.silhouette_: dict[int, float] = dict(getattr(rule, 'scores_', {}).get('silhouette', {}))
+        self.labels_ = canonical(labels)
         self.n_groups_ = int(self.labels_.max()) + 1
         return self
 
@@ -209,4 +158,4 @@ class DTWCoherency:
         if k == len(r):
             return np.arange(len(r))
         result = kmedoids.pam(r, k, init='build', random_state=self.random_state)
-        return _canonical(np.asarray(result.labels, dtype=int))
+        return canonical(np.asarray(result.labels, dtype=int))

@@ -29,6 +29,7 @@ from rclpy.node import Node
 
 from controlled_islanding import topics
 from controlled_islanding.core.coherency import DTWCoherency
+from controlled_islanding.core.k_rules import DEFAULT_RULE, RULES
 from controlled_islanding.messages import MessageError, grid_from_snapshot, split_stamp, stamp_s
 from controlled_islanding.node_common import (
     ClockGate,
@@ -54,6 +55,10 @@ class CoherencyNode(Node):
         self.declare_parameter('max_groups', 4)
         self.declare_parameter('max_sample_age_s', 10.0)
         self.declare_parameter('dtw_band_samples', 30)
+        self.declare_parameter('k_rule', DEFAULT_RULE)
+        self.k_rule = str(self.get_parameter('k_rule').value)
+        if self.k_rule not in RULES:
+            raise NodeSetupError(f'k_rule={self.k_rule!r} is not one of {sorted(RULES)}')
         self.window_s = float(self.get_parameter('window_s').value)
         self.min_samples = int(self.get_parameter('min_samples').value)
         self.request_wait_s = float(self.get_parameter('request_wait_s').value)
@@ -260,7 +265,7 @@ class CoherencyNode(Node):
         t0 = time.perf_counter()
         block = np.vstack(self.angles[lo:hi])
         try:
-            model = DTWCoherency(max_groups=self.max_groups, window=self.band).fit(list(block.T))
+            model = DTWCoherency(max_groups=self.max_groups, window=self.band, k_rule=self.k_rule).fit(list(block.T))
         except Exception as exc:  # the core names what was wrong; the node keeps running
             self.diag.reject('compute_failed', f'coherency over {hi - lo} samples: {exc}')
             return
