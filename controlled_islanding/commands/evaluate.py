@@ -19,6 +19,7 @@ import numpy as np
 from controlled_islanding.cli import CliError
 
 if TYPE_CHECKING:
+    from controlled_islanding.coherency_rules import Detection
     from controlled_islanding.core.grid import Grid
     from controlled_islanding.core.islanding import IslandingDecision
 
@@ -39,14 +40,23 @@ how far the bus partitioning is from optimal, not how good the groups are. A MIL
 limit says so in the notes with its optimality gap.
 
 Coherency uses the PMU frames of the window (--window-s) that ends at the bag's first islanding request,
-as the coherency node does; the grid is the bag's network snapshot with the branches tripped before the
-request taken out. Figures (rotor angles by DTW group, DTW distance heatmap, network by island for each
-method, load-shedding bars) go to --out/<case>/.
+as the coherency node does, and chooses k with --k-rule (the node's k_rule); the grid is the bag's network
+snapshot with the branches tripped before the request taken out. Figures (rotor angles by DTW group, DTW
+distance heatmap, network by island for each method, load-shedding bars) go to --out/<case>/.
+
+Detection lead: for every unstable bag (truth k > 1; truth and first pole slip from the bags/index.yaml beside
+the bag), DTW coherency with --k-rule is run on windows ending every --lead-step-s from the first full window to
+the end of the bag; the earliest request time whose groups are the final (true) groups is reported against the
+first pole slip: lead = slip - found, >= 0 means found before the slip.
+
+--k-rules FILE.md instead compares every k rule (core/k_rules.py) on the bags and on --andes scenarios
+(simulated here, the simulator's own rotor angles), and writes the table (docs/coherency_rules.md).
 
 Examples:
   controlled-islanding evaluate bags/ieee39_g6g7_unstable
   controlled-islanding evaluate --paper-cases                  the paper's two IEEE 39 cases, its own groups
   controlled-islanding evaluate --paper-cases bags/* --json > results/evaluate.json
+  controlled-islanding evaluate bags/*/ --k-rules docs/coherency_rules.md
 """
 
 _DEFAULT_OUT = Path('results/evaluate')
@@ -122,6 +132,9 @@ class CaseReport:
         truth_groups: The bag's true groups (None for paper cases).
         rows: One result per method.
         figures: Figure name -> path.
+        k_rule: The k rule DTW coherency used (bags only).
+        first_pole_slip_s: First time two machines were pi rad apart, s (None: never, or not a bag).
+        detection: When the k rule first found the true groups (unstable bags only).
 
     """
 
@@ -131,6 +144,9 @@ class CaseReport:
     truth_groups: dict[str, int] | None
     rows: list[MethodResult]
     figures: dict[str, Path] = field(default_factory=dict)
+    k_rule: str = ''
+    first_pole_slip_s: float | None = None
+    detection: Detection | None = None
 
 
 def add_arguments(parser) -> None:
@@ -149,6 +165,16 @@ def add_arguments(parser) -> None:
                         help='most coherent groups considered (default: %(default)s)')
     parser.add_argument('--dtw-band-samples', type=int, default=int(node.get('dtw_band_samples', 0)),
                         help='Sakoe-Chiba half-width of the DTW path, samples, 0 = none (default: %(default)s)')
+    from controlled_islanding.core.k_rules import DEFAULT_RULE, RULES
+
+    parser.add_argument('--k-rule', choices=sorted(RULES), default=str(node.get('k_rule', DEFAULT_RULE)),
+                        help='how DTW coherency chooses k (default: %(default)s, from config/coherency.yaml)')
+    parser.add_argument('--lead-step-s', type=float, default=0.05,
+                        help='spacing of the request times tried for the detection lead, s (default: %(default)s)')
+    parser.add_argument('--k-rules', type=Path, metavar='FILE.md',
+                        help='compare every k rule on the bags (and --andes scenarios) and write this page instead')
+    parser.add_argument('--andes', action='append', type=Path, metavar='SCENARIO.yaml', default=[],
+                        help='with --k-rules: also simulate this scenario in ANDES and compare on its rotor angles')
     parser.add_argument('--time-limit-s', type=float, default=60.0,
                         help='MILP time limit per solve, s (default: 60)')
     parser.add_argument('--report', type=Path, metavar='FILE.md',
@@ -169,8 +195,10 @@ def _coherency_node_parameters() -> dict[str, Any]:
 
 def run(args) -> int:
     """Evaluate every case; print tables or JSON; write figures."""
-    if not args.bags and not args.paper_cases:
+    if not args.bags and not args.paper_cases and not args.andes:
         raise CliError('give at least one BAG directory, or --paper-cases')
+    if args.lead_step_s <= 0:
+        raise CliError(f'--lead-step-s must be positive, got {args.lead_step_s}')
     if args.window_s <= 0 or args.time_limit_s <= 0 or args.max_groups < 2 or args.dtw_band_samples < 0:
         raise CliError(f'--window-s ({args.window_s}) and --time-limit-s ({args.time_limit_s}) must be positive '
                        f'and --max-groups ({args.max_groups}) at least 2, --dtw-band-samples '
@@ -183,6 +211,10 @@ def run(args) -> int:
             bags.append(load_bag(path))
         except BagDataError as exc:
             raise CliError(str(exc)) from exc
+    if args.k_rules:
+        return _compare_rules(args, bags)
+    if args.andes:
+        raise CliError('--andes is for --k-rules')
     cases: list[CaseReport] = []
     if args.paper_cases:
         for name in PAPER_CASES:
@@ -192,7 +224,8 @@ def run(args) -> int:
         _progress(f'{bag.path.name}: running every method')
         try:
             cases.append(evaluate_bag(bag, window_s=args.window_s, max_groups=args.max_groups,
-                                      dtw_band=args.dtw_band_samples or None, time_limit_s=args.time_limit_s))
+                                      dtw_band=args.dtw_band_samples or None, time_limit_s=args.time_limit_s,
+                                      k_rule=args.k_rule, lead_step_s=args.lead_step_s))
         except EvaluateError as exc:
             raise CliError(f'{bag.path}: {exc}') from exc
     for case in cases:
@@ -217,6 +250,43 @@ def run(args) -> int:
         write_report(cases, args.report, figures_for=shown, command=command)
         print(f'report: {args.report}', file=sys.stderr)
     return 0
+
+
+def _compare_rules(args, bags) -> int:
+    """Compare every k rule on the bags and the --andes scenarios; print the tables and write the page."""
+    from controlled_islanding import coherency_rules as study
+
+    scenarios = []
+    for bag in bags:
+        scenarios.append(study.scenario_from_bag(bag, _manifest_entry(bag)))
+    if args.andes:
+        from controlled_islanding.sim.andes_sim import SimulationError, simulate
+        from controlled_islanding.sim.scenario import ScenarioError, load_scenario
+
+        for path in args.andes:
+            _progress(f'{path}: simulating in ANDES')
+            try:
+                scenario = load_scenario(path)
+                sim = simulate(scenario, progress=False)
+            except (ScenarioError, SimulationError) as exc:
+                raise CliError(f'{path}: {exc}') from exc
+            scenarios.append(study.scenario_from_simulation(scenario.name, sim, scenario.request_s))
+    results = study.compare(scenarios, window_s=args.window_s, max_groups=args.max_groups,
+                            dtw_band=args.dtw_band_samples or None, step_s=args.lead_step_s, progress=_progress)
+    print(study.format_console(results))
+    command = ' '.join(['controlled-islanding evaluate', *args.bags, *(f'--andes {p}' for p in args.andes),
+                        '--k-rules', str(args.k_rules)])
+    study.write_report(results, args.k_rules, chosen=args.k_rule, command=command, window_s=args.window_s,
+                       step_s=args.lead_step_s)
+    print(f'report: {args.k_rules}', file=sys.stderr)
+    return 0
+
+
+def _manifest_entry(bag) -> dict | None:
+    """Return the bag's entry in the bags/index.yaml beside it (None if there is none)."""
+    from controlled_islanding.coherency_rules import manifest_entries
+
+    return manifest_entries(bag.path.parent / 'index.yaml').get(bag.path.name)
 
 
 def _progress(text: str) -> None:
@@ -304,7 +374,7 @@ def generator_series(bag, start_s: float, end_s: float) -> tuple[np.ndarray, lis
 
 
 def evaluate_bag(bag, *, window_s: float = 3.0, max_groups: int = 4, dtw_band: int | None = None,
-                 time_limit_s: float = 60.0) -> CaseReport:
+                 time_limit_s: float = 60.0, k_rule: str | None = None, lead_step_s: float = 0.05) -> CaseReport:
     """Run every method on one scenario bag.
 
     Args:
@@ -313,17 +383,22 @@ def evaluate_bag(bag, *, window_s: float = 3.0, max_groups: int = 4, dtw_band: i
         max_groups: Most coherent groups considered.
         dtw_band: Sakoe-Chiba half-width of the DTW path, samples (None = none).
         time_limit_s: MILP time limit per solve, s.
+        k_rule: How DTW coherency chooses k (core.k_rules.RULES; None: the core's default).
+        lead_step_s: Spacing of the request times tried for the detection lead, s.
 
     Returns:
-        The case report.
+        The case report; truth and first pole slip from the bags/index.yaml beside the bag when it lists it.
 
     Raises:
         EvaluateError: The bag's PMU data cannot give rotor angles for every generator.
 
     """
+    from controlled_islanding import coherency_rules as study
     from controlled_islanding.core.coherency import DTWCoherency
     from controlled_islanding.core.correlation import CorrelationCoherency
+    from controlled_islanding.core.k_rules import DEFAULT_RULE
 
+    k_rule = k_rule or DEFAULT_RULE
     end_s = request_time_s(bag)
     _, names, angles = generator_series(bag, end_s - window_s, end_s)
     grid = bag.grid_at(end_s + 1e-9)
@@ -333,10 +408,17 @@ def evaluate_bag(bag, *, window_s: float = 3.0, max_groups: int = 4, dtw_band: i
         labels = model.fit(series).labels_
         return {n: int(k) for n, k in zip(names, labels, strict=True)}
 
-    methods = [('dtw + spectral', lambda: coherency(DTWCoherency(max_groups=max_groups, window=dtw_band)), ''),
+    methods = [('dtw + spectral', lambda: coherency(DTWCoherency(max_groups=max_groups, window=dtw_band,
+                                                                  k_rule=k_rule)), ''),
                ('correlation + spectral', lambda: coherency(CorrelationCoherency()), '')]
     rows = run_methods(grid, methods, exact_for='dtw', time_limit_s=time_limit_s)
-    return CaseReport(name=bag.path.name, source=str(bag.path), grid=grid, truth_groups=bag.truth_groups, rows=rows)
+    scenario = study.scenario_from_bag(bag, _manifest_entry(bag))
+    detection = None
+    if scenario.truth_k > 1:
+        detection = study.detect(scenario, rule=k_rule, window_s=window_s, max_groups=max_groups, dtw_band=dtw_band,
+                                 step_s=lead_step_s)
+    return CaseReport(name=bag.path.name, source=str(bag.path), grid=grid, truth_groups=scenario.truth, rows=rows,
+                      k_rule=k_rule, first_pole_slip_s=scenario.first_pole_slip_s, detection=detection)
 
 
 def run_methods(grid: Grid, coherency_methods: Sequence[tuple[str, Callable[[], dict[str, int]] | None, str]], *,
@@ -477,7 +559,14 @@ def format_case(case: CaseReport) -> str:
     widths = [max(len(r[i]) for r in cells) for i in range(len(TABLE_COLUMNS))]
     lines = [f'### {case.name}', '', f'{case.source}', '']
     if case.truth_groups is not None:
-        lines += [f'True coherent groups: {_group_text(case.truth_groups)}', '']
+        lines += [f'True coherent groups (final grouping): {_group_text(case.truth_groups)}', '']
+    if case.detection is not None:
+        from controlled_islanding.coherency_rules import detection_text
+
+        truth_k = len(set((case.truth_groups or {}).values()))
+        slip = 'never' if case.first_pole_slip_s is None else f'{case.first_pole_slip_s:.2f} s'
+        lines += [f'Detection lead (dtw, k rule {case.k_rule}): first pole slip {slip}; '
+                  f'{detection_text(truth_k, case.detection)}', '']
     for n, r in enumerate(cells):
         lines.append('| ' + ' | '.join(c.ljust(w) if i == 0 else c.rjust(w)
                                         for i, (c, w) in enumerate(zip(r, widths, strict=True))) + ' |')
@@ -511,8 +600,12 @@ def case_to_json(case: CaseReport) -> dict[str, Any]:
                 'island_load_mw': list(d.island_load_mw), 'island_shed_mw': list(d.island_shed_mw),
                 'bus_island': {str(b): i for b, i in sorted(d.bus_island.items())}},
         })
+    det = case.detection
     return {'case': case.name, 'source': case.source, 'truth_groups': case.truth_groups, 'rows': rows,
-            'figures': {k: str(v) for k, v in case.figures.items()}}
+            'figures': {k: str(v) for k, v in case.figures.items()}, 'k_rule': case.k_rule,
+            'first_pole_slip_s': case.first_pole_slip_s,
+            'detection': None if det is None else {'found_s': det.found_s, 'kept_from_s': det.kept_from_s,
+                                                   'lead_s': det.lead_s}}
 
 
 def _slug(text: str) -> str:

@@ -85,8 +85,8 @@ def canonical(labels: np.ndarray) -> np.ndarray:
 def pair_drift_rad(angles: np.ndarray) -> np.ndarray:
     """Return each pair's drift over the window: the least-squares slope of delta_p - delta_q times the span, rad.
 
-    Each pair is fitted over the samples both have. The span is sqrt(12) standard deviations of those sample
-    times, which is the first-to-last distance for evenly spaced samples and stays fair when some are lost.
+    Each pair is fitted over the samples both have. The span is computed from the spread of those sample times
+    (the first-to-last distance for evenly spaced samples), so it stays fair when some are lost.
 
     Args:
         angles: Rotor angles, rad, shape (n_generators, n_samples), on one time grid; NaN = lost.
@@ -106,7 +106,8 @@ def pair_drift_rad(angles: np.ndarray) -> np.ndarray:
     with np.errstate(invalid='ignore', divide='ignore'):
         var_x = sxx - sx * sx / n_common
         slope = (sxd - sx * sd / n_common) / var_x
-        drift = slope * np.sqrt(12.0 * var_x / n_common)
+        # First-to-last distance of n evenly spaced samples, from their spread, so lost samples leave it fair.
+        drift = slope * np.sqrt(12.0 * var_x / n_common * (n_common - 1) / (n_common + 1))
     return np.where(np.isfinite(drift), drift, 0.0)
 
 

@@ -1,0 +1,111 @@
+"""k rules: each rule behind DTWCoherency, the drift measure, and the separation rule's physics on synthetic swings."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from controlled_islanding.core.coherency import CoherencyError, DTWCoherency
+from controlled_islanding.core.k_rules import RULES, SeparationRule, ThresholdRule, pair_drift_rad
+
+RATE_FPS = 60.0
+WINDOW_S = 3.0
+
+
+def partition(labels) -> set[frozenset[int]]:
+    groups: dict[int, set[int]] = {}
+    for i, g in enumerate(labels):
+        groups.setdefault(int(g), set()).add(i)
+    return {frozenset(s) for s in groups.values()}
+
+
+def two_areas(difference_rad, seed: int = 0, n_a: int = 4, n_b: int = 3) -> list[np.ndarray]:
+    """Rotor angles, rad: area B leads area A by difference_rad(t); every machine has an offset and a local swing."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, WINDOW_S, 1.0 / RATE_FPS)
+    common = 0.3 * np.sin(2 * np.pi * 0.6 * t)
+    out = []
+    for i in range(n_a + n_b):
+        local = rng.uniform(0.02, 0.05) * np.sin(2 * np.pi * rng.uniform(1.2, 2.0) * t + rng.uniform(0, 6))
+        shift = difference_rad(t) if i >= n_a else 0.0
+        out.append(rng.uniform(-1, 1) + common + local + shift + rng.normal(0, 0.003, len(t)))
+    return out
+
+
+AREAS = [0, 0, 0, 0, 1, 1, 1]
+
+
+def test_drift_is_the_change_of_a_steady_trend_and_ignores_offsets_and_lost_samples() -> None:
+    t = np.arange(0.0, WINDOW_S, 1.0 / RATE_FPS)
+    a = 0.7 * t / t[-1] + 5.0
+    b = np.zeros_like(t)
+    b_lossy = b.copy()
+    b_lossy[::5] = np.nan
+    drift = pair_drift_rad(np.array([a, b, b_lossy]))
+    assert drift[0, 1] == pytest.approx(0.7, rel=2e-3) and drift[1, 0] == pytest.approx(-0.7, rel=2e-3)
+    assert drift[0, 2] == pytest.approx(0.7, rel=1e-2)
+    assert drift[1, 2] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_the_issues_case_152_deg_apart_and_drifting_is_split_where_the_fixed_threshold_saw_one_group() -> None:
+    # Area B falls behind, accelerating, from the middle of the window: 152 deg apart at its end, not yet pi.
+    end_rad = np.radians(152.0)
+    series = two_areas(lambda t: end_rad * np.clip((t - 1.5) / 1.5, 0.0, None) ** 2)
+    separation = DTWCoherency(k_rule='separation').fit(series)
+    assert partition(separation.labels_) == partition(AREAS)
+    assert DTWCoherency(k_rule='threshold').fit(series).n_groups_ == 1
+
+
+def test_a_large_first_swing_that_comes_back_is_not_a_separation() -> None:
+    # The areas swing 80 deg apart right after a fault at the start of the window and come back, damped.
+    series = two_areas(lambda t: np.radians(80.0) * np.exp(-0.3 * t) * np.sin(2 * np.pi * 0.8 * t))
+    est = DTWCoherency(k_rule='separation').fit(series)
+    assert est.n_groups_ == 1
+    assert est.rule_.scores_['max_drift_rad'] < np.pi / 2
+
+
+def test_a_slow_swing_decelerating_at_the_end_of_the_window_is_not_a_separation() -> None:
+    # A quarter of a 12 s period: the areas move 130 deg apart over the window, slowing to a stop at its end.
+    series = two_areas(lambda t: np.radians(130.0) * np.sin(np.pi * t / (2 * WINDOW_S)))
+    drift = np.abs(pair_drift_rad(np.array(series)))
+    assert drift.max() >= np.pi / 2  # fast enough to pass the rate bar on its own
+    assert DTWCoherency(k_rule='separation').fit(series).n_groups_ == 1
+
+
+def test_a_pole_slip_inside_the_window_separates_even_at_a_steady_rate() -> None:
+    series = two_areas(lambda t: 2 * np.pi * 0.5 * t)  # 0.5 Hz slip: 3 pi rad over the window
+    assert partition(DTWCoherency(k_rule='separation').fit(series).labels_) == partition(AREAS)
+
+
+def test_three_areas_two_of_them_slipping_apart() -> None:
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, WINDOW_S, 1.0 / RATE_FPS)
+    drifts = [0.0 * t, 1.5 * t ** 2, -1.2 * t ** 2]
+    group_of = [0, 0, 0, 1, 1, 2, 2, 0]
+    series = [rng.uniform(-1, 1) + drifts[g] + 0.05 * np.sin(2 * np.pi * 1.4 * t + rng.uniform(0, 6)) for g in group_of]
+    assert partition(DTWCoherency(k_rule='separation').fit(series).labels_) == partition(group_of)
+
+
+@pytest.mark.parametrize('rule', sorted(RULES))
+def test_every_rule_runs_behind_dtw_coherency_and_finds_a_fast_separation(rule: str) -> None:
+    # Areas larger than the eigengap rule's 7th neighbour, so its self-tuned scale stays inside an area.
+    series = two_areas(lambda t: 2.0 * t ** 2, seed=1, n_a=9, n_b=8)
+    est = DTWCoherency(k_rule=rule).fit(series)
+    assert partition(est.labels_) == partition([0] * 9 + [1] * 8), est.rule_.scores_
+    assert est.rule_.name == rule
+
+
+def test_a_rule_instance_with_its_own_settings_is_used() -> None:
+    series = two_areas(lambda t: 0.5 * t, seed=2)  # 1.5 rad over the window: RMS about 0.45 rad
+    assert DTWCoherency(k_rule=ThresholdRule(coherence_threshold_rad=0.2)).fit(series).n_groups_ == 2
+    assert DTWCoherency(k_rule=ThresholdRule(coherence_threshold_rad=1.0)).fit(series).n_groups_ == 1
+    # No horizon: only a full pi of drift inside the window separates.
+    assert DTWCoherency(k_rule=SeparationRule(horizon_windows=0.0)).fit(series).n_groups_ == 1
+
+
+@pytest.mark.parametrize(('rule', 'message'), [('nope', 'unknown k rule'), (object(), 'choose'),
+                                               (SeparationRule(horizon_windows=-1.0), 'horizon_windows'),
+                                               (ThresholdRule(coherence_threshold_rad=0.0), 'coherence_threshold')])
+def test_bad_rules_are_refused(rule, message: str) -> None:
+    with pytest.raises(CoherencyError, match=message):
+        DTWCoherency(k_rule=rule).fit(two_areas(lambda t: 2.0 * t ** 2))
