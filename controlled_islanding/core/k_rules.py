@@ -13,9 +13,9 @@ Rules (docs/coherency_rules.md compares them on every scenario bag; `RULES` maps
   number fitted to a system. A pair separates when
   - it drifted pi within the window (a pole slip's worth), or
   - at the window's mean rate it would drift pi within one more window (|drift| >= pi / 2 with the default
-    horizon of one window) and it is not slowing down: the second half of the window drifts at least as far
-    as the first, the same way. This is the equal-area picture: a swing that will come back decelerates once
-    past its stable equilibrium, a pair past the unstable one accelerates away.
+    horizon of one window) and it is not slowing down: over the latest half of the window it moves on, the
+    same way, at least at the window's mean rate. This is the equal-area picture: a swing that will come back
+    decelerates once past its stable equilibrium, a pair past the unstable one accelerates away.
   Stable swings go back and forth inside a window, so their drift is small whatever their amplitude, as long
   as the window holds about a swing period; a slow swing seen over less than that looks like a drift, which
   the slowing-down test is there to catch. No separating pair: one group. Otherwise the k in 2 .. max_groups
@@ -184,10 +184,10 @@ class SeparationRule:
             raise KRuleError(f'horizon_windows must be >= 0, got {self.horizon_windows}')
         bar = np.pi / (1.0 + self.horizon_windows)
         drift = np.abs(ev.drift_rad)
-        half = ev.angles_rad.shape[1] // 2
-        first, second = pair_drift_rad(ev.angles_rad[:, :half]), pair_drift_rad(ev.angles_rad[:, half:])
-        # Not slowing down: the second half carries the drift on, at least as far as the first half did.
-        steady = (np.sign(second) == np.sign(ev.drift_rad)) & (np.abs(second) >= np.abs(first))
+        latest = pair_drift_rad(ev.angles_rad[:, ev.angles_rad.shape[1] // 2:])
+        # Not slowing down: over the latest half of the window the pair moves on, the same way, at least at the
+        # window's mean rate (a drift over half the window, doubled, is a rate per window).
+        steady = (np.sign(latest) == np.sign(ev.drift_rad)) & (2.0 * np.abs(latest) >= drift)
         separating = (drift >= np.pi) | ((drift >= bar) & steady)
         self.scores_: dict = {'bar_rad': bar, 'max_drift_rad': float(drift.max()) if drift.size else 0.0,
                               'separating_pairs': int(np.triu(separating, 1).sum())}
