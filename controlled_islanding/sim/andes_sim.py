@@ -13,6 +13,12 @@ The case is anything ANDES reads (xlsx, json, MATPOWER .m, PSS/E .raw with a .dy
 scenario disables get u = 0 before setup; disabled synchronous machines are left out of the generators.
 Each generator's reactance for the rotor angle estimate is its xq, or x'd for a classical machine (GENCLS),
 whose xq ANDES only copies from xd1 when the time-domain run initialises.
+
+PSS/E branch records: their R, X and B are per unit on the case's system base SBASE, but ANDES 2.0.0's PSS/E
+parser gives the lines it makes from them no Sn, so ANDES takes them as per unit on 100 MVA and rescales them
+to SBASE. With SBASE = 100 MVA (ieee14.raw) nothing changes; with SBASE = 1000 MVA (nordic44's N44_BC.raw)
+every line came out 10 times too long and the power flow diverged. `_psse_line_base` sets those lines' Sn to
+SBASE before setup; the power flow of N44_BC.raw then converges in 3 iterations.
 """
 
 from __future__ import annotations
@@ -144,7 +150,17 @@ def _load_case(scenario: Scenario) -> Any:
         raise ScenarioError(f'{scenario.path}: {field}: ANDES cannot read {scenario.case}: {exc}') from exc
     if ss is None:  # some input formats make andes.load log the problem and return None
         raise ScenarioError(f'{scenario.path}: {field}: ANDES cannot read {scenario.case}')
+    _psse_line_base(ss, scenario.case)
     return ss
+
+
+def _psse_line_base(ss: Any, case: Path) -> None:
+    """Put the lines of a PSS/E case on the system base, as PSS/E defines them (see the module docstring)."""
+    if case.suffix.lower() != '.raw':
+        return
+    for i in range(ss.Line.n):
+        if not ss.Line.trans.v[i]:
+            ss.Line.Sn.v[i] = float(ss.config.mva)
 
 
 def _apply_disable(ss: Any, where: str, entries: tuple[Disable, ...]) -> None:
@@ -415,9 +431,11 @@ def power_flow_grid(case: str | Path, addfile: str | Path | None = None) -> Grid
     pycode = pycode_dir()
     pycode.mkdir(parents=True, exist_ok=True)
     extra = {'addfile': str(Path(path).parent / addfile)} if addfile else {}
-    ss = andes.load(str(path), setup=True, no_output=True, default_config=True, pycode_path=str(pycode), **extra)
+    ss = andes.load(str(path), setup=False, no_output=True, default_config=True, pycode_path=str(pycode), **extra)
     if ss is None:
         raise SimulationError(f'ANDES cannot read {case}')
+    _psse_line_base(ss, path)
+    ss.setup()
     ss.PFlow.run()
     try:
         bus_numbers = [int(b) for b in ss.Bus.idx.v]
