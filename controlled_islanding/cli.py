@@ -15,7 +15,7 @@ from collections.abc import Sequence
 
 from controlled_islanding.rosenv import RosEnvError
 
-SUBCOMMANDS = ('demo', 'replay', 'partition', 'simulate', 'evaluate', 'bench', 'keys', 'fuzz')
+SUBCOMMANDS = ('demo', 'replay', 'partition', 'simulate', 'evaluate', 'bench', 'keys', 'fuzz', 'export')
 
 DESCRIPTION = """\
 Online PMU-driven controlled islanding (Banna et al.): estimate rotor angles from PMU

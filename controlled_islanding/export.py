@@ -1,0 +1,200 @@
+"""An islanding decision in the forms other grid tools take to apply it: MATPOWER cases and ANDES events.
+
+Both start from the ANDES case the decision's network came from (ANDES reads MATPOWER, PSS/E and its own
+formats), so branch ids are matched in either orientation: ANDES names transformer 6-31 "31-6".
+
+- MATPOWER: the whole case with the cut branches (and any outages the decision saw) at status 0, one
+  reference bus per island (the island's largest in-service generator, unless it holds the case's own),
+  and each island's load scaled down by the decision's load to shed, so every island solves on its own.
+  `island_cases` splits it into one case per island, which MATPOWER, PYPOWER or pandapower's MATPOWER
+  converter run as they are.
+- ANDES: one Toggle per cut branch at a time given, as the rows `System.add('Toggle', row)` takes.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+# MATPOWER columns (0-based), from the MATPOWER case format documentation.
+_BUS_I, _BUS_TYPE, _BUS_PD, _BUS_QD = 0, 1, 2, 3
+_GEN_BUS, _GEN_PG, _GEN_STATUS = 0, 1, 7
+_BR_F, _BR_T, _BR_STATUS = 0, 1, 10
+_REF, _PV, _PQ = 3, 2, 1
+
+
+class ExportError(ValueError):
+    """A decision or case that cannot be exported as asked."""
+
+
+@dataclass(frozen=True)
+class Decision:
+    """The parts of an islanding decision an export needs.
+
+    Attributes:
+        cut_branch_ids: Branches to open, "<bus>-<bus>" or "<bus>-<bus>#<n>".
+        islands: Bus numbers of each island, island 0 first.
+        island_shed_mw: Load to shed in each island, MW.
+        outages: Branches already out when the decision was made.
+
+    """
+
+    cut_branch_ids: tuple[str, ...]
+    islands: tuple[tuple[int, ...], ...]
+    island_shed_mw: tuple[float, ...]
+    outages: tuple[str, ...] = ()
+
+    @classmethod
+    def from_summary(cls, summary: Mapping[str, Any], outages: Iterable[str] = ()) -> Decision:
+        """Read a `replay`/`demo` summary.json, or a manifest entry's expected_decision.
+
+        Raises:
+            ExportError: It holds no split decision, or its fields are malformed.
+
+        """
+        if not summary.get('split'):
+            raise ExportError(f'the decision is not a split (split={summary.get("split")!r}, '
+                              f'status={summary.get("status", "-")}); there is nothing to export')
+        try:
+            cut = tuple(str(b) for b in summary.get('cut_branch_ids', summary.get('cut_branches')))
+            raw = summary['islands']
+            if raw and isinstance(raw[0], Mapping):
+                islands = tuple(tuple(int(b) for b in isl['buses']) for isl in raw)
+                shed = tuple(float(isl['shed_mw']) for isl in raw)
+            else:
+                islands = tuple(tuple(int(b) for b in isl) for isl in raw)
+                shed = tuple(float(s) for s in summary['island_shed_mw'])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ExportError(f'decision: missing or malformed field ({exc!r}); expected cut_branch_ids (or '
+                              'cut_branches) and islands with shed_mw (or island_shed_mw)') from None
+        if len(shed) != len(islands):
+            raise ExportError(f'decision: {len(islands)} islands but {len(shed)} shed values')
+        return cls(cut, islands, shed, tuple(outages))
+
+
+def load_case(case: str | Path, addfile: str | Path | None = None) -> Any:
+    """Return an ANDES System of a case (a file, or one bundled with ANDES) after its power flow.
+
+    Raises:
+        ExportError: ANDES cannot read the case or its power flow fails.
+
+    """
+    import andes
+
+    from controlled_islanding.sim.andes_sim import pycode_dir
+
+    andes.config_logger(stream_level=logging.CRITICAL)
+    path = Path(case) if Path(case).exists() else Path(andes.get_case(str(case), check=False))
+    if not path.exists():
+        raise ExportError(f'case {case}: no such file, and not a case bundled with ANDES')
+    extra = {'addfile': str(addfile)} if addfile else {}
+    pycode_dir().mkdir(parents=True, exist_ok=True)
+    ss = andes.load(str(path), no_output=True, default_config=True, pycode_path=str(pycode_dir()), **extra)
+    if ss is None or not ss.PFlow.run() or not ss.PFlow.converged:
+        raise ExportError(f'case {case}: ANDES could not load it or solve its power flow')
+    return ss
+
+
+def line_rows(ss: Any, branch_ids: Sequence[str]) -> list[int]:
+    """Return the ANDES Line position of each branch id, in either orientation.
+
+    Raises:
+        ExportError: A branch id names no line of the case.
+
+    """
+    from controlled_islanding.sim.andes_sim import branch_ids as name_branches
+
+    pairs = [(int(a), int(b)) for a, b in zip(ss.Line.bus1.v, ss.Line.bus2.v, strict=True)]
+    ids = name_branches(pairs)
+    flipped = name_branches([(b, a) for a, b in pairs])
+    rows = []
+    for ref in branch_ids:
+        if ref in ids:
+            rows.append(ids.index(ref))
+        elif ref in flipped:
+            rows.append(flipped.index(ref))
+        else:
+            raise ExportError(f'branch {ref!r}: no line or transformer of the case joins those buses')
+    return rows
+
+
+def andes_toggles(ss: Any, decision: Decision, t_s: float) -> list[dict[str, Any]]:
+    """Return one ANDES Toggle row per cut branch, opening it at t_s (s of simulation time)."""
+    idx = list(ss.Line.idx.v)
+    return [{'model': 'Line', 'dev': idx[row], 't': float(t_s)} for row in line_rows(ss, decision.cut_branch_ids)]
+
+
+def matpower_case(ss: Any, decision: Decision) -> dict[str, Any]:
+    """Return the case as a MATPOWER ppc with the decision applied (see the module docstring).
+
+    Raises:
+        ExportError: An island has no generator in service, or names a bus the case lacks.
+
+    """
+    from andes.io.matpower import system2mpc
+
+    ppc = system2mpc(ss)
+    ppc = {'version': '2', 'baseMVA': float(ppc['baseMVA']), 'bus': np.array(ppc['bus'], dtype=float),
+           'gen': np.array(ppc['gen'], dtype=float), 'branch': np.array(ppc['branch'], dtype=float)}
+    bus, gen = ppc['bus'], ppc['gen']
+    ppc['branch'][line_rows(ss, [*decision.outages, *decision.cut_branch_ids]), _BR_STATUS] = 0
+    row_of = {int(b): i for i, b in enumerate(bus[:, _BUS_I])}
+    for k, (buses, shed_mw) in enumerate(zip(decision.islands, decision.island_shed_mw, strict=True)):
+        unknown = [b for b in buses if b not in row_of]
+        if unknown:
+            raise ExportError(f'island {k}: bus(es) {unknown[:5]} are not in the case')
+        rows = [row_of[b] for b in buses]
+        on = [g for g in range(len(gen)) if gen[g, _GEN_STATUS] > 0 and int(gen[g, _GEN_BUS]) in set(buses)]
+        if not on:
+            raise ExportError(f'island {k}: no generator in service, so no reference bus')
+        refs = [r for r in rows if bus[r, _BUS_TYPE] == _REF]
+        keep = refs[0] if refs else row_of[int(gen[max(on, key=lambda g: gen[g, _GEN_PG]), _GEN_BUS])]
+        for r in rows:
+            if bus[r, _BUS_TYPE] == _REF and r != keep:
+                bus[r, _BUS_TYPE] = _PV
+        bus[keep, _BUS_TYPE] = _REF
+        load_mw = float(bus[rows, _BUS_PD].sum())
+        if shed_mw > 0 and load_mw > 0:
+            # Shed in proportion at every bus, keeping each load's power factor.
+            scale = max(0.0, 1.0 - shed_mw / load_mw)
+            bus[rows, _BUS_PD] *= scale
+            bus[rows, _BUS_QD] *= scale
+    return ppc
+
+
+def island_cases(ppc: Mapping[str, Any], islands: Sequence[Sequence[int]]) -> list[dict[str, Any]]:
+    """Split a ppc into one ppc per island: its buses, the in-service branches inside it, its generators."""
+    out = []
+    for buses in islands:
+        inside = set(int(b) for b in buses)
+        bus_rows = np.isin(ppc['bus'][:, _BUS_I].astype(int), list(inside))
+        br = ppc['branch']
+        br_rows = (np.isin(br[:, _BR_F].astype(int), list(inside)) & np.isin(br[:, _BR_T].astype(int), list(inside))
+                   & (br[:, _BR_STATUS] > 0))
+        gen_rows = np.isin(ppc['gen'][:, _GEN_BUS].astype(int), list(inside))
+        out.append({'version': '2', 'baseMVA': ppc['baseMVA'], 'bus': ppc['bus'][bus_rows].copy(),
+                    'gen': ppc['gen'][gen_rows].copy(), 'branch': br[br_rows].copy()})
+    return out
+
+
+def write_matpower(ppc: Mapping[str, Any], path: Path) -> Path:
+    """Write a ppc as a MATPOWER .m case file, atomically; the function is named after the file, as MATPOWER needs."""
+    def rows(a: np.ndarray) -> str:
+        return '\n'.join('\t' + '\t'.join(f'{v:.10g}' for v in row) + ';' for row in a)
+
+    if path.suffix != '.m' or not path.stem.isidentifier():
+        raise ExportError(f'{path}: a MATPOWER case file is NAME.m with NAME a valid function name')
+    text = (f'function mpc = {path.stem}\n% Written by controlled-islanding export: the case with an islanding '
+            f'decision applied.\nmpc.version = \'2\';\nmpc.baseMVA = {ppc["baseMVA"]:.10g};\n'
+            f'mpc.bus = [\n{rows(ppc["bus"])}\n];\nmpc.gen = [\n{rows(ppc["gen"])}\n];\n'
+            f'mpc.branch = [\n{rows(ppc["branch"])}\n];\n')
+    tmp = path.with_name(f'.{path.name}.partial-{os.getpid()}')
+    tmp.write_text(text)
+    os.replace(tmp, path)
+    return path

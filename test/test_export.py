@@ -1,0 +1,110 @@
+"""Exported decisions apply in the tools they are written for: PYPOWER solves every island, ANDES opens the lines."""
+
+from __future__ import annotations
+
+import json
+import logging
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from pypower.api import ppoption, runpf
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from controlled_islanding import export
+from controlled_islanding.cli import main
+from controlled_islanding.core.grid import Grid
+
+BAGS = Path(__file__).resolve().parents[1] / 'bags'
+SPLITS = [e for e in yaml.safe_load((BAGS / 'index.yaml').read_text())['bags'] if e['expected_decision']['split']]
+
+
+def case_of(entry: dict) -> str:
+    return yaml.safe_load((BAGS / entry['scenario']).read_text())['case']
+
+
+@cache
+def system(case: str) -> object:
+    return export.load_case(case)
+
+
+def decision(entry: dict) -> export.Decision:
+    return export.Decision.from_summary(entry['expected_decision'], entry.get('tripped_before_request', []))
+
+
+def islands_of(grid: Grid) -> set[frozenset[int]]:
+    index = {b: i for i, b in enumerate(grid.buses)}
+    live = np.array([(index[br.from_bus], index[br.to_bus]) for br in grid.branches if br.in_service])
+    a = coo_matrix((np.ones(len(live)), (live[:, 0], live[:, 1])), shape=(len(index), len(index)))
+    _n, labels = connected_components(a, directed=False)
+    return {frozenset(b for b, lab in zip(grid.buses, labels, strict=True) if lab == k) for k in set(labels)}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('entry', SPLITS, ids=[e['name'] for e in SPLITS])
+def test_matpower_export_islands_each_solve(entry: dict, tmp_path: Path) -> None:
+    d = decision(entry)
+    ppc = export.matpower_case(system(case_of(entry)), d)
+    path = export.write_matpower(ppc, tmp_path / 'islanded.m')
+    # Read back by an independent parser: the open branches leave exactly the decision's islands.
+    assert islands_of(Grid.from_matpower(str(path))) == {frozenset(isl) for isl in d.islands}
+    for k, sub in enumerate(export.island_cases(ppc, d.islands)):
+        assert (sub['bus'][:, 1] == 3).sum() == 1, f'island {k}: not exactly one reference bus'
+        _result, ok = runpf(sub, ppoption(VERBOSE=0, OUT_ALL=0))
+        assert ok, f'{entry["name"]}: island {k} power flow does not converge'
+    load_before = export.matpower_case(system(case_of(entry)), export.Decision(d.cut_branch_ids, d.islands,
+                                                                                (0.0,) * len(d.islands)))
+    assert load_before['bus'][:, 2].sum() - ppc['bus'][:, 2].sum() == pytest.approx(sum(d.island_shed_mw), abs=0.5)
+
+
+def test_branch_ids_match_in_either_orientation() -> None:
+    ss = system(case_of(SPLITS[0]))
+    a, b = int(ss.Line.bus1.v[0]), int(ss.Line.bus2.v[0])
+    assert export.line_rows(ss, [f'{a}-{b}', f'{b}-{a}']) == [0, 0]
+    with pytest.raises(export.ExportError, match="'1-999'"):
+        export.line_rows(ss, ['1-999'])
+
+
+@pytest.mark.slow
+def test_andes_toggles_open_the_cut_in_a_time_domain_run(tmp_path: Path) -> None:
+    import andes
+
+    from controlled_islanding.sim.andes_sim import pycode_dir
+
+    entry = SPLITS[0]
+    summary = tmp_path / 'summary.json'
+    summary.write_text(json.dumps({**entry['expected_decision'], 'bag': f'bags/{entry["bag"]}'}))
+    out = tmp_path / 'toggles.json'
+    assert main(['export', str(summary), '--to', 'andes', '--at-s', '0.05', '-o', str(out)]) == 0
+    rows = json.loads(out.read_text())
+    assert len(rows) == len(entry['expected_decision']['cut_branches'])
+    andes.config_logger(stream_level=logging.CRITICAL)
+    ss = andes.load(andes.get_case(case_of(entry)), setup=False, no_output=True, default_config=True,
+                    pycode_path=str(pycode_dir()))
+    for row in rows:
+        ss.add('Toggle', row)
+    ss.setup()
+    ss.PFlow.run()
+    ss.TDS.config.tf = 0.1
+    ss.TDS.config.no_tqdm = 1
+    ss.TDS.run()
+    idx = list(ss.Line.idx.v)
+    assert all(ss.Line.u.v[idx.index(row['dev'])] == 0 for row in rows)
+
+
+@pytest.mark.parametrize(('summary', 'args', 'named'), [
+    ({'split': False, 'status': 'NO_SPLIT'}, ['--to', 'matpower'], 'not a split'),
+    ({'split': True, 'cut_branch_ids': ['1-2'], 'islands': [[1]], 'bag': 'elsewhere'}, ['--to', 'matpower'],
+     'give --case'),
+    ({'split': True}, ['--to', 'andes'], '--at-s'),
+])
+def test_bad_input_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[str], summary: dict, args: list[str],
+                            named: str) -> None:
+    path = tmp_path / 'summary.json'
+    path.write_text(json.dumps(summary))
+    assert main(['export', str(path), *args, '-o', str(tmp_path / 'x.m'), *(['--case', 'ieee14/ieee14_full.xlsx']
+                                                                          if named == 'not a split' else [])]) == 2
+    assert named in capsys.readouterr().err
