@@ -505,22 +505,24 @@ def encode_data(frame: DataFrame, cfg: Config) -> bytes:
         if p.freq_float:
             body += struct.pack('>ff', d.freq_hz, d.rocof_hz_per_s)
         else:
-            body += struct.pack('>hh', _int16(round((d.freq_hz - p.nominal_hz) * 1000.0), p, 'FREQ'),
-                                _int16(round(d.rocof_hz_per_s * 100.0), p, 'DFREQ'))
+            body += struct.pack('>hh', _int16((d.freq_hz - p.nominal_hz) * 1000.0, p, 'FREQ'),
+                                _int16(d.rocof_hz_per_s * 100.0, p, 'DFREQ'))
         for i, value in enumerate(d.analogs):
             body += struct.pack('>f', value) if p.analog_float else \
-                struct.pack('>h', _int16(round(value / p.analog_scale(i)), p, 'ANALOG'))
+                struct.pack('>h', _int16(value / p.analog_scale(i), p, 'ANALOG'))
         for word in d.digitals:
             body += struct.pack('>H', word)
     return _frame(FRAME_DATA, cfg.idcode, frame.time, bytes(body), cfg.version)
 
 
 def _int16(value: float, p: PmuConfig, what: str) -> int:
-    if isinstance(value, float) and not math.isfinite(value):
+    """Round a value in field units to a 16-bit integer field; NaN or inf becomes the absent marker."""
+    if not math.isfinite(value):
         return ABSENT_INT16
-    if not -0x7FFF <= value <= 0x7FFF:
-        raise C37118Error(f'PMU {p.station}: {what} {value} does not fit a 16-bit integer field')
-    return int(value)
+    counts = round(value)
+    if not -0x7FFF <= counts <= 0x7FFF:
+        raise C37118Error(f'PMU {p.station}: {what} {counts} does not fit a 16-bit integer field')
+    return counts
 
 
 def _encode_phasor(p: PmuConfig, i: int, ph: complex) -> bytes:
@@ -543,8 +545,8 @@ def _encode_phasor(p: PmuConfig, i: int, ph: complex) -> bytes:
         return struct.pack('>Hh', magnitude, round(math.atan2(ph.imag, ph.real) * 1e4))
     if absent:
         return struct.pack('>hh', ABSENT_INT16, ABSENT_INT16)
-    return struct.pack('>hh', _int16(round(ph.real / scale), p, f'phasor {p.phasor_names[i]} real part'),
-                       _int16(round(ph.imag / scale), p, f'phasor {p.phasor_names[i]} imaginary part'))
+    return struct.pack('>hh', _int16(ph.real / scale, p, f'phasor {p.phasor_names[i]} real part'),
+                       _int16(ph.imag / scale, p, f'phasor {p.phasor_names[i]} imaginary part'))
 
 
 def decode_data(raw: bytes, cfg: Config) -> DataFrame:

@@ -15,7 +15,7 @@ from collections.abc import Sequence
 
 from controlled_islanding.rosenv import RosEnvError
 
-SUBCOMMANDS = ('demo', 'replay', 'partition', 'simulate', 'evaluate', 'bench', 'keys', 'fuzz', 'export')
+SUBCOMMANDS = ('demo', 'replay', 'partition', 'simulate', 'evaluate', 'bench', 'keys', 'fuzz', 'serve-pmu', 'export')
 
 DESCRIPTION = """\
 Online PMU-driven controlled islanding (Banna et al.): estimate rotor angles from PMU
@@ -35,8 +35,12 @@ class CliError(Exception):
     """A user-facing error: printed as one line, exit status 2."""
 
 
+def _module_name(name: str) -> str:
+    return f"controlled_islanding.commands.{name.replace('-', '_')}"  # serve-pmu lives in serve_pmu.py
+
+
 def _load(name: str):
-    return importlib.import_module(f'controlled_islanding.commands.{name}')
+    return importlib.import_module(_module_name(name))
 
 
 def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
@@ -49,7 +53,7 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
         try:
             module = _load(name)
         except ModuleNotFoundError as exc:
-            if exc.name != f'controlled_islanding.commands.{name}':
+            if exc.name != _module_name(name):
                 raise
             continue
         sp = sub.add_parser(name, help=module.HELP, description=module.DESCRIPTION,
