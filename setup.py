@@ -5,7 +5,7 @@ from glob import glob
 from setuptools import find_packages, setup
 
 PACKAGE = 'controlled_islanding'
-NODES = ['pmu_ingestion', 'coherency', 'partitioning', 'breaker_command', 'bag_player', 'recorder']
+NODES = ['pmu_ingestion', 'coherency', 'partitioning', 'breaker_command', 'bag_player', 'recorder', 'pdc_client']
 
 setup(
     name=PACKAGE,

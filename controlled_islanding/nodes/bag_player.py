@@ -53,6 +53,8 @@ class BagPlayerNode(Node):
         self.declare_parameter('lockstep_lead_s', 0.5)
         self.declare_parameter('report_file', '')
         self.declare_parameter('clock_min_step_s', 0.0)
+        # Topics another source feeds live (e.g. /pmu/frames from pdc_client): the bag's copy is not played.
+        self.declare_parameter('withhold_topics', [''])
         bag = self.get_parameter('bag').value
         self.rate = float(self.get_parameter('rate').value)
         if not bag:
@@ -71,7 +73,9 @@ class BagPlayerNode(Node):
         self.pubs = {}
         try:
             with AnyReader([Path(bag)], default_typestore=typestore()) as reader:
-                chosen = [c for c in reader.connections if publish_truth or c.topic not in topics.TRUTH_TOPICS]
+                withheld = set(self.get_parameter('withhold_topics').value)
+                chosen = [c for c in reader.connections if (publish_truth or c.topic not in topics.TRUTH_TOPICS)
+                          and c.topic not in withheld]
                 for conn in chosen:
                     if conn.topic not in self.pubs:
                         self.pubs[conn.topic] = self.create_publisher(
