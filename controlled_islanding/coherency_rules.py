@@ -4,10 +4,11 @@ A scenario here is rotor angles over a whole run with their truth: the final gro
 first pole slip time. It comes from a scenario bag (PMU-estimated angles, the manifest's truth) or straight from
 an ANDES run (the simulator's own rotor angles, resampled to a PMU rate; truth computed by sim/truth.py).
 
-Detection: for each request time on a grid from the first full window to the end of the run, the rule groups the
-window that ends there. For an unstable scenario the detection time is the earliest request time whose groups
-are the final groups, and the lead is first pole slip minus detection time (>= 0: found before the slip). It is
-also said from when on the groups stay right until the end. For a stable scenario the first request time at
+Detection: for each request time on a grid from the first full window (or from the scenario's own request, if
+that comes earlier) to the end of the run, the rule groups the window that ends there. For an unstable scenario
+the detection time is the earliest request time whose groups are the final groups, and the lead is first pole
+slip minus detection time (>= 0: found before the slip). It is also said from when on the groups stay right
+until the end. For a stable scenario the first request time at
 which the rule splits is reported instead (never, ideally).
 """
 
@@ -156,7 +157,9 @@ def groups_at(scenario: Scenario, end_s: float, *, rule: str, window_s: float, m
 def detect(scenario: Scenario, *, rule: str, window_s: float, max_groups: int, dtw_band: int | None,
            step_s: float) -> Detection:
     """Sweep request times (see the module docstring) and return when the rule first got the answer."""
-    start = float(scenario.t_s[0]) + window_s
+    # From the first full window, or earlier when the scenario's own request comes before a window has filled:
+    # the sweep never gives a rule less data than it had at the request.
+    start = float(scenario.t_s[0]) + min(window_s, max(scenario.request_s - float(scenario.t_s[0]), step_s))
     ends = np.arange(start, float(scenario.t_s[-1]) + 1e-9, step_s)
     truth = blocks(scenario.truth)
     right, split = [], []
@@ -256,7 +259,8 @@ def write_report(results, path: Path, *, chosen: str, command: str, window_s: fl
             lines.append(f'- {sc.name} (truth {group_text(sc.truth)}): ' + '; '.join(
                 f'{r.rule} {group_text(r.groups)}' for r in wrong))
     lines += ['', '## How early', '',
-              f'Request times every {step_s:g} s from the first full window to the end of the run. Unstable: the '
+              f'Request times every {step_s:g} s from the first full window (or the request, if earlier) to the end '
+              'of the run. Unstable: the '
               'earliest request time with the final groups, lead = first pole slip - that time (>= 0: before '
               'the slip), and from when on the answer stays right. Stable: the first request time that splits.',
               '', '| scenario | first pole slip (s) | ' + ' | '.join(rules) + ' |',
