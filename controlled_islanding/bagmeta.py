@@ -1,6 +1,8 @@
-"""What rosbags leaves for rosbag2's own tools to read in a bag's metadata.yaml.
+"""What rosbag2's own tools read in a bag's metadata: the offered QoS of each topic, and the distribution.
 
-rosbags writes `ros_distro: rosbags`; `ros2 bag` reads the distribution from that field, and our bags
+`ros2 bag play` offers each topic with the QoS recorded for it, and plays a topic with none as volatile,
+which our transient-local readers never match; `qos_profiles` turns a live QoS into the record. rosbags
+writes `ros_distro: rosbags`; `ros2 bag` reads the distribution from that field, and our bags
 hold Jazzy's message definitions and type hashes, so it is set to jazzy once the writer has closed. (The
 copy of the metadata embedded in the MCAP file keeps rosbags' value: rosbag2 reads metadata.yaml.)
 """
@@ -10,6 +12,9 @@ from __future__ import annotations
 import os
 import re
 from pathlib import Path
+from typing import Any
+
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
 ROS_DISTRO = 'jazzy'
 _DISTRO_LINE = re.compile(r'^(\s*ros_distro:\s*)\S+\s*$', re.MULTILINE)
@@ -37,3 +42,23 @@ def set_ros_distro(bag: Path, distro: str = ROS_DISTRO) -> None:
     tmp = path.with_name(path.name + '.tmp')
     tmp.write_text(new)
     os.replace(tmp, path)
+
+
+def qos_profile(qos: Any) -> Qos:
+    """Return the rosbags record of an rclpy QoSProfile (rclpy's enums have rosbag2's values)."""
+    def duration(d: Any) -> QosTime:
+        sec, nsec = divmod(int(d.nanoseconds), 1_000_000_000)
+        return QosTime(sec, nsec)
+
+    def enum(cls: type, policy: Any) -> Any:
+        try:
+            return cls(int(policy))
+        except ValueError:
+            return cls(0)  # "system default": a value rosbag2 reads, where a middleware reports one it cannot
+
+    return Qos(history=enum(QosHistory, qos.history), depth=int(qos.depth),
+               reliability=enum(QosReliability, qos.reliability), durability=enum(QosDurability, qos.durability),
+               deadline=duration(qos.deadline), lifespan=duration(qos.lifespan),
+               liveliness=enum(QosLiveliness, qos.liveliness),
+               liveliness_lease_duration=duration(qos.liveliness_lease_duration),
+               avoid_ros_namespace_conventions=bool(qos.avoid_ros_namespace_conventions))

@@ -155,12 +155,20 @@ def test_dtw_coherency_recovers_the_truth_groups(name: str) -> None:
         f'{name}: DTW groups {estimator.labels_.tolist()} (k = {estimator.n_groups_}) != truth {truth}')
 
 
+# Regenerating a large case takes minutes (EI 33's 528 buses about 5, GBnetwork's 2224 about 1.5 on this machine
+# kind), too long for the suite: it regenerates the cases up to this many buses, and
+# `controlled-islanding simulate --all bags --check` every bag.
+REGENERATED_MAX_BUSES = 100
+
+
 @pytest.mark.slow
-def test_every_bag_regenerates_with_the_same_messages(tmp_path: Path) -> None:
-    from controlled_islanding.sim.bag import run_scenario
+def test_small_case_bags_regenerate_with_the_same_messages(tmp_path: Path) -> None:
+    from controlled_islanding.sim.bag import message_difference, run_scenario
 
     scenarios = sorted((load_scenario(p) for p in scenario_files(BAGS)),
                        key=lambda s: (repr(s.simulation_key()), s.name))
-    for scenario in scenarios:
+    small = [s for s in scenarios if len(load_bag(BAGS / s.name).grid.buses) <= REGENERATED_MAX_BUSES]
+    assert small, f'no bag of a case with at most {REGENERATED_MAX_BUSES} buses'
+    for scenario in small:
         out = run_scenario(scenario, tmp_path / scenario.name, progress=False).bag
-        assert _raw_messages(out) == _raw_messages(BAGS / scenario.name), scenario.name
+        assert message_difference(out, BAGS / scenario.name) is None, scenario.name

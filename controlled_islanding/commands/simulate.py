@@ -58,6 +58,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         metavar='INDEX', help='after simulating, rewrite the manifest (default bags/index.yaml) '
                                               'from every bag listed with a YAML beside it')
     parser.add_argument('--quiet', action='store_true', help='no progress on stderr')
+    parser.add_argument('--check', action='store_true',
+                        help='simulate into a scratch directory and compare with the committed bags instead of '
+                             'writing them: exit 1 if any message differs (the regeneration check CI runs on the '
+                             'small cases; use --all --check for every bag)')
 
 
 def run(args: argparse.Namespace) -> int:
@@ -81,6 +85,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     # Scenarios sharing one ANDES run are simulated once when they follow each other.
     scenarios.sort(key=lambda s: (repr(s.simulation_key()), s.name))
+    if args.check:
+        return _check(scenarios, quiet=args.quiet)
     for sc in scenarios:
         out = args.out if args.out is not None else sc.path.parent / sc.name
         start = time.monotonic()
@@ -100,3 +106,29 @@ def run(args: argparse.Namespace) -> int:
             raise CliError(str(exc)) from None
         print(f'{path}: updated')
     return 0
+
+
+def _check(scenarios: list, quiet: bool) -> int:
+    """Regenerate each scenario into a scratch directory and compare it with its committed bag."""
+    import tempfile
+
+    from controlled_islanding.sim.andes_sim import SimulationError
+    from controlled_islanding.sim.bag import message_difference, run_scenario
+    from controlled_islanding.sim.scenario import ScenarioError
+
+    differing = 0
+    with tempfile.TemporaryDirectory(prefix='simulate-check-') as scratch:
+        for sc in scenarios:
+            committed = sc.path.parent / sc.name
+            start = time.monotonic()
+            if not committed.is_dir():
+                verdict = 'no committed bag'
+            else:
+                try:
+                    fresh = run_scenario(sc, Path(scratch) / sc.name, progress=not quiet).bag
+                except (ScenarioError, SimulationError) as exc:
+                    raise CliError(str(exc)) from None
+                verdict = message_difference(fresh, committed) or 'same messages'
+            differing += verdict != 'same messages'
+            print(f'{sc.name}: {verdict} ({time.monotonic() - start:.1f} s)', flush=True)
+    return 1 if differing else 0

@@ -23,10 +23,9 @@ from pathlib import Path
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import StoragePlugin, Writer
 
-from controlled_islanding.bagmeta import set_ros_distro
+from controlled_islanding.bagmeta import qos_profile, set_ros_distro
 from controlled_islanding.interfaces import typestore
 from controlled_islanding.node_common import (
     Diagnostics,
@@ -101,24 +100,8 @@ class RecorderNode(Node):
                 cls, topic, lambda raw, c=conn: self._write(c, raw), self._qos(topic), raw=True)
             self.get_logger().info(f'recording {topic} ({msgtype})')
 
-    def _offered(self, topic: str) -> list[Qos]:
-        def duration(d: object) -> QosTime:
-            sec, nsec = divmod(int(d.nanoseconds), 1_000_000_000)
-            return QosTime(sec, nsec)
-
-        def enum(cls: type, policy: object) -> object:
-            try:
-                return cls(int(policy))
-            except ValueError:
-                return cls(0)  # "system default": a value rosbag2 can read, where Fast DDS reports one it cannot
-
-        return [Qos(history=enum(QosHistory, q.history), depth=int(q.depth),
-                    reliability=enum(QosReliability, q.reliability), durability=enum(QosDurability, q.durability),
-                    deadline=duration(q.deadline), lifespan=duration(q.lifespan),
-                    liveliness=enum(QosLiveliness, q.liveliness),
-                    liveliness_lease_duration=duration(q.liveliness_lease_duration),
-                    avoid_ros_namespace_conventions=bool(q.avoid_ros_namespace_conventions))
-                for q in (i.qos_profile for i in self.get_publishers_info_by_topic(topic))]
+    def _offered(self, topic: str) -> list:
+        return [qos_profile(i.qos_profile) for i in self.get_publishers_info_by_topic(topic)]
 
     def _write(self, conn, raw: bytes) -> None:
         self.diag.arrived()

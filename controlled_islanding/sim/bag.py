@@ -16,6 +16,8 @@ The truth groups are the final grouping of sim/truth.py (the clusters of the rot
 the run), published at the request because that is what the nodes should find then; `distance` is the final
 separation |d_p(T) - d_q(T)| (rad) and `window_s` the end time T.
 PMU channels: `PMU_<bus>`, or `PMU_<bus>/<generator>` per machine where several share a bus (sim/pmu.py).
+Every topic records the QoS the nodes use (node_common.qos_for) as its offered QoS, so `ros2 bag play` offers
+it again and the latched readers match.
 The bag is written to a temporary directory beside the target and renamed into place only when complete.
 """
 
@@ -30,8 +32,10 @@ from typing import Any
 import numpy as np
 
 from controlled_islanding import topics
+from controlled_islanding.bagmeta import qos_profile, set_ros_distro
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.interfaces import msg_type_name, typestore
+from controlled_islanding.node_common import qos_for
 from controlled_islanding.sim.andes_sim import Simulation, simulate
 from controlled_islanding.sim.pmu import PmuData, measure
 from controlled_islanding.sim.scenario import Scenario
@@ -208,11 +212,30 @@ def run_scenario(scenario: Scenario, out: Path, *, force: bool = False, progress
             conns: dict[str, Any] = {}
             for stamp, _, topic, msg in records:
                 if topic not in conns:
-                    conns[topic] = writer.add_connection(topic, msg.__msgtype__, typestore=m.store)
+                    conns[topic] = writer.add_connection(topic, msg.__msgtype__, typestore=m.store,
+                                                         offered_qos_profiles=[qos_profile(qos_for(topic))])
                 writer.write(conns[topic], stamp, m.store.serialize_cdr(msg, msg.__msgtype__))
+        set_ros_distro(tmp)
         if out.exists():
             shutil.rmtree(out)
         tmp.rename(out)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     return ScenarioResult(bag=out, n_frames=int(pmu.frame_present.sum()), groups=group_of, simulation_wall_s=wall)
+
+
+def message_difference(bag: Path, other: Path) -> str | None:
+    """Return where two bags' messages (topic, log time, serialized bytes) first differ, or None if they agree."""
+    from rosbags.highlevel import AnyReader
+
+    def messages(path: Path) -> list[tuple[str, int, bytes]]:
+        with AnyReader([path]) as reader:
+            return [(conn.topic, t_ns, bytes(raw)) for conn, t_ns, raw in reader.messages()]
+
+    ours, theirs = messages(bag), messages(other)
+    for k, (a, b) in enumerate(zip(ours, theirs, strict=False)):
+        if a != b:
+            return f'message {k}: {a[0]} at {a[1]} ns differs from {b[0]} at {b[1]} ns'
+    if len(ours) != len(theirs):
+        return f'{len(ours)} messages against {len(theirs)}'
+    return None
