@@ -3,12 +3,20 @@
 QoS per topic (reliable everywhere: a lost request, decision or command is a lost control action):
 - /pmu/frames, /rotor_angles: KEEP_LAST 1000, volatile. Deep enough that an as-fast-as-possible replay
   of a whole window never drops a frame; live, a late frame is useless, so nothing is latched.
-- /network/snapshot, /coherent_groups: KEEP_LAST 1, transient local: a late joiner gets the latest state.
+- /network/snapshot: KEEP_LAST 1, transient local: a late joiner gets the latest state.
+- /coherent_groups: KEEP_LAST 16, transient local: coherency publishes the groups ending at a request and,
+  moments later, periodic ones on newer data; with KEEP_LAST 1 a busy partitioning node lost the first to the
+  second and refused the request as stale. 16 = the groupings partitioning keeps, each for its own time.
 - /network/branch_status: KEEP_LAST 100, transient local: a late partitioning node still learns every trip.
 - /islanding/request, /islanding/decision, /breaker/commands: KEEP_LAST 100, volatile. Never latched: a
   breaker node that starts late must not execute a decision made before it existed.
 - /diagnostics: KEEP_LAST 10, volatile (the diagnostic_aggregator convention).
 - /clock: KEEP_LAST 1, volatile; rclpy's time source subscribes best effort, which a reliable writer serves.
+
+Readers and writers allocate each DDS sample's buffer when it arrives and free it when it is taken
+(Fast DDS history memory policy DYNAMIC, see `_dds_memory_profile`): under rmw_fastrtps' default
+(PREALLOCATED_WITH_REALLOC) every pooled buffer keeps the largest size it ever held, so a KEEP_LAST 1000
+reader that now and then gets a frame of 10,000 PMUs grows towards 1000 x 720 kB.
 """
 
 from __future__ import annotations
@@ -16,6 +24,8 @@ from __future__ import annotations
 import functools
 import gc
 import importlib
+import os
+import tempfile
 import time
 import traceback
 from collections import Counter, deque
@@ -49,7 +59,7 @@ TOPIC_QOS: dict[str, QoSProfile] = {
     topics.PMU_FRAMES: _qos(1000),
     topics.ROTOR_ANGLES: _qos(1000),
     topics.NETWORK_SNAPSHOT: _qos(1, latched=True),
-    topics.COHERENT_GROUPS: _qos(1, latched=True),
+    topics.COHERENT_GROUPS: _qos(16, latched=True),
     topics.BRANCH_STATUS: _qos(100, latched=True),
     topics.ISLANDING_REQUEST: _qos(100),
     topics.ISLANDING_DECISION: _qos(100),
@@ -82,6 +92,41 @@ def message_class(type_name: str) -> type:
         raise NodeSetupError(f'message type {type_name!r} is not installed: {exc}') from exc
 
 
+class LossCounter:
+    """Counts the messages one reader lost, from the writers' publication sequence numbers.
+
+    Each writer numbers its samples 1, 2, 3, ...; a reliable reader gets them in order, so a jump is what
+    its keep-last history (or the writer's) dropped. rclpy's MessageInfo names no writer, so writers are
+    told apart by continuity: a number continues the stream whose last number is the closest below it, and
+    one below every stream starts a new stream (a new or restarted writer). Messages before the first one a
+    reader sees are not counted (a volatile late joiner was never owed them).
+
+    Args:
+        max_writers: Streams remembered; the least recently continued is forgotten beyond.
+
+    """
+
+    def __init__(self, max_writers: int = 8) -> None:
+        self.lost = 0
+        self._last: list[int] = []  # last sequence number per stream, least recently continued first
+        self._max_writers = max_writers
+
+    def seen(self, sequence: int | None) -> int:
+        """Take one message's publication sequence number (None: the middleware gives none); return new losses."""
+        if sequence is None:
+            return 0
+        below = [s for s in self._last if s < sequence]
+        gap = 0
+        if below:
+            previous = max(below)
+            self._last.remove(previous)
+            gap = sequence - previous - 1
+        self._last.append(sequence)
+        del self._last[:-self._max_writers]
+        self.lost += gap
+        return gap
+
+
 class Diagnostics:
     """Counts inputs, rejects, compute time and extra figures, and publishes them on /diagnostics.
 
@@ -103,6 +148,24 @@ class Diagnostics:
         self._last_log_s: dict[str, float] = {}
         self._last_publish_s = 0.0
         self._timer = node.create_timer(period_s, self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def subscribe(self, msg_type: type, topic: str, callback: Callable[[object], None]) -> object:
+        """Subscribe with the topic's documented QoS; count each message in, guard the callback, count losses.
+
+        The losses are `lost.<topic>` in /diagnostics, present (0) from the start.
+        """
+        counter = LossCounter()
+        key = f'lost.{topic}'
+        self.values[key] = '0'
+        guarded = self.guard(callback)
+
+        def take(msg: object, info: dict) -> None:
+            if counter.seen(info.get('publication_sequence_number')):
+                self.values[key] = str(counter.lost)
+            self.arrived()
+            guarded(msg)
+
+        return self._node.create_subscription(msg_type, topic, take, qos_for(topic))
 
     def arrived(self) -> None:
         """Count one input message."""
@@ -296,6 +359,37 @@ def settle_heap() -> None:
     gc.freeze()
 
 
+_DDS_MEMORY_XML = """<?xml version="1.0" encoding="UTF-8" ?>
+<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <data_reader profile_name="controlled_islanding_reader" is_default_profile="true">
+    <historyMemoryPolicy>DYNAMIC</historyMemoryPolicy>
+  </data_reader>
+  <data_writer profile_name="controlled_islanding_writer" is_default_profile="true">
+    <historyMemoryPolicy>DYNAMIC</historyMemoryPolicy>
+  </data_writer>
+</profiles>
+"""
+
+
+def _dds_memory_profile() -> str | None:
+    """Point Fast DDS at a profile with the DYNAMIC history memory policy; return the file to delete.
+
+    rmw_fastrtps forces PREALLOCATED_WITH_REALLOC unless RMW_FASTRTPS_USE_QOS_FROM_XML is set, and takes the
+    XML defaults only for what the ROS QoS does not set (history, depth, reliability and durability still
+    come from TOPIC_QOS). A user who configured Fast DDS through either variable keeps their own setup.
+    The file is private to this process and deleted once the node exists (Fast DDS reads it when the first
+    participant is created).
+    """
+    if 'RMW_FASTRTPS_USE_QOS_FROM_XML' in os.environ or 'FASTRTPS_DEFAULT_PROFILES_FILE' in os.environ:
+        return None
+    fd, path = tempfile.mkstemp(prefix='controlled_islanding_fastdds_', suffix='.xml')
+    with os.fdopen(fd, 'w') as handle:
+        handle.write(_DDS_MEMORY_XML)
+    os.environ['RMW_FASTRTPS_USE_QOS_FROM_XML'] = '1'
+    os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = path
+    return path
+
+
 def spin_node(factory: Callable[[], Node], args: list[str] | None = None,
               run: Callable[[Node, SingleThreadedExecutor], None] | None = None) -> int:
     """Init rclpy, build the node, spin it single-threaded until Ctrl-C or shutdown, then clean up.
@@ -310,11 +404,15 @@ def spin_node(factory: Callable[[], Node], args: list[str] | None = None,
         Process exit status: 0 after a clean stop, 1 when the node failed to start.
 
     """
+    profile = _dds_memory_profile()
     rclpy.init(args=args)
     node = None
     status = 0
     try:
         node = factory()
+        if profile is not None:
+            os.unlink(profile)
+            profile = None
         settle_heap()
         executor = SingleThreadedExecutor()
         executor.add_node(node)
@@ -329,6 +427,8 @@ def spin_node(factory: Callable[[], Node], args: list[str] | None = None,
               flush=True)
         status = 1
     finally:
+        if profile is not None:
+            os.unlink(profile)
         if node is not None:
             close = getattr(node, 'close', None)
             if close is not None:

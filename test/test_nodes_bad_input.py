@@ -228,8 +228,13 @@ def test_with_coherency_stopped_a_request_is_refused_as_stale_never_no_split(pip
     coherency = sup.children['coherency']
     os.kill(coherency.pid, signal.SIGSTOP)
     try:
-        # Half a second before the newest frame: no grouping held ends there, and none can be computed now.
-        publish(probe, topics.ISLANDING_REQUEST, request(frames[30], 'coherency-stopped'))
+        # New frames while coherency is stopped: a running coherency would group the samples up to the last of
+        # them, so only the stop leaves partitioning without groups that reach the request. (An earlier stamp
+        # is no test: partitioning keeps 16 groupings, and one may end there.)
+        for frame in frames[100:120]:
+            publish(probe, topics.PMU_FRAMES, frame)
+        probe.spin_for(0.3)
+        publish(probe, topics.ISLANDING_REQUEST, request(frames[119], 'coherency-stopped'))
         assert probe.spin_until(lambda: any(d.request_id == 'coherency-stopped' for d in out['decisions']), 15.0)
     finally:
         os.kill(coherency.pid, signal.SIGCONT)
@@ -237,6 +242,40 @@ def test_with_coherency_stopped_a_request_is_refused_as_stale_never_no_split(pip
     assert decision.status == IslandingDecision.STATUS_REFUSED_STALE_GROUPS, decision.status_detail
     assert not decision.split
     sup.check_alive()
+
+
+def test_a_burst_into_a_keep_last_1_reader_is_taken_or_counted_as_lost(pipeline):
+    sup, probe, snapshot, *_ = pipeline
+    key = f'lost.{topics.NETWORK_SNAPSHOT}'
+    nodes = ('pmu_ingestion', 'coherency')
+    probe.spin_for(1.5)  # the latest diagnostics of both nodes are in
+
+    def accounted(node: str) -> int:
+        return probe.counter(node, 'received') + probe.counter(node, key)
+
+    before = {n: accounted(n) for n in nodes}
+    lost_before = {n: probe.counter(n, key) for n in nodes}
+    burst = 200
+    for _ in range(burst):
+        publish(probe, topics.NETWORK_SNAPSHOT, snapshot)
+    # The last message is always taken, and each one it overtook is then counted from the sequence numbers.
+    for n in nodes:
+        assert probe.spin_until(lambda n=n: accounted(n) - before[n] >= burst, 20.0), (n, accounted(n) - before[n])
+    probe.spin_for(1.5)
+    assert {n: accounted(n) - before[n] for n in nodes} == {n: burst for n in nodes}
+    # Keep-last 1 and a decode of milliseconds: back to back, most of the burst is overtaken.
+    assert all(probe.counter(n, key) > lost_before[n] for n in nodes), probe.diagnostics
+    sup.check_alive()
+
+
+def test_loss_counter_follows_each_writer_by_continuity():
+    from controlled_islanding.node_common import LossCounter
+
+    counter = LossCounter()
+    assert [counter.seen(s) for s in (5, 6, 9)] == [0, 0, 2]  # the first seen is the start; 7 and 8 lost
+    assert counter.seen(1) == 0  # below every stream: another (or a restarted) writer
+    assert [counter.seen(s) for s in (2, 10, 4, 12)] == [0, 0, 1, 1]  # two writers interleaved
+    assert counter.seen(None) == 0 and counter.lost == 4
 
 
 def test_every_dropped_input_was_logged_by_its_node(pipeline):

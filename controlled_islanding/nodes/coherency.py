@@ -97,12 +97,9 @@ class CoherencyNode(Node):
         self.diag = Diagnostics(self)
         self.inputs = ClockGate(self, self.diag, future_tolerance_s, self.max_held, self._use)
         self.pub = self.create_publisher(CoherentGroups, topics.COHERENT_GROUPS, qos_for(topics.COHERENT_GROUPS))
-        self.create_subscription(NetworkSnapshot, topics.NETWORK_SNAPSHOT, self.diag.guard(self.on_snapshot),
-                                 qos_for(topics.NETWORK_SNAPSHOT))
-        self.create_subscription(RotorAngles, topics.ROTOR_ANGLES, self.diag.guard(self.on_angles),
-                                 qos_for(topics.ROTOR_ANGLES))
-        self.create_subscription(IslandingRequest, topics.ISLANDING_REQUEST, self.diag.guard(self.on_request),
-                                 qos_for(topics.ISLANDING_REQUEST))
+        self.diag.subscribe(NetworkSnapshot, topics.NETWORK_SNAPSHOT, self.on_snapshot)
+        self.diag.subscribe(RotorAngles, topics.ROTOR_ANGLES, self.on_angles)
+        self.diag.subscribe(IslandingRequest, topics.ISLANDING_REQUEST, self.on_request)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(float(self.get_parameter('period_s').value), self.diag.guard(self.on_period), clock=steady)
         # Polls for the wait deadlines only while a request waits (no 100 Hz wake-ups when idle).
@@ -149,7 +146,6 @@ class CoherencyNode(Node):
 
     def on_angles(self, msg: RotorAngles) -> None:
         """Check one sample's shape and stamp; use it, hold it, or refuse it."""
-        self.diag.arrived()
         n = len(msg.generator_names)
         lengths = (len(msg.generator_buses), len(msg.angle_rad), len(msg.valid))
         if n == 0:

@@ -91,10 +91,8 @@ class PmuIngestionNode(Node):
         self.diag = Diagnostics(self)
         self.inputs = ClockGate(self, self.diag, future_tolerance_s, max_held, self._use, _RELEASE_PERIOD_S)
         self.pub = self.create_publisher(RotorAngles, topics.ROTOR_ANGLES, qos_for(topics.ROTOR_ANGLES))
-        self.create_subscription(NetworkSnapshot, topics.NETWORK_SNAPSHOT, self.diag.guard(self.on_snapshot),
-                                 qos_for(topics.NETWORK_SNAPSHOT))
-        self.create_subscription(PmuFrame, topics.PMU_FRAMES, self.diag.guard(self.on_frame),
-                                 qos_for(topics.PMU_FRAMES))
+        self.diag.subscribe(NetworkSnapshot, topics.NETWORK_SNAPSHOT, self.on_snapshot)
+        self.diag.subscribe(PmuFrame, topics.PMU_FRAMES, self.on_frame)
 
     def _use(self, item: tuple[str, object]) -> None:
         kind, msg = item
@@ -156,7 +154,6 @@ class PmuIngestionNode(Node):
 
     def on_frame(self, frame: PmuFrame) -> None:
         """Check a frame's shape and time tag; use it, hold it, or refuse it."""
-        self.diag.arrived()
         t = stamp_s(frame.header.stamp)
         if t <= 0:
             self.diag.reject('missing_stamp', 'PMU frame header.stamp (time tag) is zero')
