@@ -38,9 +38,9 @@ RECEIVERS: dict[str, tuple[str, ...]] = {
     topics.ISLANDING_DECISION: ('breaker_command',),
 }
 FUZZ_TOPICS: tuple[str, ...] = tuple(RECEIVERS)
-# The receiver whose `received` diagnostics counter paces the publisher on each topic (one that counts it).
+# The receiver whose `received` (and, where it counts them, `lost.<topic>`) diagnostics pace the publisher.
 PACER: dict[str, str] = {
-    topics.PMU_FRAMES: 'pmu_ingestion', topics.NETWORK_SNAPSHOT: 'partitioning',
+    topics.PMU_FRAMES: 'pmu_ingestion', topics.NETWORK_SNAPSHOT: 'coherency',
     topics.BRANCH_STATUS: 'partitioning', topics.ISLANDING_REQUEST: 'partitioning',
     topics.ROTOR_ANGLES: 'coherency', topics.COHERENT_GROUPS: 'partitioning',
     topics.ISLANDING_DECISION: 'breaker_command',
@@ -48,13 +48,31 @@ PACER: dict[str, str] = {
 # Messages published ahead of what the pacing node has reported received; the diagnostics it paces on come at
 # up to 10 Hz, so this bounds the backlog without stalling on every message.
 PACE_WINDOW = 60
-# Topics whose readers keep only the latest message (keep last 1): one message per this many s of wall time,
-# about the time a node takes to decode an IEEE 39 snapshot, so what the table counts is what the node judged.
-LATEST_ONLY_GAP_S = 0.006
+# Topics whose readers keep only the latest message or a few (keep last 1 and 16): one message per gap of wall
+# time, at least LATEST_ONLY_GAP_S (about the time a node takes to decode an IEEE 39 snapshot). The gap doubles
+# whenever a receiver counts a loss (`lost.<topic>`, at most MAX_GAP_S) and shrinks again after 100 messages
+# without one, so nearly every message is judged, and the few that are not are counted. A message at or beyond
+# the caps is followed by a wait until the pacer has taken it: its decode takes long enough to lose the next.
+LATEST_ONLY = (topics.NETWORK_SNAPSHOT, topics.COHERENT_GROUPS)
+LATEST_ONLY_GAP_S = 0.004
+MAX_GAP_S = 0.25
+# A pacer that neither takes nor counts as lost what was sent for this long (s) has dropped it uncounted (a
+# node without loss counting); those messages are written off so that pacing never waits on them again.
+STALL_S = 0.5
 # The fuzz runs on a sim clock this far (s) before the bag's first message, so nothing the fuzz leaves
 # behind is newer than the bag's data, and the clock only ever moves forward.
 FUZZ_CLOCK_LEAD_S = 86_400.0
 RSS_LIMIT_MB = 20.0
+# The kinds of each topic that are as large as the nodes' caps admit, or one element larger. Before the RSS
+# baseline, each node gets each of them once: decoding one raises the heap's high-water mark by up to ~20 MB,
+# once (the allocator keeps freed memory for reuse), and a long-running node pays that the first time such a
+# message comes, not again. The growth over the fuzz is then measured from that warm baseline and judged;
+# the cold growth is printed beside it (docs/nodes.md, "Fuzz soak", has both at two N).
+LARGEST_KINDS: dict[str, tuple[str, ...]] = {
+    topics.PMU_FRAMES: ('over_cap', 'at_cap_unknown'), topics.NETWORK_SNAPSHOT: ('over_cap', 'at_cap_nan'),
+    topics.ROTOR_ANGLES: ('over_cap', 'at_cap_renamed'), topics.COHERENT_GROUPS: ('over_cap',),
+    topics.ISLANDING_DECISION: ('over_cap',),
+}
 # Caps of the nodes as configured in config/*.yaml (messages.Limits and the per-node parameters).
 MAX_PMUS_PER_FRAME = 10_000
 MAX_BUSES = 50_000
@@ -72,22 +90,29 @@ class TopicResult:
         topic: The input topic.
         sent: Messages published.
         received: Arrivals the pacing node counted in this phase (its `received` diagnostics delta).
+        lost: Sum over the receiving nodes of the growth of `lost.<topic>` (from publication sequence numbers;
+            only nodes that count losses, see docs/nodes.md).
+        unaccounted: Messages the pacing node neither received nor counted as lost by the end of the phase.
         rejected: Sum over the receiving nodes of the growth of `rejected.*` and `error.*` in this phase.
         errors: The part of `rejected` that is `error.*` (an exception escaped a callback).
         by_node: Receiving node -> counter name -> growth in this phase.
         kinds: Defect kind -> messages sent with it.
         wall_s: Wall time of the phase, s.
+        rss_kb: Pipeline node -> VmRSS after the phase settled, kB: which topic grew which node.
 
     """
 
     topic: str
     sent: int = 0
     received: int = 0
+    lost: int = 0
+    unaccounted: int = 0
     rejected: int = 0
     errors: int = 0
     by_node: dict[str, dict[str, int]] = field(default_factory=dict)
     kinds: dict[str, int] = field(default_factory=dict)
     wall_s: float = 0.0
+    rss_kb: dict[str, int | None] = field(default_factory=dict)
 
 
 @dataclass
@@ -97,17 +122,22 @@ class NodeResult:
     Attributes:
         name: The node.
         deaths: Exits and hangs the supervisor saw (each followed by a restart).
-        rss_before_kb: VmRSS before the first fuzz message, kB.
+        rss_before_kb: VmRSS before the warm-up, kB.
+        rss_warm_kb: VmRSS after the warm-up (the largest message of every kind, once), kB.
         rss_after_fuzz_kb: VmRSS after the last topic settled, kB (None if the process changed).
-        rss_growth_mb: rss_after_fuzz_kb - rss_before_kb, MB (1 MB = 1024 kB).
+        rss_growth_mb: rss_after_fuzz_kb - rss_warm_kb, MB (1 MB = 1024 kB): what the fuzz added to a node
+            that has already held the largest messages its caps admit. The judged figure.
+        rss_cold_growth_mb: rss_after_fuzz_kb - rss_before_kb, MB: the same with the warm-up included.
 
     """
 
     name: str
     deaths: int = 0
     rss_before_kb: int | None = None
+    rss_warm_kb: int | None = None
     rss_after_fuzz_kb: int | None = None
     rss_growth_mb: float | None = None
+    rss_cold_growth_mb: float | None = None
 
 
 @dataclass
@@ -267,6 +297,7 @@ class Adversary:
         self.rng = random.Random(seed)
         self.now_s = now_s
         self.n = 0
+        self.forced: str | None = None
         self._big: dict[str, object] = {}
         from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
@@ -300,7 +331,20 @@ class Adversary:
 
     def _choose(self, kinds: list[tuple[str, float]]) -> str:
         names, weights = zip(*kinds, strict=True)
+        if self.forced in names:
+            return self.forced
         return self.rng.choices(names, weights)[0]
+
+    def largest(self, topic: str) -> list[tuple[str, object]]:
+        """Return one message of each at-cap and over-cap kind of a topic (the warm-up)."""
+        out = []
+        for kind in LARGEST_KINDS.get(topic, ()):
+            self.forced = kind
+            try:
+                out.append(self.make(topic))
+            finally:
+                self.forced = None
+        return out
 
     def make(self, topic: str) -> tuple[str, object]:
         """Return (defect kind, message) for a topic."""
@@ -809,22 +853,31 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
                 spin(sup, 3.0)
                 pids = {n: sup.children[n].pid for n in names}
                 rss_before = {n: rss_kb(pids[n]) for n in names}
-                progress(f'fuzz: breaker_command armed; {per_topic} messages per topic, seed {seed}; '
-                         f'RSS before (MB): ' + ', '.join(f'{n} {(rss_before[n] or 0) / 1024:.1f}' for n in names))
                 trusted = signing.fingerprint(
                     signing.load_public_key(signing.key_paths(key_dir, 'partitioning').public))
                 adversary = Adversary(seeds, seed, sim_now_s, trusted)
                 for topic in topic_names:
+                    _warm_up(topic, adversary, pubs[topic], diagnostics, spin, sup)
+                spin(sup, 2.0)
+                rss_warm = {n: rss_kb(pids[n]) for n in names}
+                progress(f'fuzz: breaker_command armed; {per_topic} messages per topic, seed {seed}; RSS (MB) '
+                         'before / after the warm-up: ' + ', '.join(
+                             f'{n} {(rss_before[n] or 0) / 1024:.1f} / {(rss_warm[n] or 0) / 1024:.1f}'
+                             for n in names))
+                for topic in topic_names:
                     result = _fuzz_topic(topic, per_topic, adversary, pubs[topic], diagnostics, spin, sup)
                     report.topics.append(result)
                     progress(f'fuzz: {topic:<24} sent {result.sent:>6}  received {result.received:>6}  '
-                             f'rejected {result.rejected:>6}  errors {result.errors}  {result.wall_s:6.1f} s')
+                             f'lost {result.lost:>4}  rejected {result.rejected:>6}  errors {result.errors}  '
+                             f'{result.wall_s:6.1f} s  RSS (MB) ' + ', '.join(
+                                 f'{n} {(kb or 0) / 1024:.1f}' for n, kb in result.rss_kb.items()))
                 spin(sup, 2.0)
                 for n in names:
                     after = rss_kb(sup.children[n].pid) if sup.children[n].pid == pids[n] else None
-                    nr = NodeResult(n, rss_before_kb=rss_before[n], rss_after_fuzz_kb=after)
-                    if after is not None and rss_before[n] is not None:
-                        nr.rss_growth_mb = (after - rss_before[n]) / 1024.0
+                    nr = NodeResult(n, rss_before_kb=rss_before[n], rss_warm_kb=rss_warm[n], rss_after_fuzz_kb=after)
+                    if after is not None and rss_before[n] is not None and rss_warm[n] is not None:
+                        nr.rss_growth_mb = (after - rss_warm[n]) / 1024.0
+                        nr.rss_cold_growth_mb = (after - rss_before[n]) / 1024.0
                     report.nodes.append(nr)
                 report.commands_during_fuzz = sum(1 for during_replay, _ in commands if not during_replay)
                 report.replay = _replay(sup, node, spin, bag, entry, seeds, results, decisions, commands,
@@ -851,39 +904,87 @@ def _time(t_s: float) -> object:
     return Time(sec=sec, nanosec=nanosec)
 
 
+def _warm_up(topic: str, adversary: Adversary, pub: object, diagnostics: dict, spin: Callable, sup: object) -> None:
+    """Publish the largest messages of a topic once each; wait (at most 20 s) until the pacer has taken them."""
+    largest = adversary.largest(topic)
+    if not largest:
+        return
+    pacer = PACER[topic]
+
+    def taken() -> int:
+        values = diagnostics.get(pacer, {})
+        return int(float(values.get('received', '0'))) + int(float(values.get(f'lost.{topic}', '0')))
+
+    start = taken()
+    for _, msg in largest:
+        pub.publish(msg)
+        spin(sup, 20.0, lambda n=start + 1: taken() >= n)
+        start = taken()
+    spin(sup, 1.0)
+
+
 def _fuzz_topic(topic: str, n: int, adversary: Adversary, pub: object, diagnostics: dict, spin: Callable,
                 sup: object) -> TopicResult:
     """Publish n defective messages on one topic, paced by the receiving node; count what the receivers did."""
     receivers = RECEIVERS[topic]
     pacer = PACER[topic]
+    lost_key = f'lost.{topic}'
     result = TopicResult(topic)
     t0 = time.monotonic()
     spin(sup, 0.5)
     before = {r: _counters(diagnostics.get(r, {})) for r in receivers}
-    received0 = int(float(diagnostics.get(pacer, {}).get('received', '0')))
+
+    def count(node: str, key: str) -> int:
+        try:
+            return int(float(diagnostics.get(node, {}).get(key, '0')))
+        except ValueError:
+            return 0
+
+    received0 = count(pacer, 'received')
+    lost0 = {r: count(r, lost_key) for r in receivers}
 
     def received() -> int:
-        return int(float(diagnostics.get(pacer, {}).get('received', '0'))) - received0
+        return count(pacer, 'received') - received0
 
+    def lost(node: str) -> int:
+        return count(node, lost_key) - lost0[node]
+
+    written_off = 0
+
+    def outstanding() -> int:
+        return result.sent - received() - lost(pacer) - written_off
+
+    latest_only = topic in LATEST_ONLY
+    gap_s, losses, quiet = LATEST_ONLY_GAP_S, 0, 0
     for _ in range(n):
         kind, msg = adversary.make(topic)
         result.kinds[kind] = result.kinds.get(kind, 0) + 1
         pub.publish(msg)
         result.sent += 1
-        if result.sent - received() >= PACE_WINDOW:
-            # Wait for the node to catch up, but only while it makes progress: a keep-last-1 reader drops
-            # what it cannot take, so its count may never reach what was sent.
-            progress_at, seen = time.monotonic(), received()
+        if latest_only:
+            now_lost = sum(lost(r) for r in receivers)
+            if now_lost > losses:
+                gap_s, losses, quiet = min(2 * gap_s, MAX_GAP_S), now_lost, 0
+            else:
+                quiet += 1
+                if quiet >= 100:
+                    gap_s, quiet = max(0.8 * gap_s, LATEST_ONLY_GAP_S), 0
+        big = latest_only and kind.startswith(('over_cap', 'at_cap'))
+        if big or outstanding() >= PACE_WINDOW:
+            # Wait for the pacer to catch up, but only while it makes progress.
+            target = 1 if big else PACE_WINDOW // 2
+            progress_at, seen = time.monotonic(), outstanding()
 
-            def caught_up() -> bool:
+            def caught_up(target: int = target) -> bool:
                 nonlocal progress_at, seen
-                if received() != seen:
-                    progress_at, seen = time.monotonic(), received()
-                return result.sent - seen < PACE_WINDOW // 2 or time.monotonic() - progress_at > 0.5
+                if outstanding() != seen:
+                    progress_at, seen = time.monotonic(), outstanding()
+                return seen < target or time.monotonic() - progress_at > STALL_S
 
-            spin(sup, 5.0, caught_up)
+            if not spin(sup, 10.0, caught_up) or outstanding() >= target:
+                written_off += max(0, outstanding() - (target - 1))
         else:
-            spin(sup, LATEST_ONLY_GAP_S if topic in (topics.NETWORK_SNAPSHOT, topics.COHERENT_GROUPS) else 0.0)
+            spin(sup, gap_s if latest_only else 0.0)
 
     def snapshot() -> dict:
         return {r: _counters(diagnostics.get(r, {})) for r in receivers}
@@ -895,7 +996,8 @@ def _fuzz_topic(topic: str, n: int, adversary: Adversary, pub: object, diagnosti
         now = snapshot()
         if now != last:
             last, since = now, time.monotonic()
-        elif time.monotonic() - since >= 2.0 and (received() >= result.sent or time.monotonic() - since >= 4.0):
+        elif time.monotonic() - since >= 2.0 and (outstanding() + written_off <= 0
+                                                   or time.monotonic() - since >= 4.0):
             break
     for r in receivers:
         grown = {k: v - before[r].get(k, 0) for k, v in last[r].items() if v - before[r].get(k, 0) > 0}
@@ -903,7 +1005,10 @@ def _fuzz_topic(topic: str, n: int, adversary: Adversary, pub: object, diagnosti
         result.rejected += sum(grown.values())
         result.errors += sum(v for k, v in grown.items() if k.startswith('error.'))
     result.received = received()
+    result.lost = sum(lost(r) for r in receivers)
+    result.unaccounted = max(0, result.sent - result.received - lost(pacer))
     result.wall_s = time.monotonic() - t0
+    result.rss_kb = {name: rss_kb(child.pid) for name, child in sup.children.items()}
     return result
 
 
@@ -968,20 +1073,29 @@ def render(report: FuzzReport) -> str:
     """Return the report as tables."""
     lines = [f'fuzz soak: {report.per_topic} messages per topic, seed {report.seed}, {report.wall_s:.0f} s',
              '',
-             f'{"topic":<24} {"sent":>7} {"received":>9} {"rejected":>9} {"errors":>7}  top rejection reasons']
+             f'{"topic":<24} {"sent":>7} {"received":>9} {"lost":>6} {"rejected":>9} {"errors":>7} {"wall s":>7}  '
+             'top rejection reasons']
     for t in report.topics:
         merged: dict[str, int] = {}
         for node_name, counters in t.by_node.items():
             for key, value in counters.items():
                 merged[f'{node_name}:{key.split(".", 1)[1]}'] = value
         top = ', '.join(f'{k}={v}' for k, v in sorted(merged.items(), key=lambda kv: -kv[1])[:4])
-        lines.append(f'{t.topic:<24} {t.sent:>7} {t.received:>9} {t.rejected:>9} {t.errors:>7}  {top}')
-    lines += ['', f'{"node":<16} {"deaths":>6} {"RSS before MB":>14} {"after MB":>9} {"growth MB":>10}']
+        lines.append(f'{t.topic:<24} {t.sent:>7} {t.received:>9} {t.lost:>6} {t.rejected:>9} {t.errors:>7} '
+                     f'{t.wall_s:>7.0f}  {top}')
+    lines += ['', f'{"node":<16} {"deaths":>6} {"RSS cold MB":>12} {"warm MB":>8} {"after MB":>9} '
+                  f'{"growth MB":>10} {"(from cold)":>12}']
+
+    def mb(kb: int | None) -> str:
+        return f'{kb / 1024:.1f}' if kb else '-'
+
     for n in report.nodes:
-        before = f'{n.rss_before_kb / 1024:.1f}' if n.rss_before_kb else '-'
-        after = f'{n.rss_after_fuzz_kb / 1024:.1f}' if n.rss_after_fuzz_kb else '-'
         growth = f'{n.rss_growth_mb:+.1f}' if n.rss_growth_mb is not None else '-'
-        lines.append(f'{n.name:<16} {n.deaths:>6} {before:>14} {after:>9} {growth:>10}')
+        cold = f'({n.rss_cold_growth_mb:+.1f})' if n.rss_cold_growth_mb is not None else '-'
+        lines.append(f'{n.name:<16} {n.deaths:>6} {mb(n.rss_before_kb):>12} {mb(n.rss_warm_kb):>8} '
+                     f'{mb(n.rss_after_fuzz_kb):>9} {growth:>10} {cold:>12}')
+    lines.append(f'growth MB = after - warm: the warm-up sent each node the largest message of every kind once '
+                 f'(limit {RSS_LIMIT_MB:.0f} MB)')
     lines += ['', f'breaker commands during the fuzz: {report.commands_during_fuzz}']
     r = report.replay
     if r is not None:
