@@ -40,10 +40,10 @@ def assert_valid_islands(grid: Grid, groups: Mapping[str, int], labels: np.ndarr
     idx = {b: i for i, b in enumerate(grid.buses)}
     for g in grid.generators:
         assert labels[idx[g.bus]] == groups[g.name], g.name
-    adj = flow_weights(grid) > 0
+    adj = flow_weights(grid)
     for island in set(labels.tolist()):
         members = np.flatnonzero(labels == island)
-        n_comp, _ = connected_components(adj[np.ix_(members, members)], directed=False)
+        n_comp, _ = connected_components(adj[members][:, members], directed=False)
         assert n_comp == 1, f'island {island} is in {n_comp} pieces'
 
 
@@ -138,8 +138,90 @@ def test_group_that_cannot_be_joined_is_named() -> None:
         repair_partition(grid, {'A': 0, 'B': 1, 'C': 0}, np.array([0, 1, 0]))
 
 
-def test_beta_below_the_trivial_bound_is_refused(ieee39: Grid) -> None:
+def test_beta_below_the_trivial_bound_is_raised_into_the_feasible_range(ieee39: Grid) -> None:
+    # 0.01 of mu_{k-1} vol is below 1^T Q 1 = 2 (3^2 + 7^2) - 10^2 = 16 for case 1's groups of 3 and 7 buses.
     grid = ieee39.with_outages(CASES['case1'][0]).with_flows()
     groups = groups_by_bus(grid, CASES['case1'][1])
-    with pytest.raises(SpectralError, match='trivial'):
-        ConstrainedSpectralPartition(beta=0.01).fit(grid, groups)
+    part = ConstrainedSpectralPartition(beta=0.01).fit(grid, groups)
+    assert part.beta_ > 16.0
+    assert_valid_islands(grid, groups, part.labels_)
+
+
+def test_grouping_with_no_feasible_beta_is_refused_with_both_figures() -> None:
+    # case118: 52 generator buses in one group and one in each of two others: 1^T Q 1 = 2 (52^2 + 2) - 54^2.
+    grid = Grid.from_matpower('case118').with_flows()
+    buses = sorted({g.bus for g in grid.generators})
+    at = {b: 0 for b in buses[:52]} | {buses[52]: 1, buses[53]: 2}
+    groups = {g.name: at[g.bus] for g in grid.generators}
+    with pytest.raises(SpectralError, match=r'no beta exists .*\[52, 1, 1\].*1\^T Q 1 = 2496 is not below'):
+        ConstrainedSpectralPartition().fit(grid, groups)
+
+
+def dense_eq8(grid: Grid, groups: Mapping[str, int], beta_abs: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eq. 8 written out densely from the paper: (L_N, Q_N - beta/vol I, D^-1/2)."""
+    w = flow_weights(grid).toarray()
+    d = w.sum(axis=1)
+    s = 1.0 / np.sqrt(d)
+    lap_n = np.eye(len(d)) - s[:, None] * w * s[None, :]
+    q = np.zeros_like(w)
+    idx = {b: i for i, b in enumerate(grid.buses)}
+    gen = {idx[g.bus]: groups[g.name] for g in grid.generators}
+    for i, gi in gen.items():
+        for j, gj in gen.items():
+            q[i, j] = 1.0 if gi == gj else -1.0
+    return lap_n, s[:, None] * q * s[None, :] - beta_abs / d.sum() * np.eye(len(d)), s
+
+
+@pytest.mark.parametrize('dense', [True, False])
+@pytest.mark.parametrize(('case', 'k'), [('case39', 2), ('case118', 3), ('case118', 4)])
+def test_eigenpairs_are_the_smallest_positive_of_dense_eq8(case: str, k: int, dense: bool) -> None:
+    # The deflated, sparse solve against scipy's dense generalized eigensolver on eq. 8 as the paper states it.
+    import scipy.linalg
+
+    from controlled_islanding.core import spectral
+
+    grid = Grid.from_matpower(case).with_flows()
+    buses = sorted({g.bus for g in grid.generators})
+    at = {b: i * k // len(buses) for i, b in enumerate(buses)}
+    groups = {g.name: at[g.bus] for g in grid.generators}
+    part = ConstrainedSpectralPartition(repair=False).fit(grid, groups)
+    lap_n, b_mat, s = dense_eq8(grid, groups, part.beta_)
+    lam = scipy.linalg.eigvals(lap_n, b_mat)
+    lam = np.sort(lam.real[np.isfinite(lam) & (np.abs(lam.imag) < 1e-9) & (lam.real > 1e-10)])
+    assert len(lam) == k - 1  # eq. 8 has exactly k-1 positive eigenvalues
+    # The solver the fit chose, and the other one, must both give them.
+    w = flow_weights(grid)
+    d = np.asarray(w.sum(axis=1)).ravel()
+    u_mat = np.zeros((len(d), k))
+    for g in grid.generators:
+        u_mat[grid.buses.index(g.bus), groups[g.name]] = 1.0 / np.sqrt(d[grid.buses.index(g.bus)])
+    got, v = spectral._positive_eigenpairs(w, 1.0 / np.sqrt(d), u_mat, 2.0 * np.eye(k) - 1.0,
+                                           part.beta_ / d.sum(), k - 1, 0, dense=dense)
+    np.testing.assert_allclose(got, lam, rtol=1e-8)
+    np.testing.assert_allclose(part.eigenvalues_, lam, rtol=1e-8)
+    for j in range(k - 1):
+        residual = lap_n @ v[:, j] - got[j] * (b_mat @ v[:, j])
+        assert np.linalg.norm(residual) <= 1e-8 * np.linalg.norm(lap_n @ v[:, j])
+
+
+def test_no_dense_n_by_n_array_at_2224_buses() -> None:
+    # GBnetwork: a single n x n float array would be 2224^2 * 8 B = 39.6 MB; the fit must stay well below it.
+    import tracemalloc
+
+    from controlled_islanding.benchmarks import case_path
+
+    path = case_path('GBnetwork')
+    if path is None:
+        pytest.skip('ANDES does not ship GBnetwork here')
+    grid = Grid.from_matpower(path).with_flows()
+    buses = sorted({g.bus for g in grid.generators})
+    at = {b: 2 * i // len(buses) for i, b in enumerate(buses)}
+    groups = {g.name: at[g.bus] for g in grid.generators}
+    tracemalloc.start()
+    try:
+        part = ConstrainedSpectralPartition(repair=False).fit(grid, groups)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert len(part.labels_) == len(grid.buses) == 2224
+    assert peak < 0.25 * 2224 ** 2 * 8, f'{peak / 1e6:.1f} MB traced'

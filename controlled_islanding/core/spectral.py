@@ -8,20 +8,36 @@ Constraints (eq. 6): Q_ij = +1 between buses whose generators share a coherent g
 diagonal of a generator bus included), -1 between generator buses of different groups (cannot-link),
 0 elsewhere. L_N = D^-1/2 L D^-1/2 and Q_N = D^-1/2 Q D^-1/2.
 
-Eq. 8, L_N v = lambda (Q_N - beta/vol I) v, is solved as a dense generalized eigenproblem. The
-constraint v^T Q_N v > beta is only feasible in k-1 independent directions while beta/vol stays below
-the (k-1)-th largest eigenvalue mu_{k-1} of Q_N, so beta is given relative to that bound:
-beta = beta_fraction * mu_{k-1} * vol. It must also exceed 1^T Q 1 (must-link pairs minus cannot-link
-pairs), or the excluded trivial vector D^1/2 1 alone satisfies the constraint; on case39 that puts the
-lower end of beta_fraction between 0.025 and 0.05. The default beta_fraction = 0.2 is the middle of the range
-(0.125 to 0.3) that reproduces the paper's Tables I and V on MATPOWER case39 with either pre-outage
-flows (outaged branches removed) or post-outage AC flows, without any repair.
+Eq. 8 is L_N v = lambda (Q_N - beta/vol I) v. Write B = Q_N - beta/vol I. Q = Z (2 I - 1 1^T) Z^T for the
+bus-by-group indicator Z, so Q_N has rank at most k and its nonzero eigenvalues mu are those of a k x k
+matrix; B therefore has exactly k-1 positive eigenvalues while beta/vol is below mu_{k-1}, the (k-1)-th
+largest eigenvalue of Q_N. An eigenvector with lambda > 0 has v^T B v > 0 (v^T L_N v >= 0), i.e. it meets
+eq. 7's constraint v^T Q_N v > beta, so eq. 8 has at most k-1 positive eigenvalues: the k-1 the paper keeps
+are all of them. beta is given relative to its upper bound: beta = beta_fraction * mu_{k-1} * vol.
 
-Step 8/9: eigenvectors with positive (finite, real) eigenvalues are normalised to sqrt(vol), the k-1 with
-the lowest eigenvalues are kept, mapped back to the relaxed island indicators u = D^-1/2 v (the paper's
-recovery of u from v), and k-medoids (PAM with BUILD initialisation, deterministic, on the Euclidean
-distances between rows) groups the buses into k clusters. Clusters are matched to coherent groups by the
-assignment that keeps the most generators in their group's cluster (Hungarian algorithm).
+It must also exceed 1^T Q 1 (must-link pairs minus cannot-link pairs). The trivial v0 = D^1/2 1 has
+L_N v0 = 0 and v0^T B v0 = 1^T Q 1 - beta; the eigenvectors of positive lambda are B-orthogonal to v0, so if
+v0^T B v0 >= 0 it takes one of the k-1 B-positive directions and only k-2 remain. With very unequal groups
+(one group holding most generators) beta_fraction * mu_{k-1} * vol can fall below 1^T Q 1; beta is then
+raised to the same fraction of the way from 1^T Q 1 to mu_{k-1} * vol. When 1^T Q 1 >= mu_{k-1} * vol no
+beta exists: the grouping is refused with both figures. On case39 the lower end of beta_fraction lies
+between 0.025 and 0.05; the default 0.2 is the middle of the range (0.125 to 0.3) that reproduces the
+paper's Tables I and V on MATPOWER case39 with either pre-outage flows (outaged branches removed) or
+post-outage AC flows, without any repair.
+
+Solving eq. 8 at scale without an n x n array: deflating v0 gives a symmetric-definite pencil with the
+same positive eigenpairs. With b0 = B v0, B~ = B - b0 b0^T / (v0^T B v0) (B~ v0 = 0) and L' = L_N + v0 v0^T /
+vol (positive definite: L_N is positive definite on v0's complement), every eigenvector v of eq. 8 with
+lambda != 0 is v = w + alpha v0 where B~ w = theta L' w, theta = 1/lambda, w orthogonal to v0 and
+alpha = -b0^T w / (v0^T B v0); conversely. The k-1 largest theta (all the positive ones) are found by
+ARPACK's Lanczos (scipy eigsh) in L'-inner product, with L'^-1 applied through a sparse LU of L_N grounded
+at one bus. B~ and L' are applied as sparse matrices plus rank-(k+1) terms, never formed.
+
+Step 8/9: the eigenvectors are normalised to sqrt(vol), the k-1 with the lowest eigenvalues are kept,
+mapped back to the relaxed island indicators u = D^-1/2 v (the paper's recovery of u from v), and
+k-medoids (PAM with BUILD initialisation, deterministic, on the Euclidean distances between rows; see
+core/pam.py) groups the buses into k clusters. Clusters are matched to coherent groups by the assignment
+that keeps the most generators in their group's cluster (Hungarian algorithm).
 
 Repair (`repair_partition`), because the relaxation carries no guarantee: every generator bus goes to
 its group's island; an island whose generators ended up in separate pieces is joined along the shortest
@@ -36,22 +52,28 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Mapping
 
-import kmedoids
 import numpy as np
 import scipy.linalg
+from scipy import sparse
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import linalg as sparse_linalg
+from scipy.sparse.csgraph import connected_components
 
 from controlled_islanding.core.grid import Grid
+from controlled_islanding.core.pam import pam
 
 _MIN_WEIGHT_FRACTION = 1e-6
+# Up to this many buses the deflated pencil is solved densely: at 300 buses its two arrays take 1.4 MB and
+# LAPACK's eigh beats ARPACK's hundred Python-level iterations (case39: well under a millisecond against tens).
+_DENSE_MAX_BUSES = 300
 
 
 class SpectralError(ValueError):
     """The grid or the groups cannot be partitioned (disconnected grid, conflicting generators, no solution)."""
 
 
-def flow_weights(grid: Grid) -> np.ndarray:
-    """Return eq. 4's symmetric weight matrix W (MW), rows and columns aligned with `grid.buses`.
+def flow_weights(grid: Grid) -> sparse.csr_array:
+    """Return eq. 4's symmetric weight matrix W (MW) as a sparse matrix, rows and columns aligned with `grid.buses`.
 
     Raises:
         SpectralError: The grid has no flows.
@@ -59,17 +81,24 @@ def flow_weights(grid: Grid) -> np.ndarray:
     """
     if grid.p_from_mw is None or grid.p_to_mw is None:
         raise SpectralError(f'grid {grid.name!r} has no branch flows; call Grid.with_flows() first')
-    idx = {b: i for i, b in enumerate(grid.buses)}
     on = [k for k, b in enumerate(grid.branches) if b.in_service and b.from_bus != b.to_bus]
     w = np.array([(abs(grid.p_from_mw[k]) + abs(grid.p_to_mw[k])) / 2.0 for k in on])
     if len(w):
         w = np.maximum(w, _MIN_WEIGHT_FRACTION * max(float(w.mean()), 1e-12))
-    rows = [idx[grid.branches[k].from_bus] for k in on]
-    cols = [idx[grid.branches[k].to_bus] for k in on]
+    return _symmetric(grid, [grid.branches[k] for k in on], w)
+
+
+def _symmetric(grid: Grid, branches: list, w: np.ndarray) -> sparse.csr_array:
+    """Return the symmetric sparse matrix with w on each branch's two entries (parallel branches add up)."""
+    idx = {b: i for i, b in enumerate(grid.buses)}
+    rows = np.array([idx[b.from_bus] for b in branches], dtype=np.int64)
+    cols = np.array([idx[b.to_bus] for b in branches], dtype=np.int64)
     n = len(grid.buses)
-    out = np.zeros((n, n))
-    np.add.at(out, (rows, cols), w)
-    return out + out.T
+    out = sparse.coo_array((np.concatenate([w, w]), (np.concatenate([rows, cols]), np.concatenate([cols, rows]))),
+                           shape=(n, n)).tocsr()
+    out.sum_duplicates()
+    out.sort_indices()  # ascending neighbours: the repair's breadth-first searches depend on the order
+    return out
 
 
 def _bus_groups(grid: Grid, generator_groups: Mapping[str, int]) -> dict[int, int]:
@@ -85,21 +114,22 @@ def _bus_groups(grid: Grid, generator_groups: Mapping[str, int]) -> dict[int, in
     return out
 
 
-def _check_connected(grid: Grid, w: np.ndarray) -> list[list[int]]:
-    """Return the adjacency lists of the weight graph.
+def _check_connected(grid: Grid, w: sparse.csr_array) -> tuple[list[list[int]], list[list[float]]]:
+    """Return the adjacency lists of the weight graph (ascending neighbours) and the matching weights (MW).
 
     Raises:
         SpectralError: The graph is not connected.
 
     """
-    rows, cols = np.nonzero(w > 0)
-    adj = [a.tolist() for a in np.split(cols, np.searchsorted(rows, np.arange(1, len(w))))]
-    pieces = _pieces(adj, np.ones(len(adj), dtype=bool))
-    if len(pieces) > 1:
-        smallest = sorted(grid.buses[i] for i in min(pieces, key=len))
-        raise SpectralError(f'grid {grid.name!r} is not connected with its in-service branches: {len(pieces)} '
+    n_pieces, piece = connected_components(w, directed=False)
+    if n_pieces > 1:
+        sizes = np.bincount(piece)
+        smallest = sorted(grid.buses[i] for i in np.flatnonzero(piece == int(np.argmin(sizes))))
+        raise SpectralError(f'grid {grid.name!r} is not connected with its in-service branches: {n_pieces} '
                             f'pieces, the smallest holding buses {smallest}')
-    return adj
+    ptr, nbr, wt = w.indptr, w.indices, w.data
+    return ([nbr[ptr[i]:ptr[i + 1]].tolist() for i in range(len(ptr) - 1)],
+            [wt[ptr[i]:ptr[i + 1]].tolist() for i in range(len(ptr) - 1)])
 
 
 class ConstrainedSpectralPartition:
@@ -107,8 +137,8 @@ class ConstrainedSpectralPartition:
 
     Args:
         beta: The satisfaction threshold of eq. 7 as a fraction (0, 1) of its feasibility bound
-            mu_{k-1}(Q_N) * vol (see the module docstring).
-        random_state: Seed for k-medoids (BUILD initialisation is deterministic; kept for the estimator API).
+            mu_{k-1}(Q_N) * vol, or of the way from 1^T Q 1 to it when that is higher (see the module docstring).
+        random_state: Seeds ARPACK's starting vector (PAM's BUILD initialisation is deterministic).
         repair: Apply `repair_partition` (on by default; off only to study the raw relaxation).
 
     Attributes:
@@ -138,13 +168,14 @@ class ConstrainedSpectralPartition:
 
         Raises:
             SpectralError: No flows, a disconnected grid, fewer than two groups, a bus with generators of
-                two groups, or too few positive eigenvalues.
+                two groups, a grouping for which no beta exists, or too few positive eigenvalues.
 
         """
         if not 0.0 < self.beta < 1.0:
             raise SpectralError(f'beta must be a fraction in (0, 1) of its feasibility bound, got {self.beta}')
         bus_group = _bus_groups(grid, generator_groups)
-        k = len(set(bus_group.values()))
+        groups = sorted(set(bus_group.values()))
+        k = len(groups)
         if k < 2:
             raise SpectralError(f'need at least two coherent groups to split, got {k}')
         w = flow_weights(grid)
@@ -152,47 +183,46 @@ class ConstrainedSpectralPartition:
         buses = list(grid.buses)
         idx = {b: i for i, b in enumerate(buses)}
         n = len(buses)
-        d = w.sum(axis=1)
+        d = np.asarray(w.sum(axis=1)).ravel()
         vol = float(d.sum())
         d_isqrt = 1.0 / np.sqrt(d)
-        lap_n = np.eye(n) - d_isqrt[:, None] * w * d_isqrt[None, :]
-        q = np.zeros((n, n))
         gen_idx = np.array([idx[b] for b in bus_group])
         gen_grp = np.array(list(bus_group.values()))
-        q[np.ix_(gen_idx, gen_idx)] = np.where(gen_grp[:, None] == gen_grp[None, :], 1.0, -1.0)
-        q_n = d_isqrt[:, None] * q * d_isqrt[None, :]
-        mu = np.sort(np.linalg.eigvalsh(q_n))[::-1]
-        self.beta_ = float(self.beta * mu[k - 2] * vol)
-        trivial = float(q.sum())  # v = D^1/2 1 gives v^T Q_N v = 1^T Q 1
+        # Q_N = U (2 I - 1 1^T) U^T with U = D^-1/2 Z (n x k, one column per group).
+        u_mat = np.zeros((n, k))
+        u_mat[gen_idx, np.searchsorted(groups, gen_grp)] = d_isqrt[gen_idx]
+        core = 2.0 * np.eye(k) - 1.0
+        # U^T U is diagonal, so Q_N's nonzero eigenvalues are those of G^1/2 core G^1/2; the rest are 0.
+        g_half = np.sqrt((u_mat ** 2).sum(axis=0))
+        mu = np.sort(np.concatenate([np.linalg.eigvalsh(g_half[:, None] * core * g_half[None, :]),
+                                     np.zeros(max(n - k, 0))]))[::-1]
+        bound = float(mu[k - 2] * vol)
+        counts = np.bincount(np.searchsorted(groups, gen_grp), minlength=k).astype(float)
+        trivial = float(2.0 * (counts ** 2).sum() - counts.sum() ** 2)  # 1^T Q 1; v0 = D^1/2 1 gives v0^T Q_N v0
+        if trivial >= bound:
+            raise SpectralError(
+                f'no beta exists for these {k} groups (generator buses per group: {counts.astype(int).tolist()}): '
+                f'1^T Q 1 = {trivial:.4g} is not below mu_{{k-1}} vol = {bound:.4g}, so the trivial v = D^1/2 1 '
+                f'meets every constraint eq. 8 can still satisfy in {k - 1} directions; one group holds too large '
+                f'a share of the generators for a {k}-way constrained split')
+        self.beta_ = float(self.beta * bound)
         if self.beta_ <= trivial:
-            raise SpectralError(f'beta = {self.beta} gives {self.beta_:.4g}, not above 1^T Q 1 = {trivial:.4g}, so the '
-                                f'trivial v = D^1/2 1 meets the constraint and eq. 8 has no useful solution; '
-                                f'raise beta above {trivial / (mu[k - 2] * vol):.3g}')
-        # B = Q_N - beta/vol I is nonsingular for 0 < beta < mu_{k-1} vol unless beta/vol hits an eigenvalue of
-        # Q_N, so eq. 8 is B^-1 L_N v = lambda v; numpy's eig skips scipy's per-vector Python normalisation.
-        b_mat = q_n - (self.beta_ / vol) * np.eye(n)
-        try:
-            lam, vec = np.linalg.eig(np.linalg.solve(b_mat, lap_n))
-        except np.linalg.LinAlgError:
-            lam, vec = scipy.linalg.eig(lap_n, b_mat)
-        keep = np.isfinite(lam) & (np.abs(lam.imag) <= 1e-9 * np.maximum(1.0, np.abs(lam.real))) & (lam.real > 1e-10)
-        lam, vec = lam.real[keep], vec.real[:, keep]
+            self.beta_ = float(trivial + self.beta * (bound - trivial))
+        sigma = self.beta_ / vol
+        lam, v = _positive_eigenpairs(w, d_isqrt, u_mat, core, sigma, k - 1, self.random_state)
         if len(lam) < k - 1:
             raise SpectralError(f'eq. 8 has {len(lam)} positive eigenvalues, {k - 1} are needed for {k} islands '
                                 f'(beta = {self.beta})')
-        order = np.argsort(lam)[:k - 1]
-        v = vec[:, order]
         v = v / np.linalg.norm(v, axis=0) * np.sqrt(vol)
         u = d_isqrt[:, None] * v
-        diss = np.sqrt(((u[:, None, :] - u[None, :, :]) ** 2).sum(axis=2))
-        clusters = np.asarray(kmedoids.pam(diss, k, init='build', random_state=self.random_state).labels)
-        counts = np.zeros((k, k))
+        clusters, _ = pam(u, k)
+        counts_kk = np.zeros((k, k))
         for i, grp in zip(gen_idx, gen_grp, strict=True):
-            counts[clusters[i], grp] += 1
-        row, col = linear_sum_assignment(-counts)
+            counts_kk[clusters[i], grp] += 1
+        row, col = linear_sum_assignment(-counts_kk)
         to_group = dict(zip(row.tolist(), col.tolist(), strict=True))
         relaxed = np.array([to_group[int(c)] for c in clusters])
-        self.eigenvalues_ = lam[order]
+        self.eigenvalues_ = lam
         self.embedding_ = u
         self.relaxed_labels_ = relaxed
         self.labels_ = repair_partition(grid, generator_groups, relaxed, w) if self.repair else relaxed.copy()
@@ -200,16 +230,87 @@ class ConstrainedSpectralPartition:
         return self
 
 
+def _positive_eigenpairs(w: sparse.csr_array, d_isqrt: np.ndarray, u_mat: np.ndarray, core: np.ndarray, sigma: float,
+                         count: int, seed: int, dense: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Return eq. 8's positive eigenvalues, ascending, and their eigenvectors v (columns), at most count of them.
+
+    Eq. 8 is L_N v = lambda (Q_N - sigma I) v with Q_N = U core U^T; solved through the deflated pencil of
+    the module docstring, by LAPACK on dense n x n arrays up to _DENSE_MAX_BUSES buses (dense=None), else by
+    ARPACK.
+    """
+    n = len(d_isqrt)
+    if dense is None:
+        dense = n <= _DENSE_MAX_BUSES
+    rows = np.repeat(np.arange(n), np.diff(w.indptr))
+    adjacency_n = sparse.csr_array((w.data * d_isqrt[rows] * d_isqrt[w.indices], w.indices, w.indptr), shape=w.shape)
+    v0 = 1.0 / d_isqrt  # D^1/2 1: L_N v0 = 0
+    v0_unit = v0 / np.linalg.norm(v0)
+
+    def b_apply(x: np.ndarray) -> np.ndarray:
+        return u_mat @ (core @ (u_mat.T @ x)) - sigma * x
+
+    b0 = b_apply(v0)
+    b00 = float(v0 @ b0)  # = 1^T Q 1 - beta < 0
+
+    def bt_apply(x: np.ndarray) -> np.ndarray:
+        x = x.reshape(n, -1)
+        return b_apply(x) - np.outer(b0, b0 @ x) / b00
+
+    if dense:
+        lap_p = np.eye(n) - adjacency_n.toarray() + np.outer(v0_unit, v0_unit)
+        theta, wv = scipy.linalg.eigh(bt_apply(np.eye(n)), lap_p, subset_by_index=[n - count, n - 1])
+    else:
+        theta, wv = _largest_pencil_eigenpairs(bt_apply, adjacency_n, v0_unit, count, seed)
+    keep = (theta > 0.0) & (theta * 1e-10 < 1.0)  # lambda = 1/theta > 1e-10, the old dense solver's threshold
+    theta, wv = theta[keep], wv[:, keep]
+    order = np.argsort(-theta)[:count]  # largest theta = smallest lambda
+    theta, wv = theta[order], wv[:, order]
+    return 1.0 / theta, wv - np.outer(v0, (b0 @ wv) / b00)
+
+
+def _largest_pencil_eigenpairs(bt_apply, adjacency_n: sparse.csr_array, v0_unit: np.ndarray, count: int,
+                               seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return the count largest theta of B~ w = theta L' w, L' = I - adjacency_n + v0 v0^T (ARPACK, sparse)."""
+    n = len(v0_unit)
+    lap = (sparse.identity(n, format='csr') - adjacency_n).tocsc()
+
+    def lp_apply(x: np.ndarray) -> np.ndarray:
+        x = x.reshape(n, -1)
+        return lap @ x + np.outer(v0_unit, v0_unit @ x)
+
+    # L_N is singular (null vector v0) but positive definite once one bus is grounded; for a right-hand side
+    # orthogonal to v0 the grounded solution solves L_N x = r, and projecting v0 out gives L_N^+ r.
+    # L'^-1 = L_N^+ + v0 v0^T.
+    ground = int(np.argmax(v0_unit))
+    keep = np.flatnonzero(np.arange(n) != ground)
+    lu = sparse_linalg.splu(lap[keep][:, keep].tocsc())
+
+    def lp_solve(r: np.ndarray) -> np.ndarray:
+        r = r.reshape(n, -1)
+        along = v0_unit @ r
+        x = np.zeros_like(r)
+        x[keep] = lu.solve(np.ascontiguousarray(r[keep] - np.outer(v0_unit[keep], along)))
+        x -= np.outer(v0_unit, v0_unit @ x)
+        return x + np.outer(v0_unit, along)
+
+    def operator(fn) -> sparse_linalg.LinearOperator:
+        return sparse_linalg.LinearOperator((n, n), matvec=fn, matmat=fn, dtype=float)
+
+    start = np.random.default_rng(seed).standard_normal(n)
+    return sparse_linalg.eigsh(operator(bt_apply), k=count, M=operator(lp_apply), Minv=operator(lp_solve),
+                               which='LA', v0=start, tol=0.0)
+
+
 def repair_partition(grid: Grid, generator_groups: Mapping[str, int], labels: np.ndarray,
-                     weights: np.ndarray | None = None) -> np.ndarray:
+                     weights: sparse.csr_array | np.ndarray | None = None) -> np.ndarray:
     """Make every island connected and hold exactly its coherent group's generators.
 
     Args:
         grid: The grid (in-service branches define connectivity).
         generator_groups: Group (0-based) of every generator, by name.
         labels: Proposed island of each bus, aligned with `grid.buses` (island g for group g).
-        weights: Eq. 4 weights (MW) used to choose where released buses go; default from the grid's flows,
-            or 1 per branch when the grid has none.
+        weights: Eq. 4 weights (MW, sparse or dense n x n) used to choose where released buses go; default
+            from the grid's flows, or 1 per branch when the grid has none.
 
     Returns:
         The repaired island of each bus.
@@ -227,11 +328,13 @@ def repair_partition(grid: Grid, generator_groups: Mapping[str, int], labels: np
         if grid.has_flows:
             weights = flow_weights(grid)
         else:
-            weights = np.zeros((n, n))
-            for b in grid.branches:
-                if b.in_service and b.from_bus != b.to_bus:
-                    weights[idx[b.from_bus], idx[b.to_bus]] = weights[idx[b.to_bus], idx[b.from_bus]] = 1.0
-    adj = _check_connected(grid, weights)
+            on = [b for b in grid.branches if b.in_service and b.from_bus != b.to_bus]
+            weights = _symmetric(grid, on, np.ones(len(on)))
+            weights.data[:] = 1.0  # 1 per joined pair, parallel branches or not
+    weights = sparse.csr_array(weights)
+    weights.sum_duplicates()
+    weights.sort_indices()
+    adj, adj_w = _check_connected(grid, weights)
     lab = np.array(labels, dtype=int).copy()
     if lab.shape != (n,):
         raise SpectralError(f'labels have shape {lab.shape}, expected ({n},)')
@@ -256,9 +359,9 @@ def repair_partition(grid: Grid, generator_groups: Mapping[str, int], labels: np
         for piece in _pieces(adj, free):
             score = np.zeros(lab.max() + 1)
             for i in piece:
-                for j in adj[i]:
+                for j, w_ij in zip(adj[i], adj_w[i], strict=True):
                     if not free[j]:
-                        score[lab[j]] += weights[i, j]
+                        score[lab[j]] += w_ij
             if score.max() > 0 and (best is None or score.max() > best[0]):
                 best = (float(score.max()), int(score.argmax()), piece)
         if best is None:
