@@ -5,7 +5,8 @@ from glob import glob
 from setuptools import find_packages, setup
 
 PACKAGE = 'controlled_islanding'
-NODES = ['pmu_ingestion', 'coherency', 'partitioning', 'breaker_command', 'bag_player', 'recorder', 'pdc_client']
+NODES = ['pmu_ingestion', 'coherency', 'partitioning', 'breaker_command', 'bag_player', 'recorder', 'pdc_client',
+         'grid_sim']
 
 setup(
     name=PACKAGE,

@@ -15,7 +15,8 @@ from collections.abc import Sequence
 
 from controlled_islanding.rosenv import RosEnvError
 
-SUBCOMMANDS = ('demo', 'replay', 'partition', 'simulate', 'evaluate', 'bench', 'keys', 'fuzz', 'serve-pmu', 'export')
+SUBCOMMANDS = ('demo', 'replay', 'partition', 'simulate', 'evaluate', 'bench', 'keys', 'fuzz', 'serve-pmu', 'export',
+               'testbed')
 
 DESCRIPTION = """\
 Online PMU-driven controlled islanding (Banna et al.): estimate rotor angles from PMU

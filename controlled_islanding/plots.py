@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import tempfile
 from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
@@ -325,4 +326,93 @@ def plot_shedding(decisions: Mapping[str, IslandBalance], path: str | Path, *, t
     axes[-1].legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     if title:
         fig.suptitle(title)
+    return _save(fig, path)
+
+
+@dataclass(frozen=True)
+class ClosedLoopPanel:
+    """One run of a closed-loop comparison: its trajectories and when its cut took effect.
+
+    Attributes:
+        label: Name of the run, e.g. 'no action'.
+        t_s: Step times, s, shape (nt,).
+        delta_rad: Rotor angles, rad, shape (nt, n_gen).
+        bus_v_pu: Bus voltage magnitudes, pu, shape (nt, n_bus).
+        opened_s: When the cut took effect, s (None: no cut).
+        survived: Whether every island survived (shown in the row title).
+
+    """
+
+    label: str
+    t_s: Sequence[float]
+    delta_rad: Sequence[Sequence[float]]
+    bus_v_pu: Sequence[Sequence[float]]
+    opened_s: float | None
+    survived: bool
+
+
+def plot_closed_loop(panels: Sequence[ClosedLoopPanel], names: Sequence[str], islands: Sequence[int],
+                     path: str | Path, *, request_s: float, title: str = '',
+                     v_limits_pu: tuple[float, float] = (0.8, 1.2)) -> Path:
+    """Draw, per run, the rotor angles coloured by island and the bus voltages (the paper's Figs. 6 and 11).
+
+    Angles are deviations from their pre-fault values, delta(t) - delta(0), rad, so a pole slip shows as a trace
+    leaving its island by 2 pi per slip; every run uses the same island colours (the closed loop's decision).
+
+    Args:
+        panels: One row per run.
+        names: Machine names, the columns of delta_rad.
+        islands: 0-based island of each machine.
+        path: PNG file to write.
+        request_s: Islanding request time, s (a dashed line).
+        title: Figure title.
+        v_limits_pu: Voltage band drawn as dotted lines, pu.
+
+    Raises:
+        PlotError: No panels, or shapes disagree.
+
+    """
+    if not panels:
+        raise PlotError('plot_closed_loop: no runs to draw')
+    labels = _groups_or_zero(islands, len(names), 'plot_closed_loop')
+    fig = Figure(figsize=(11.0, 3.2 * len(panels)))
+    axes = fig.subplots(len(panels), 2, squeeze=False)
+    for row, panel in enumerate(panels):
+        t = np.asarray(panel.t_s, dtype=float)
+        delta = np.asarray(panel.delta_rad, dtype=float)
+        volts = np.asarray(panel.bus_v_pu, dtype=float)
+        if delta.shape != (t.size, len(names)) or volts.ndim != 2 or volts.shape[0] != t.size:
+            raise PlotError(f'{panel.label}: delta {delta.shape} / voltages {volts.shape} do not match {t.size} '
+                            f'times and {len(names)} machines')
+        ax_a, ax_v = axes[row]
+        dev = delta - delta[:1]
+        for j, group in enumerate(labels):
+            ax_a.plot(t, dev[:, j], color=group_colour(int(group)), linewidth=1.0)
+        ax_v.plot(t, volts, color='0.35', linewidth=0.6)
+        for lim in v_limits_pu:
+            ax_v.axhline(lim, color='tab:red', linestyle=':', linewidth=0.8)
+        for ax in (ax_a, ax_v):
+            ax.axvline(request_s, color='0.3', linestyle='--', linewidth=0.9)
+            if panel.opened_s is not None:
+                ax.axvline(panel.opened_s, color='tab:red', linestyle='-', linewidth=0.9)
+            ax.grid(True, alpha=0.3)
+        verdict = 'every island survived' if panel.survived else 'NOT every island survived'
+        ax_a.set_title(f'{panel.label}: rotor angles ({verdict})', fontsize=9)
+        ax_v.set_title(f'{panel.label}: bus voltages', fontsize=9)
+        ax_a.set_ylabel('delta - delta(0) (rad)')
+        ax_v.set_ylabel('|V| (pu)')
+        ax_v.set_ylim(max(0.0, min(0.6, float(np.nanmin(volts)) - 0.05)), max(1.25, float(np.nanmax(volts)) + 0.05))
+    for ax in axes[-1]:
+        ax.set_xlabel('time (s)')
+    handles = [Line2D([], [], color=group_colour(g), linewidth=2,
+                      label=_wrap(f'island {g}: ' + ', '.join(n for n, lg in zip(names, labels, strict=True)
+                                                              if lg == g)))
+               for g in sorted(set(labels.tolist()))]
+    handles += [Line2D([], [], color='0.3', linestyle='--', label='islanding request'),
+                Line2D([], [], color='tab:red', label='cut opened')]
+    fig.legend(handles=handles, loc='lower center', ncol=min(4, len(handles)), fontsize=8, frameon=False,
+               bbox_to_anchor=(0.5, -0.02 * max(1, 4 - len(panels))))
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
     return _save(fig, path)

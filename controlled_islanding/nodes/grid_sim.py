@@ -1,0 +1,400 @@
+"""grid_sim: an ANDES time-domain simulation of a scenario as the grid the pipeline listens to and acts on.
+
+It publishes what the field would: the pre-fault network snapshot, PMU frames at the scenario's rate (with its
+noise and impairments, sim/closed_loop.PmuStream), branch status changes (the scenario's trips, and every branch
+it opens on command), the scenario's islanding request, and /clock. It executes /breaker/commands: an OPEN
+command opens its branch in the running simulation `breaker_operating_s` after the command, then
+`shed_delay_s` later sheds the load the decision named in each island short of generation (sim/closed_loop.py
+says how). After `run_after_s` past the request it publishes a post-islanding assessment per island on
+/grid/assessment (diagnostic_msgs/DiagnosticArray, one status per island), writes it to `report_file` (JSON)
+and the trajectories to `<report_file>.npz`, and exits.
+
+Time. Stamps are sim time plus sim/bag.START_TIME_UNIX_S, as in the bags, and /clock carries it.
+- `rate: 0` (default), lockstep: the simulation runs as fast as it can, but before it publishes the request it
+  waits until /rotor_angles has caught up with the newest frame (at most `angles_wait_s` wall), and then it does
+  not step past the request until the decision for it has come (at most `decision_timeout_s` wall) and, for a
+  split, its breaker commands (at most `command_wait_s` wall after the decision; fewer than the cut's branches
+  is reported). Frames tagged at or before the request but delivered after it (delay impairments) are sent
+  while it waits. Sim time is frozen while the graph works, so the wall time from publishing the request to
+  receiving the command is charged to sim time: the branch opens at request + that latency +
+  breaker_operating_s.
+- `rate: R > 0`: paced at R times real time, nothing waits; a command opens its branch at max(its stamp, the sim
+  time it arrived) + breaker_operating_s. If ANDES is slower than R x real time, the pace is ANDES'.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from controlled_islanding_msgs.msg import (
+    BranchStatus,
+    BreakerCommand,
+    IslandingDecision,
+    IslandingRequest,
+    NetworkSnapshot,
+    PmuFrame,
+    PmuMeasurement,
+    RotorAngles,
+)
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+
+from controlled_islanding import topics
+from controlled_islanding.core.grid import Grid
+from controlled_islanding.node_common import Diagnostics, NodeSetupError, qos_for, spin_node
+from controlled_islanding.sim.bag import PDC_FRAME_ID, START_TIME_UNIX_S
+from controlled_islanding.sim.closed_loop import (
+    ClosedLoopError,
+    Frame,
+    GridRun,
+    LoopConfig,
+    PmuStream,
+    Sample,
+    apply_decision,
+)
+from controlled_islanding.sim.scenario import ScenarioError, load_scenario
+
+ASSESSMENT_TOPIC = '/grid/assessment'
+_START_NS = START_TIME_UNIX_S * 1_000_000_000
+
+
+def _stamp(t_s: float) -> Time:
+    ns = _START_NS + int(round(t_s * 1e9))
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def _sim_s(stamp: Any) -> float:
+    return (stamp.sec * 1_000_000_000 + stamp.nanosec - _START_NS) * 1e-9
+
+
+def snapshot_msg(grid: Grid) -> NetworkSnapshot:
+    """Return the NetworkSnapshot of a grid, stamped at sim time 0 (as sim/bag.py writes it)."""
+    msg = NetworkSnapshot(
+        case_name=grid.name, base_mva=float(grid.base_mva), bus_numbers=[int(b) for b in grid.buses],
+        branch_ids=[b.branch_id for b in grid.branches], branch_breaker_ids=[b.breaker for b in grid.branches],
+        branch_from_bus=[b.from_bus for b in grid.branches], branch_to_bus=[b.to_bus for b in grid.branches],
+        branch_in_service=[b.in_service for b in grid.branches],
+        branch_p_from_mw=[float(x) for x in grid.p_from_mw], branch_p_to_mw=[float(x) for x in grid.p_to_mw],
+        generator_names=[g.name for g in grid.generators], generator_bus=[g.bus for g in grid.generators],
+        generator_p_mw=[float(g.p_mw) for g in grid.generators],
+        generator_p_max_mw=[float(g.p_max_mw) for g in grid.generators],
+        generator_xq_pu=[float(g.xq_pu) for g in grid.generators],
+        generator_ra_pu=[float(g.ra_pu) for g in grid.generators],
+        load_bus=[ld.bus for ld in grid.loads], load_p_mw=[float(ld.p_mw) for ld in grid.loads],
+        load_q_mvar=[float(ld.q_mvar) for ld in grid.loads])
+    msg.header.stamp = _stamp(0.0)
+    msg.header.frame_id = 'andes_power_flow'
+    return msg
+
+
+def frame_msg(frame: Frame) -> PmuFrame:
+    """Return the PmuFrame of a frame."""
+    msg = PmuFrame(measurements=[
+        PmuMeasurement(station_id=frame.station_ids[j], bus=int(frame.buses[j]),
+                       voltage_magnitude_pu=float(frame.v_mag_pu[j]), voltage_angle_rad=float(frame.v_angle_rad[j]),
+                       current_magnitude_pu=float(frame.i_mag_pu[j]), current_angle_rad=float(frame.i_angle_rad[j]),
+                       frequency_hz=float(frame.frequency_hz[j]), rocof_hz_per_s=float(frame.rocof_hz_per_s[j]),
+                       stat=int(frame.stat[j]))
+        for j in range(len(frame.buses))])
+    msg.header.stamp = _stamp(frame.tag_s)
+    msg.header.frame_id = PDC_FRAME_ID
+    return msg
+
+
+class GridSimNode(Node):
+    """Runs the scenario's simulation in its main loop; see the module docstring."""
+
+    def __init__(self) -> None:
+        super().__init__('grid_sim')
+        self.declare_parameter('scenario', '')
+        self.declare_parameter('rate', 0.0)
+        self.declare_parameter('breaker_operating_s', 0.05)
+        self.declare_parameter('shed_delay_s', 0.2)
+        self.declare_parameter('run_after_s', 3.0)
+        self.declare_parameter('decision_timeout_s', 30.0)
+        self.declare_parameter('command_wait_s', 2.0)
+        self.declare_parameter('angles_wait_s', 5.0)
+        self.declare_parameter('wait_for_subscribers_s', 20.0)
+        self.declare_parameter('min_subscribers', [''])
+        self.declare_parameter('report_file', '')
+        self.declare_parameter('progress', False)
+        path = self.get_parameter('scenario').value
+        if not path:
+            raise NodeSetupError('parameter scenario is empty; it must name a scenario YAML (see bags/*.yaml)')
+        self.rate = float(self.get_parameter('rate').value)
+        if self.rate < 0:
+            raise NodeSetupError(f'parameter rate={self.rate} must be 0 (lockstep) or positive (paced)')
+        config = LoopConfig(breaker_operating_s=float(self.get_parameter('breaker_operating_s').value),
+                            shed_delay_s=float(self.get_parameter('shed_delay_s').value),
+                            run_after_s=float(self.get_parameter('run_after_s').value))
+        if config.breaker_operating_s < 0 or config.shed_delay_s < 0 or config.run_after_s <= 0:
+            raise NodeSetupError('breaker_operating_s and shed_delay_s must be >= 0, run_after_s > 0')
+        try:
+            self.scenario = load_scenario(path)
+            self.grid_run = GridRun(self.scenario, config, progress=bool(self.get_parameter('progress').value))
+        except (ScenarioError, ClosedLoopError, RuntimeError) as exc:
+            raise NodeSetupError(f'scenario {path}: {exc}') from exc
+        self.pmu = PmuStream(self.scenario, self.grid_run.generator_names, self.grid_run.generator_buses,
+                             self.grid_run.bus_numbers, float(self.grid_run.ss.config.freq))
+        self.report_file = self.get_parameter('report_file').value
+        pub = {t: self.create_publisher(cls, t, qos_for(t)) for t, cls in (
+            (topics.NETWORK_SNAPSHOT, NetworkSnapshot), (topics.PMU_FRAMES, PmuFrame),
+            (topics.BRANCH_STATUS, BranchStatus), (topics.ISLANDING_REQUEST, IslandingRequest))}
+        self.pubs = pub
+        self.clock_pub = self.create_publisher(Clock, topics.CLOCK, qos_for(topics.CLOCK))
+        self.assessment_pub = self.create_publisher(DiagnosticArray, ASSESSMENT_TOPIC, qos_for(topics.DIAGNOSTICS))
+        self.create_subscription(BreakerCommand, topics.BREAKER_COMMANDS, self._on_command,
+                                 qos_for(topics.BREAKER_COMMANDS))
+        self.create_subscription(IslandingDecision, topics.ISLANDING_DECISION, self._on_decision,
+                                 qos_for(topics.ISLANDING_DECISION))
+        self.create_subscription(RotorAngles, topics.ROTOR_ANGLES, self._on_angles, qos_for(topics.ROTOR_ANGLES))
+        self.diag = Diagnostics(self)
+        self.request_id = f'{self.scenario.name}/closed-loop-request-1'
+        self.decisions: dict[str, IslandingDecision] = {}
+        self.commands: list[tuple[float, float, BreakerCommand]] = []  # (wall s, sim s at receipt, msg)
+        self.handled_commands: set[str] = set()
+        self.newest_angle_s = -1.0
+        self.newest_frame_s = -1.0
+        self.queue: list[Frame] = []  # frames computed, not yet delivered
+        self.changes = list(self.grid_run.scheduled_changes)
+        self.request_sent_wall: float | None = None
+        self.request_sent = False
+        self.held_wall_s = 0.0  # lockstep: wall time the simulation was held at the request
+        self.events: list[dict[str, Any]] = []
+        self.wall_start = 0.0
+        self._exec: SingleThreadedExecutor | None = None
+        self.t_now = 0.0
+        mode = 'lockstep' if not self.rate else f'{self.rate}x real time'
+        self.get_logger().info(f'{self.scenario.name}: {len(self.grid_run.bus_numbers)} buses, '
+                               f'{len(self.grid_run.generator_names)} machines, request at '
+                               f'{self.scenario.request_s} s, run to {self.grid_run.run_until_s} s, {mode}')
+
+    # --- subscriptions -------------------------------------------------------------------------------------
+    def _on_command(self, msg: BreakerCommand) -> None:
+        self.diag.arrived()
+        self.commands.append((time.monotonic(), self.t_now, msg))
+
+    def _on_decision(self, msg: IslandingDecision) -> None:
+        self.decisions.setdefault(msg.request_id, msg)
+
+    def _on_angles(self, msg: RotorAngles) -> None:
+        self.newest_angle_s = max(self.newest_angle_s, _sim_s(msg.header.stamp))
+
+    # --- helpers ---------------------------------------------------------------------------------------------
+    def _spin(self, seconds: float = 0.0, done=lambda: False) -> bool:
+        end = time.monotonic() + seconds
+        while True:
+            self._exec.spin_once(timeout_sec=0.0 if seconds <= 0 else min(0.02, max(0.0, end - time.monotonic())))
+            if done() or time.monotonic() >= end:
+                return done()
+
+    def _publish_clock(self, t_s: float) -> None:
+        self.clock_pub.publish(Clock(clock=_stamp(t_s)))
+
+    def _status(self, t_s: float, branch_id: str, in_service: bool) -> None:
+        f, t = self.grid_run.branch_ends[branch_id]
+        msg = BranchStatus(branch_id=branch_id, from_bus=f, to_bus=t, in_service=in_service)
+        msg.header.stamp = _stamp(t_s)
+        msg.header.frame_id = 'andes'
+        self.pubs[topics.BRANCH_STATUS].publish(msg)
+
+    def _deliver(self, up_to_s: float, tags_up_to_s: float | None = None) -> None:
+        """Publish queued frames delivered by up_to_s (or, while held, every frame tagged by tags_up_to_s)."""
+        self.queue.sort(key=lambda f: f.delivery_s)
+        keep = []
+        for frame in self.queue:
+            if frame.delivery_s <= up_to_s + 1e-9 or (tags_up_to_s is not None and frame.tag_s <= tags_up_to_s + 1e-9):
+                self.pubs[topics.PMU_FRAMES].publish(frame_msg(frame))
+                self.newest_frame_s = max(self.newest_frame_s, frame.tag_s)
+            else:
+                keep.append(frame)
+        self.queue = keep
+
+    def _execute(self, run: GridRun, wall: float, sim_at: float, msg: BreakerCommand) -> None:
+        """Schedule a command's action: opening, and the shed of its decision's islands once per decision."""
+        if msg.command_id in self.handled_commands:
+            return
+        self.handled_commands.add(msg.command_id)
+        if msg.action != BreakerCommand.ACTION_OPEN or msg.branch_id not in run.branch_ends:
+            self.events.append({'what': 'command ignored', 'command_id': msg.command_id, 'action': int(msg.action),
+                                'branch_id': msg.branch_id})
+            return
+        cfg = run.config
+        if self.rate == 0 and self.request_sent_wall is not None:
+            # Lockstep: sim time stood still while the graph worked; charge the wall time it took.
+            at = self.scenario.request_s + (wall - self.request_sent_wall) + cfg.breaker_operating_s
+        else:
+            at = max(_sim_s(msg.header.stamp), sim_at) + cfg.breaker_operating_s
+        at = max(at, self.t_now)
+        run.open_branches([msg.branch_id], at, why=f'open {msg.branch_id}')
+        self.events.append({'what': 'command', 'command_id': msg.command_id, 'branch_id': msg.branch_id,
+                            'breaker_id': msg.breaker_id, 'command_stamp_s': _sim_s(msg.header.stamp),
+                            'received_sim_s': sim_at, 'opens_at_s': at,
+                            'wall_after_request_s': None if self.request_sent_wall is None
+                            else wall - self.request_sent_wall})
+        decision = next((d for d in self.decisions.values() if d.decision_id == msg.decision_id), None)
+        if decision is not None and not any(e.get('decision_id') == decision.decision_id for e in self.events):
+            bus_island = dict(zip((int(b) for b in decision.bus_numbers), (int(k) for k in decision.bus_island),
+                                  strict=True))
+            shed = apply_decision(run, [], bus_island, list(decision.island_shed_mw), at)
+            self.events.append({'what': 'shed scheduled', 'decision_id': decision.decision_id,
+                                'at_s': at + cfg.shed_delay_s, 'shed_mw_by_island': shed})
+
+    # --- the run ---------------------------------------------------------------------------------------------
+    def _hook(self, run: GridRun, sample: Sample) -> None:
+        t = sample.t_s
+        self.t_now = t
+        if self.rate > 0:
+            lag = self.wall_start + t / self.rate - time.monotonic()
+            if lag > 0:
+                self._spin(lag)
+        while self.changes and self.changes[0][0] <= t + 1e-9:
+            t_c, bid, in_service = self.changes.pop(0)
+            self._status(t_c, bid, in_service)
+        frames = self.pmu.feed(sample)
+        self.queue += frames
+        if frames:
+            self._publish_clock(min(t, frames[-1].tag_s) if not self.request_sent else t)
+        request_s = self.scenario.request_s
+        if not self.request_sent and t >= request_s - 1e-9:
+            self._deliver(request_s)
+            self._request(run, t)
+        self._deliver(t)
+        self._spin()
+        for wall, sim_at, msg in list(self.commands):
+            self._execute(run, wall, sim_at, msg)
+        self.commands.clear()
+        for action in run.actions:
+            if action.what.startswith('open ') and action.applied_s is not None and not action.detail.get('said'):
+                action.detail['said'] = True
+                for bid in action.detail['branches']:
+                    self._status(action.applied_s, bid, False)
+                    self.events.append({'what': 'opened', 'branch_id': bid, 'at_s': action.applied_s})
+        self.diag.arrived()
+
+    def _request(self, run: GridRun, t: float) -> None:
+        request_s = self.scenario.request_s
+        self._publish_clock(request_s)
+        if self.rate == 0 and self.newest_frame_s >= 0:
+            t0 = time.monotonic()
+            if not self._spin(float(self.get_parameter('angles_wait_s').value),
+                              lambda: self.newest_angle_s >= self.newest_frame_s - 1e-6):
+                self.get_logger().warning('lockstep: /rotor_angles did not catch up with the newest frame')
+            self.held_wall_s += time.monotonic() - t0
+        changes_before = sum(1 for t_c, _, _ in self.grid_run.scheduled_changes if 0.0 < t_c <= request_s)
+        msg = IslandingRequest(request_id=self.request_id, branch_changes_before=changes_before,
+                               reason=f'scenario {self.scenario.name}: islanding requested at {request_s:g} s '
+                                      '(closed loop)')
+        msg.header.stamp = _stamp(request_s)
+        msg.header.frame_id = 'scenario'
+        self.request_sent_wall = time.monotonic()
+        self.pubs[topics.ISLANDING_REQUEST].publish(msg)
+        self.request_sent = True
+        self.events.append({'what': 'request', 'request_id': self.request_id, 'at_s': request_s})
+        if self.rate > 0:
+            return
+        # Lockstep: hold the simulation at the request; frames already tagged go out while we wait.
+        self._deliver(request_s, tags_up_to_s=request_s)
+        t0 = time.monotonic()
+        got = self._spin(float(self.get_parameter('decision_timeout_s').value),
+                         lambda: self.request_id in self.decisions)
+        decision = self.decisions.get(self.request_id)
+        if not got or decision is None:
+            self.get_logger().warning('lockstep: no decision for the request within decision_timeout_s')
+            self.events.append({'what': 'no decision', 'waited_wall_s': time.monotonic() - t0})
+        elif decision.split:
+            want = len(decision.cut_branch_ids)
+            self._spin(float(self.get_parameter('command_wait_s').value),
+                       lambda: sum(1 for _, _, c in self.commands if c.decision_id == decision.decision_id) >= want)
+        self.held_wall_s += time.monotonic() - t0
+
+    def simulate(self, executor: SingleThreadedExecutor) -> None:
+        """Publish the snapshot, wait for subscribers, run the simulation in the loop, report, linger."""
+        self._exec = executor
+        self.pubs[topics.NETWORK_SNAPSHOT].publish(snapshot_msg(self.grid_run.grid))
+        self._publish_clock(0.0)
+        self._wait_for_subscribers()
+        self.pubs[topics.NETWORK_SNAPSHOT].publish(snapshot_msg(self.grid_run.grid))
+        self.wall_start = time.monotonic()
+        self.grid_run.run(self._hook)
+        self._deliver(float('inf'))
+        self._report()
+        self._spin(0.5)
+
+    def _wait_for_subscribers(self) -> None:
+        want: dict[str, int] = {}
+        for item in self.get_parameter('min_subscribers').value:
+            topic, _, count = item.rpartition('=')
+            if topic:
+                want[topic] = int(count)
+        pubs = dict(self.pubs, **{topics.CLOCK: self.clock_pub})
+
+        def ready() -> bool:
+            return all(pubs[t].get_subscription_count() >= n for t, n in want.items() if t in pubs)
+
+        if not self._spin(float(self.get_parameter('wait_for_subscribers_s').value), ready):
+            lonely = [f'{t} ({pubs[t].get_subscription_count()} of {n})' for t, n in want.items()
+                      if t in pubs and pubs[t].get_subscription_count() < n]
+            self.get_logger().warning(f'starting although too few subscribers match {", ".join(lonely)}')
+
+    def _report(self) -> None:
+        run = self.grid_run
+        decision = self.decisions.get(self.request_id)
+        opened = [a for a in run.actions if a.what.startswith('open ') and a.applied_s is not None]
+        opened_s = max((a.applied_s for a in opened), default=None)
+        cut = [b for a in opened for b in a.detail['branches']]
+        bus_island = None
+        shed: dict[int, float] = {}
+        if decision is not None and decision.split and opened:
+            bus_island = dict(zip((int(b) for b in decision.bus_numbers), (int(k) for k in decision.bus_island),
+                                  strict=True))
+            shed = {int(k): v for e in self.events if e['what'] == 'shed scheduled'
+                    for k, v in e['shed_mw_by_island'].items()}
+        outcome = run.outcome('closed loop', cut, bus_island, opened_s,
+                              opened_s if opened_s is not None else self.scenario.request_s, shed)
+        array = DiagnosticArray()
+        array.header.stamp = _stamp(self.t_now)
+        for isl in outcome.islands:
+            status = DiagnosticStatus(name=f'grid_sim: island {isl.island}', hardware_id=self.scenario.name,
+                                      level=DiagnosticStatus.OK if isl.survived else DiagnosticStatus.ERROR,
+                                      message='survived' if isl.survived else '; '.join(isl.why_not))
+            status.values = [KeyValue(key=k, value=str(v)) for k, v in (
+                ('coherent', isl.coherent), ('max_pair_swing_rad', f'{isl.max_pair_swing_rad:.4f}'),
+                ('f_nadir_hz', f'{isl.f_nadir_hz:.4f}'), ('f_peak_hz', f'{isl.f_peak_hz:.4f}'),
+                ('v_min_pu', f'{isl.v_min_pu:.4f}'), ('v_max_pu', f'{isl.v_max_pu:.4f}'),
+                ('shed_mw', f'{isl.shed_mw:.2f}'), ('load_mw', f'{isl.load_mw:.2f}'),
+                ('machines_tripped', ','.join(isl.machines_tripped)), ('generators', ','.join(isl.generators)))]
+            array.status.append(status)
+        self.assessment_pub.publish(array)
+        self.get_logger().info(f'assessment: {"every island survived" if outcome.all_survived else "NOT every island"}'
+                               f' survived; cut {cut or "none"} at {opened_s}; wall {run.wall_s:.1f} s')
+        if self.report_file:
+            report = {'scenario': str(self.scenario.path), 'outcome': outcome.summary(), 'events': self.events,
+                      'request_id': self.request_id, 'held_wall_s': self.held_wall_s,
+                      'config': run.config.__dict__, 'rate': self.rate}
+            base = Path(self.report_file)
+            np.savez_compressed(f'{base}.npz', t_s=outcome.t_s, delta_rad=outcome.delta_rad, bus_v_pu=outcome.bus_v_pu,
+                                generator_names=np.array(outcome.generator_names),
+                                generator_buses=np.array(outcome.generator_buses),
+                                bus_numbers=np.array(outcome.bus_numbers))
+            tmp = Path(f'{base}.tmp')
+            tmp.write_text(json.dumps(report, indent=1, default=str))
+            os.replace(tmp, base)
+
+
+def main(args: list[str] | None = None) -> int:
+    """Run grid_sim: simulate the scenario once in the loop, report, and exit."""
+    return spin_node(GridSimNode, args, run=lambda node, executor: node.simulate(executor))
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,728 @@
+"""The grid in the loop: one scenario's ANDES time-domain run that breaker commands can change while it runs.
+
+No rclpy here: `GridRun` is driven by a hook the caller passes (the grid_sim node publishes from it and waits in
+it; `run_offline` applies a cut at a given time with no graph at all), so everything is testable in-process.
+
+How the run is driven. ANDES' `TDS.run()` is called once, to the end, and `TDS.callpert(t, system)` (which
+ANDES calls before every integration step) is the hook. Stepping in slices instead (`TDS.config.tf` raised and
+`run()` called again) was measured on IEEE 39 and rejected: every call costs about 0.15 s of set-up, and every
+few calls the last step to exactly `tf` is reduced towards zero and ANDES spends 3 to 25 s before giving up
+(`busted`), so a slice per PMU frame is hundreds of times slower than real time.
+
+Opening a branch mid-run: `Line.set_status(idx, 0)` and `TDS.custom_event = True` from inside the hook (ANDES
+then rebuilds connectivity and the Jacobian after the step). Pre-added disabled Toggles were not needed. An
+action scheduled at time T is applied in the hook of the first integration step that starts at or after T, so
+it lands at most one step (`step_s`, 1/120 s in the bags) late; the time it really happened is reported.
+
+Load shedding (the decision's "load to shed"). `shed_delay_s` after the cut, every ANDES load (PQ) on the buses of
+an island the decision says is short of generation is scaled by (1 - shed / load), load = the island's
+load in the simulation, P and Q alike (each load keeps its power factor): proportional shedding at every bus
+of the island, the rule export.py uses for MATPOWER. ANDES converts PQ loads to constant impedance for the
+time-domain run, so all six of its equivalent constants (Ppf, Qpf, Req, Xeq, Ipeq, Iqeq) are scaled together.
+
+Post-islanding assessment, per island, over the window from the cut (for a run without a cut: from the time
+the cut would have been made) to the end of the run:
+- coherent: every pair of the island's machines stays within `coherence_bound_rad` (default pi rad) of where
+  they were relative to each other at the cut, |(d_p(t) - d_p(t0)) - (d_q(t) - d_q(t0))| <= pi. Pi is the
+  pole-slip scale, physics, not a tuned number: past it the pair's synchronising torque reverses.
+- frequency nadir and peak: the lowest and highest machine speed of the island times the nominal frequency,
+  Hz, over the window. Within [f_min_hz, f_max_hz] (default 57.8 .. 61.8 Hz, about where generators'
+  off-frequency protection trips at once in North American practice, NERC PRC-024) counts as held.
+- voltage: the lowest and highest bus voltage magnitude of the island, pu; judged from `voltage_settle_s`
+  after the cut (the cut itself is a switching transient), within [v_min_pu, v_max_pu] (default 0.8 .. 1.2 pu).
+- machines tripped: synchronous machines whose status went to 0 during the run (by a protection model the
+  case has; ANDES' IEEE 39 has none, so this is 0 there unless something else switches a machine).
+An island survives when all four hold. Load lost = load shed + the whole load of every island that did not
+survive (it would be lost to protection); an island with no machine is lost by definition.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from controlled_islanding.core.grid import Grid
+from controlled_islanding.sim.scenario import Scenario, ScenarioError
+
+_LOAD_CONSTANTS = ('Ppf', 'Qpf', 'Req', 'Xeq', 'Ipeq', 'Iqeq')
+_PROGRESS_CHUNK_S = 1.0
+
+
+class ClosedLoopError(RuntimeError):
+    """The closed-loop run cannot start or did not reach its end."""
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """What the closed loop does after a command, and how an island is judged (see the module docstring).
+
+    Attributes:
+        breaker_operating_s: From the breaker command to the branch opening in the simulation, s.
+        shed_delay_s: From the opening to the load shed, s.
+        run_after_s: The run lasts at least this long after the islanding request, s (and at least end_s).
+        coherence_bound_rad: Largest change of a machine pair's angle difference within an island, rad.
+        f_min_hz, f_max_hz: Frequency band an island must stay in, Hz.
+        v_min_pu, v_max_pu: Voltage band every bus must stay in once settled, pu.
+        voltage_settle_s: Voltage is judged from this long after the cut, s.
+
+    """
+
+    breaker_operating_s: float = 0.05
+    shed_delay_s: float = 0.2
+    run_after_s: float = 3.0
+    coherence_bound_rad: float = math.pi
+    f_min_hz: float = 57.8
+    f_max_hz: float = 61.8
+    v_min_pu: float = 0.8
+    v_max_pu: float = 1.2
+    voltage_settle_s: float = 0.5
+
+
+@dataclass(frozen=True)
+class Sample:
+    """The simulated state at one integration step (values at time t_s).
+
+    Attributes:
+        t_s: Time, s.
+        bus_v_pu: Voltage magnitude of every case bus, pu.
+        bus_angle_rad: Voltage angle of every case bus, rad (continuous).
+        delta_rad: Rotor angle of every machine, rad.
+        omega_pu: Speed of every machine, pu.
+        p_pu, q_pu: Electrical output of every machine, pu on the system base.
+
+    """
+
+    t_s: float
+    bus_v_pu: np.ndarray
+    bus_angle_rad: np.ndarray
+    delta_rad: np.ndarray
+    omega_pu: np.ndarray
+    p_pu: np.ndarray
+    q_pu: np.ndarray
+
+
+@dataclass
+class Applied:
+    """An action the run carried out: what, when it was asked for, and when it happened (s of sim time)."""
+
+    what: str
+    scheduled_s: float
+    applied_s: float | None = None
+    detail: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class IslandOutcome:
+    """The post-islanding assessment of one island (see the module docstring).
+
+    Attributes:
+        island: Island number (the decision's).
+        buses: Number of buses.
+        generators: Machine names.
+        load_mw: Island load before any shed, MW.
+        shed_mw: Load shed in the island, MW.
+        max_pair_swing_rad: Largest change of a machine pair's angle difference after the cut, rad.
+        coherent: max_pair_swing_rad <= the bound.
+        f_nadir_hz, f_peak_hz: Lowest and highest machine frequency after the cut, Hz.
+        v_min_pu, v_max_pu: Lowest and highest bus voltage once settled, pu.
+        machines_tripped: Machines switched off during the run.
+        survived: All of the above within bounds.
+        why_not: What failed, empty when it survived.
+
+    """
+
+    island: int
+    buses: int
+    generators: tuple[str, ...]
+    load_mw: float
+    shed_mw: float
+    max_pair_swing_rad: float
+    coherent: bool
+    f_nadir_hz: float
+    f_peak_hz: float
+    v_min_pu: float
+    v_max_pu: float
+    machines_tripped: tuple[str, ...]
+    survived: bool
+    why_not: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """One run's result: its actions, each island's assessment and the trajectories for figures.
+
+    Attributes:
+        label: 'dtw', 'no action', 'milp', ...
+        cut_branch_ids: Branches opened.
+        request_s: Islanding request time, s.
+        opened_s: When the cut took effect, s (None: nothing opened).
+        judged_from_s: Start of the assessment window, s.
+        islands: Assessment per island.
+        load_lost_mw: Shed load plus the load of every island that did not survive, MW.
+        actions: Every action carried out.
+        t_s, delta_rad, omega_pu, bus_v_pu: Trajectories at every step, shapes (nt,), (nt, n_gen) twice,
+            (nt, n_bus).
+        generator_names, generator_buses, bus_numbers: Their columns.
+        wall_s: Wall time of the run, s.
+        f0_hz: Nominal frequency, Hz.
+
+    """
+
+    label: str
+    cut_branch_ids: tuple[str, ...]
+    request_s: float
+    opened_s: float | None
+    judged_from_s: float
+    islands: tuple[IslandOutcome, ...]
+    load_lost_mw: float
+    actions: tuple[Applied, ...]
+    t_s: np.ndarray
+    delta_rad: np.ndarray
+    omega_pu: np.ndarray
+    bus_v_pu: np.ndarray
+    generator_names: tuple[str, ...]
+    generator_buses: tuple[int, ...]
+    bus_numbers: tuple[int, ...]
+    wall_s: float
+    f0_hz: float = 60.0
+
+    def rejudged(self, from_s: float, config: LoopConfig) -> Outcome:
+        """Return this run of the whole grid as one island judged over [from_s, end] instead."""
+        islands = assess(self.t_s, self.delta_rad, self.omega_pu, self.bus_v_pu, self.generator_names,
+                         self.generator_buses, self.bus_numbers, None, from_s, config, self.f0_hz,
+                         {0: sum(i.load_mw for i in self.islands)}, {})
+        lost = sum(i.shed_mw + (0.0 if i.survived else i.load_mw - i.shed_mw) for i in islands)
+        return replace(self, islands=tuple(islands), judged_from_s=from_s, load_lost_mw=lost)
+
+    @property
+    def all_survived(self) -> bool:
+        """Whether every island survived."""
+        return all(i.survived for i in self.islands)
+
+    @property
+    def shed_mw(self) -> float:
+        """Load shed over all islands, MW."""
+        return sum(i.shed_mw for i in self.islands)
+
+    def summary(self) -> dict[str, Any]:
+        """Return the outcome without trajectories, as JSON-ready data."""
+        return {'label': self.label, 'cut_branch_ids': list(self.cut_branch_ids), 'request_s': self.request_s,
+                'opened_s': self.opened_s, 'judged_from_s': self.judged_from_s,
+                'request_to_opening_s': None if self.opened_s is None else self.opened_s - self.request_s,
+                'all_survived': self.all_survived, 'load_lost_mw': self.load_lost_mw, 'shed_mw': self.shed_mw,
+                'f_nadir_hz': min(i.f_nadir_hz for i in self.islands),
+                'f_peak_hz': max(i.f_peak_hz for i in self.islands),
+                'v_min_pu': min(i.v_min_pu for i in self.islands),
+                'islands': [asdict(i) for i in self.islands], 'actions': [asdict(a) for a in self.actions],
+                'wall_s': self.wall_s}
+
+
+def _var(dae: Any, var: Any) -> np.ndarray:
+    # A model's .v is refreshed only at events; the solver's own arrays hold the state of every step.
+    return (dae.x if var.v_code == 'x' else dae.y)[var.a]
+
+
+class GridRun:
+    """One scenario's ANDES system, set up and power-flowed, ready to run with a hook (see the module docstring).
+
+    Attributes:
+        scenario: The scenario.
+        grid: The pre-fault power flow as a Grid (what a network snapshot carries).
+        branch_ends: Branch id -> (from bus, to bus).
+        scheduled_changes: (time s, branch id, in service after) of the scenario's trips and kept case events.
+        run_until_s: Where the run ends, s: max(end_s, request + run_after_s).
+        generator_names, generator_buses, bus_numbers: Columns of the samples.
+        samples: Every step so far.
+        actions: Actions carried out so far.
+
+    """
+
+    def __init__(self, scenario: Scenario, config: LoopConfig = LoopConfig(), progress: bool = False) -> None:
+        self.scenario = scenario
+        self.config = config
+        self.progress = progress
+        self.ss, self.grid, self.branch_ends, self.line_of, self.scheduled_changes = _prepare(scenario)
+        self.run_until_s = max(scenario.end_s, scenario.request_s + config.run_after_s)
+        self.bus_numbers = tuple(self.grid.buses)
+        self._syn = [m for m in self.ss.groups['SynGen'].models.values() if m.n > 0 and any(m.u.v)]
+        self._on = [np.asarray(m.u.v, dtype=bool).copy() for m in self._syn]
+        self.generator_names = tuple(str(n) for m, on in zip(self._syn, self._on, strict=True)
+                                     for n, u in zip(m.name.v, on, strict=True) if u)
+        self.generator_buses = tuple(int(b) for m, on in zip(self._syn, self._on, strict=True)
+                                     for b, u in zip(m.bus.v, on, strict=True) if u)
+        self.samples: list[Sample] = []
+        self.actions: list[Applied] = []
+        self._pending: list[tuple[float, Applied, Callable[[], None]]] = []
+        self.wall_s = 0.0
+
+    # --- actions ---------------------------------------------------------------------------------------------
+    def open_branches(self, branch_ids: Sequence[str], at_s: float, why: str = 'open') -> Applied:
+        """Schedule branches to open at at_s (s of sim time); return the action, filled in when it happens.
+
+        Raises:
+            ClosedLoopError: A branch id names no branch of the case (either bus order is accepted).
+
+        """
+        rows = [self._line(b) for b in branch_ids]
+        action = Applied(what=why, scheduled_s=float(at_s), detail={'branches': list(branch_ids)})
+
+        def do() -> None:
+            for idx in rows:
+                self.ss.Line.set_status(idx, 0)
+            self.ss.TDS.custom_event = True  # rebuild connectivity and the Jacobian after this step
+
+        self._pending.append((float(at_s), action, do))
+        return action
+
+    def shed_load(self, buses: Iterable[int], shed_mw: float, at_s: float, why: str = 'shed') -> Applied:
+        """Schedule shedding shed_mw (MW) of the load on these buses, proportionally, at at_s (s)."""
+        ss = self.ss
+        bus_set = {int(b) for b in buses}
+        rows = [i for i in range(ss.PQ.n) if ss.PQ.u.v[i] and int(ss.PQ.bus.v[i]) in bus_set]
+        mva = float(ss.config.mva)
+        load_mw = float(sum(ss.PQ.p0.v[i] for i in rows)) * mva
+        fraction = 0.0 if load_mw <= 0 else min(1.0, max(0.0, shed_mw / load_mw))
+        action = Applied(what=why, scheduled_s=float(at_s),
+                         detail={'buses': sorted(bus_set), 'load_mw': load_mw, 'shed_mw': fraction * load_mw,
+                                 'fraction': fraction})
+
+        def do() -> None:
+            for i in rows:
+                for name in _LOAD_CONSTANTS:
+                    values = getattr(ss.PQ, name).v
+                    ss.PQ.set(name, ss.PQ.idx.v[i], float(values[i]) * (1.0 - fraction))
+
+        self._pending.append((float(at_s), action, do))
+        return action
+
+    def _line(self, ref: str) -> Any:
+        if ref in self.line_of:
+            return self.line_of[ref]
+        head, _, parallel = ref.partition('#')
+        a, _, b = head.partition('-')
+        flipped = f'{b}-{a}' + (f'#{parallel}' if parallel else '')
+        if flipped in self.line_of:
+            return self.line_of[flipped]
+        raise ClosedLoopError(f'branch {ref!r}: no line of {self.scenario.case.name} has that id in either bus order')
+
+    # --- running ---------------------------------------------------------------------------------------------
+    def run(self, hook: Callable[[GridRun, Sample], None] | None = None) -> None:
+        """Run the time-domain simulation to run_until_s, calling hook(self, sample) at every step.
+
+        The hook may schedule actions (open_branches, shed_load); an action whose time has come is applied
+        before the next step. It may block (that is how the graph is kept in step with the simulation).
+
+        Raises:
+            ClosedLoopError: ANDES stopped before the end.
+
+        """
+        ss = self.ss
+        tds = ss.TDS
+        tds.config.tstep = self.scenario.step_s
+        tds.config.criteria = 0  # the default stops at 180 deg of spread: the loss of synchronism we judge
+        tds.config.no_tqdm = 1
+        tds.config.tf = self.run_until_s
+        start = time.monotonic()
+        next_report = [_PROGRESS_CHUNK_S]
+        syn = list(zip(self._syn, self._on, strict=True))
+
+        def pert(t: Any, system: Any) -> None:
+            t_s = float(t)  # ANDES advances dae.t in place: keep a copy, not the array
+            dae = system.dae
+            sample = Sample(
+                t_s=t_s, bus_v_pu=_var(dae, ss.Bus.v)[:len(self.bus_numbers)].copy(),
+                bus_angle_rad=_var(dae, ss.Bus.a)[:len(self.bus_numbers)].copy(),
+                delta_rad=np.concatenate([_var(dae, m.delta)[on] for m, on in syn]),
+                omega_pu=np.concatenate([_var(dae, m.omega)[on] for m, on in syn]),
+                p_pu=np.concatenate([_var(dae, m.Pe)[on] for m, on in syn]),
+                q_pu=np.concatenate([_var(dae, m.Qe)[on] for m, on in syn]))
+            if self.samples and t_s <= self.samples[-1].t_s:
+                self.samples[-1] = sample  # both sides of a switching instant: keep the later one
+            else:
+                self.samples.append(sample)
+            if hook is not None:
+                hook(self, sample)
+            due = [p for p in self._pending if p[0] <= t_s + 1e-9]
+            for entry in due:
+                self._pending.remove(entry)
+                entry[2]()
+                entry[1].applied_s = t_s
+                self.actions.append(entry[1])
+            if self.progress and t_s >= next_report[0]:
+                print(f'grid {self.scenario.name}: t = {t_s:5.2f} / {self.run_until_s:.2f} s '
+                      f'({time.monotonic() - start:.1f} s wall)', file=sys.stderr, flush=True)
+                next_report[0] += _PROGRESS_CHUNK_S
+
+        tds.callpert = pert
+        try:
+            tds.run()
+        finally:
+            tds.callpert = None
+            self.wall_s = time.monotonic() - start
+        reached = float(ss.dae.t)
+        if reached < self.run_until_s - 1e-6 or tds.busted:
+            raise ClosedLoopError(f'{self.scenario.path}: ANDES stopped at t = {reached:.3f} s before '
+                                  f'{self.run_until_s} s (the solver did not converge)')
+
+    def machines_tripped(self) -> tuple[str, ...]:
+        """Return machines that were in service at the start and are out of service now."""
+        out = []
+        for model, on in zip(self._syn, self._on, strict=True):
+            now = np.asarray(model.u.v, dtype=bool)
+            out += [str(n) for n, was, u in zip(model.name.v, on, now, strict=True) if was and not u]
+        return tuple(out)
+
+    def island_load_mw(self, buses: Iterable[int]) -> float:
+        """Return the scenario's load on these buses, MW (before any shed)."""
+        bus_set = {int(b) for b in buses}
+        return float(sum(p for b, p in zip(self.grid_load_buses, self.grid_load_mw, strict=True) if b in bus_set))
+
+    @property
+    def grid_load_buses(self) -> list[int]:
+        """Bus of each load of the pre-fault grid."""
+        return [ld.bus for ld in self.grid.loads]
+
+    @property
+    def grid_load_mw(self) -> list[float]:
+        """Each load of the pre-fault grid, MW."""
+        return [ld.p_mw for ld in self.grid.loads]
+
+    def outcome(self, label: str, cut_branch_ids: Sequence[str], bus_island: Mapping[int, int] | None,
+                opened_s: float | None, judged_from_s: float, shed_by_island: Mapping[int, float] | None = None,
+                ) -> Outcome:
+        """Assess the finished run per island (see the module docstring).
+
+        Args:
+            label: Name of the run.
+            cut_branch_ids: Branches opened.
+            bus_island: Island of every bus, or None for one island of the whole grid.
+            opened_s: When the cut happened, s, or None.
+            judged_from_s: Start of the assessment window, s.
+            shed_by_island: Load shed per island, MW.
+
+        """
+        t = np.array([s.t_s for s in self.samples])
+        delta = np.vstack([s.delta_rad for s in self.samples])
+        omega = np.vstack([s.omega_pu for s in self.samples])
+        volts = np.vstack([s.bus_v_pu for s in self.samples])
+        islands = assess(t, delta, omega, volts, self.generator_names, self.generator_buses, self.bus_numbers,
+                         bus_island, judged_from_s, self.config, float(self.ss.config.freq),
+                         {k: self.island_load_mw(b) for k, b in _island_buses(self.bus_numbers, bus_island).items()},
+                         shed_by_island or {}, self.machines_tripped())
+        lost = sum(i.shed_mw + (0.0 if i.survived else i.load_mw - i.shed_mw) for i in islands)
+        return Outcome(label=label, cut_branch_ids=tuple(cut_branch_ids), request_s=self.scenario.request_s,
+                       opened_s=opened_s, judged_from_s=judged_from_s, islands=tuple(islands), load_lost_mw=lost,
+                       actions=tuple(self.actions), t_s=t, delta_rad=delta, omega_pu=omega, bus_v_pu=volts,
+                       generator_names=self.generator_names, generator_buses=self.generator_buses,
+                       bus_numbers=self.bus_numbers, wall_s=self.wall_s, f0_hz=float(self.ss.config.freq))
+
+
+def _island_buses(bus_numbers: Sequence[int], bus_island: Mapping[int, int] | None) -> dict[int, list[int]]:
+    out: dict[int, list[int]] = {}
+    for b in bus_numbers:
+        out.setdefault(0 if bus_island is None else int(bus_island.get(b, 0)), []).append(b)
+    return dict(sorted(out.items()))
+
+
+def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_pu: np.ndarray,
+           generator_names: Sequence[str], generator_buses: Sequence[int], bus_numbers: Sequence[int],
+           bus_island: Mapping[int, int] | None, from_s: float, config: LoopConfig, f0_hz: float,
+           island_load_mw: Mapping[int, float], shed_by_island: Mapping[int, float],
+           tripped: Sequence[str] = ()) -> list[IslandOutcome]:
+    """Judge every island over [from_s, end] (see the module docstring); pure numpy.
+
+    Args:
+        t_s: Step times, s, shape (nt,).
+        delta_rad: Rotor angles, rad, shape (nt, n_gen).
+        omega_pu: Speeds, pu, shape (nt, n_gen).
+        bus_v_pu: Bus voltages, pu, shape (nt, n_bus).
+        generator_names, generator_buses: Columns of delta and omega.
+        bus_numbers: Columns of bus_v_pu.
+        bus_island: Island of every bus; None: the whole grid is island 0.
+        from_s: Start of the window, s (the cut, or when it would have been).
+        config: Bounds.
+        f0_hz: Nominal frequency, Hz.
+        island_load_mw: Load per island before any shed, MW.
+        shed_by_island: Load shed per island, MW.
+        tripped: Machines switched off during the run.
+
+    Returns:
+        One outcome per island, in island order.
+
+    """
+    window = t_s >= from_s - 1e-9
+    if not window.any():
+        raise ClosedLoopError(f'no sample at or after {from_s} s to judge (the run ends at {t_s[-1]:.3f} s)')
+    first = int(np.flatnonzero(window)[0])
+    settled = t_s >= from_s + config.voltage_settle_s - 1e-9
+    if not settled.any():
+        settled = window
+    out = []
+    for island, buses in _island_buses(bus_numbers, bus_island).items():
+        bset = set(buses)
+        cols = [j for j, b in enumerate(generator_buses) if b in bset]
+        names = tuple(generator_names[j] for j in cols)
+        vcols = [j for j, b in enumerate(bus_numbers) if b in bset]
+        why = []
+        if cols:
+            dev = delta_rad[window][:, cols] - delta_rad[first, cols]
+            swing = float(np.max(dev.max(axis=1) - dev.min(axis=1)))
+            speed = omega_pu[window][:, cols] * f0_hz
+            f_lo, f_hi = float(speed.min()), float(speed.max())
+        else:
+            swing, f_lo, f_hi = 0.0, float('nan'), float('nan')
+            why.append('no machine')
+        volts = bus_v_pu[settled][:, vcols]
+        v_lo, v_hi = float(volts.min()), float(volts.max())
+        coherent = swing <= config.coherence_bound_rad
+        if not coherent:
+            why.append(f'machines {swing:.2f} rad apart (> {config.coherence_bound_rad:.2f})')
+        if cols and not (config.f_min_hz <= f_lo and f_hi <= config.f_max_hz):
+            why.append(f'frequency {f_lo:.2f}..{f_hi:.2f} Hz outside {config.f_min_hz}..{config.f_max_hz}')
+        if not (config.v_min_pu <= v_lo and v_hi <= config.v_max_pu):
+            why.append(f'voltage {v_lo:.3f}..{v_hi:.3f} pu outside {config.v_min_pu}..{config.v_max_pu}')
+        gone = tuple(n for n in tripped if n in names)
+        if gone:
+            why.append(f'machines tripped: {", ".join(gone)}')
+        out.append(IslandOutcome(
+            island=island, buses=len(buses), generators=names, load_mw=float(island_load_mw.get(island, 0.0)),
+            shed_mw=float(shed_by_island.get(island, 0.0)), max_pair_swing_rad=swing, coherent=coherent,
+            f_nadir_hz=f_lo, f_peak_hz=f_hi, v_min_pu=v_lo, v_max_pu=v_hi, machines_tripped=gone,
+            survived=not why, why_not=tuple(why)))
+    return out
+
+
+def apply_decision(run: GridRun, cut_branch_ids: Sequence[str], bus_island: Mapping[int, int],
+                   island_shed_mw: Sequence[float], opened_s: float) -> dict[int, float]:
+    """Schedule a cut at opened_s and the shed of each island short of generation shed_delay_s later.
+
+    Returns:
+        The load to shed per island, MW, as the decision gave it.
+
+    """
+    if cut_branch_ids:
+        run.open_branches(cut_branch_ids, opened_s, why='open cut')
+    shed = {}
+    for island, buses in _island_buses(run.bus_numbers, bus_island).items():
+        mw = float(island_shed_mw[island]) if island < len(island_shed_mw) else 0.0
+        if mw > 0:
+            action = run.shed_load(buses, mw, opened_s + run.config.shed_delay_s, why=f'shed island {island}')
+            shed[island] = action.detail['shed_mw']
+    return shed
+
+
+def run_offline(scenario: Scenario, label: str, *, cut_branch_ids: Sequence[str] = (),
+                bus_island: Mapping[int, int] | None = None, island_shed_mw: Sequence[float] = (),
+                opened_s: float | None = None, judged_from_s: float | None = None,
+                config: LoopConfig = LoopConfig(), progress: bool = False) -> Outcome:
+    """Run a scenario with a given cut (or none) applied at opened_s, with no graph; return its outcome.
+
+    Args:
+        scenario: The scenario.
+        label: Name of the run.
+        cut_branch_ids: Branches to open (empty: no action).
+        bus_island: The islands the cut forms (None with no cut).
+        island_shed_mw: Load to shed per island, MW.
+        opened_s: When the cut takes effect, s.
+        judged_from_s: Start of the assessment window, s (default opened_s, else the request time).
+        config: Loop settings.
+        progress: Report progress on stderr.
+
+    """
+    run = GridRun(scenario, config, progress=progress)
+    shed: dict[int, float] = {}
+    if cut_branch_ids:
+        if bus_island is None or opened_s is None:
+            raise ClosedLoopError('a cut needs its islands and its time')
+        shed = apply_decision(run, cut_branch_ids, bus_island, island_shed_mw, opened_s)
+    run.run()
+    opened = next((a.applied_s for a in run.actions if a.what == 'open cut'), None)
+    start = judged_from_s if judged_from_s is not None else (opened if opened is not None else scenario.request_s)
+    return run.outcome(label, cut_branch_ids, bus_island if cut_branch_ids else None, opened, start, shed)
+
+
+def _prepare(scenario: Scenario) -> tuple[Any, Grid, dict[str, tuple[int, int]], dict[str, Any],
+                                          list[tuple[float, str, bool]]]:
+    """Load the case, add the scenario's events, solve the power flow: what sim.andes_sim.simulate does first.
+
+    The steps are andes_sim's own helpers, in its order; only the time-domain run differs.
+    """
+    from controlled_islanding.sim import andes_sim as A
+
+    ss = A._load_case(scenario)
+    where = f'{scenario.path}'
+    try:
+        bus_numbers = [int(b) for b in ss.Bus.idx.v]
+    except (TypeError, ValueError):
+        raise ScenarioError(f'{where}: case: bus idx must be integer bus numbers') from None
+    line_idx = list(ss.Line.idx.v)
+    pairs = [(int(a), int(b)) for a, b in zip(ss.Line.bus1.v, ss.Line.bus2.v, strict=True)]
+    ids = A.branch_ids(pairs)
+    A._apply_disable(ss, where, scenario.disable)
+    case_changes = A._case_events(ss, scenario, ids, line_idx)
+    trip_rows = [A._find_branch(f'{where}: {t.source}.branch', t.branch, ids, pairs) for t in scenario.trips]
+    midline_off: list[int] = []
+    next_bus = max(bus_numbers) + 1
+    fault_buses: list[int] = []
+    for fault in scenario.faults:
+        if fault.bus is not None:
+            if fault.bus not in bus_numbers:
+                raise ScenarioError(f'{where}: {fault.source}.bus: unknown bus {fault.bus}')
+            fault_buses.append(fault.bus)
+            continue
+        row = A._find_branch(f'{where}: {fault.source}.branch', fault.branch or '', ids, pairs)
+        fault_buses.append(A._split_line(ss, row, next_bus, fault.position))
+        midline_off.append(row)
+        next_bus += 1
+    for i, (fault, bus) in enumerate(zip(scenario.faults, fault_buses, strict=True)):
+        ss.add('Fault', dict(idx=f'ScenarioFault_{i}', name=f'ScenarioFault_{i}', bus=bus, tf=fault.start_s,
+                             tc=fault.clear_s, xf=A._FAULT_REACTANCE_PU, rf=0.0))
+    for i, (trip, row) in enumerate(zip(scenario.trips, trip_rows, strict=True)):
+        ss.add('Toggle', dict(idx=f'ScenarioTrip_{i}', name=f'ScenarioTrip_{i}', model='Line', dev=line_idx[row],
+                              t=trip.t_s))
+    dispatch = A._dispatch_plan(ss, scenario) if scenario.dispatch else None
+    ss.setup()
+    if dispatch is not None:
+        for model, name, idx, value in dispatch:
+            getattr(ss, model).set(name, idx, value)
+    for row in midline_off:
+        ss.Line.set_status(line_idx[row], 0)
+    if scenario.load_scale != 1.0:
+        for model, params in ((ss.PQ, ('p0', 'q0')), (ss.PV, ('p0',))):
+            for name in params:
+                values = np.array(getattr(model, name).v, dtype=float) * scenario.load_scale
+                for idx, value in zip(model.idx.v, values, strict=True):
+                    model.set(name, idx, float(value))
+    if not ss.PFlow.run() or not ss.PFlow.converged:
+        raise A.SimulationError(f'{where}: the ANDES power flow of {scenario.case.name} did not converge')
+    grid = A._snapshot(ss, scenario.case.name, bus_numbers, ids, pairs, midline_off)
+    changes = [(trip.t_s, ids[row], False) for trip, row in zip(scenario.trips, trip_rows, strict=True)]
+    changes = sorted(changes + list(case_changes))
+    # A mid-line-faulted line is two sections in the simulation: opening it opens the first section.
+    line_of = {bid: (f'{line_idx[k]}_section1' if k in midline_off else line_idx[k]) for k, bid in enumerate(ids)}
+    return ss, grid, dict(zip(ids, pairs, strict=True)), line_of, changes
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One PMU frame, as sim/pmu.py models it (NaN and STAT_DATA_INVALID where lost).
+
+    Attributes:
+        tag_s: Time tag, s.
+        delivery_s: When it reaches the PDC, s (tag + delay).
+        station_ids, buses: Channel station ids and buses.
+        v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, frequency_hz, rocof_hz_per_s: Per channel.
+        stat: STAT word per channel.
+
+    """
+
+    tag_s: float
+    delivery_s: float
+    station_ids: tuple[str, ...]
+    buses: tuple[int, ...]
+    v_mag_pu: np.ndarray
+    v_angle_rad: np.ndarray
+    i_mag_pu: np.ndarray
+    i_angle_rad: np.ndarray
+    frequency_hz: np.ndarray
+    rocof_hz_per_s: np.ndarray
+    stat: np.ndarray
+
+
+class PmuStream:
+    """Turns the run's samples into PMU frames as they come, with sim/pmu.py's channels, noise and impairments.
+
+    Differences from sim/pmu.py, which sees the whole run at once: frequency is the backward difference of the
+    noise-free voltage angle between consecutive tags (not a central difference, which needs the next tag) and
+    ROCOF the backward difference of that; noise draws come from the same seeded streams but in frame order.
+    """
+
+    def __init__(self, scenario: Scenario, generator_names: Sequence[str], generator_buses: Sequence[int],
+                 bus_numbers: Sequence[int], f0_hz: float) -> None:
+
+        self.scenario = scenario
+        self.f0_hz = f0_hz
+        buses = tuple(dict.fromkeys(generator_buses)) if scenario.pmu_buses is None else scenario.pmu_buses
+        self.bus_cols = [list(bus_numbers).index(b) for b in buses]
+        stations, channel_bus, channel_gens = [], [], []
+        for j, bus in enumerate(buses):
+            gens = [g for g, gb in enumerate(generator_buses) if gb == bus]
+            for group in ([gens] if len(gens) <= 1 else [[g] for g in gens]):
+                stations.append(f'PMU_{bus}' if len(gens) <= 1 else f'PMU_{bus}/{generator_names[group[0]]}')
+                channel_bus.append(j)
+                channel_gens.append(group)
+        self.station_ids = tuple(stations)
+        self.channel_bus = channel_bus
+        self.channel_gens = channel_gens
+        self.buses = tuple(buses[j] for j in channel_bus)
+        self.pmu_buses = buses
+        self.next_k = 0
+        self.prev: Sample | None = None
+        self.streams = [np.random.default_rng(s) for s in np.random.SeedSequence(scenario.seed).spawn(6)]
+        self._last_angle: np.ndarray | None = None
+        self._last_freq: np.ndarray | None = None
+        self._last_i_angle: np.ndarray | None = None
+
+    def feed(self, sample: Sample) -> list[Frame]:
+        """Take the next step's state; return the frames whose tags it passed (possibly none)."""
+        from controlled_islanding.sim.pmu import FREQUENCY_NOISE_HZ, ROCOF_NOISE_HZ_PER_S, STAT_DATA_INVALID, _noisy
+
+        out = []
+        rate = self.scenario.rate_fps
+        while self.next_k / rate <= sample.t_s + 1e-9:
+            tag = self.next_k / rate
+            prev = self.prev if self.prev is not None and self.prev.t_s < sample.t_s else sample
+            w = 0.0 if sample.t_s <= prev.t_s else (tag - prev.t_s) / (sample.t_s - prev.t_s)
+            w = min(1.0, max(0.0, w))
+
+            def at(name: str, p: Sample = prev, x: float = w) -> np.ndarray:
+                return (1 - x) * getattr(p, name) + x * getattr(sample, name)
+
+            v = at('bus_v_pu')[self.bus_cols]
+            a = at('bus_angle_rad')[self.bus_cols]
+            p, q = at('p_pu'), at('q_pu')
+            current = np.zeros(len(self.station_ids), dtype=complex)
+            for c, (j, gens) in enumerate(zip(self.channel_bus, self.channel_gens, strict=True)):
+                for g in gens:
+                    current[c] += np.conj((p[g] + 1j * q[g]) / (v[j] * np.exp(1j * a[j])))
+            i_ang = np.angle(current)
+            if self._last_i_angle is not None:  # keep the current angle continuous, as np.unwrap would
+                i_ang = self._last_i_angle + np.angle(np.exp(1j * (i_ang - self._last_i_angle)))
+            self._last_i_angle = i_ang
+            s = self.streams
+            v_mag, v_ang = _noisy(s[0], v, a, self.scenario.noise_tve)
+            i_mag, i_ang_n = _noisy(s[1], np.abs(current), i_ang, self.scenario.noise_tve)
+            f_clean = (np.full(len(v), self.f0_hz) if self._last_angle is None else
+                       self.f0_hz + (a - self._last_angle) * rate / (2 * np.pi))
+            rocof_clean = np.zeros(len(v)) if self._last_freq is None else (f_clean - self._last_freq) * rate
+            self._last_angle, self._last_freq = a, f_clean
+            freq = f_clean + s[2].normal(0.0, FREQUENCY_NOISE_HZ, f_clean.shape)
+            rocof = rocof_clean + s[3].normal(0.0, ROCOF_NOISE_HZ_PER_S, f_clean.shape)
+            imp = self.scenario.impairments
+            lost = s[4].random(len(v)) < imp.frame_loss_rate
+            if tag < imp.initial_gap_s:
+                lost[:] = True
+            if imp.silent_pmu_bus is not None and tag >= imp.silent_from_s:
+                lost[list(self.pmu_buses).index(imp.silent_pmu_bus)] = True
+            delay = (max(0.0, float(s[5].normal(imp.delay_mean_s, imp.delay_jitter_s)))
+                     if imp.delay_mean_s > 0 or imp.delay_jitter_s > 0 else 0.0)
+            cb = self.channel_bus
+            lost_c = lost[cb]
+            arrays = [x.copy() for x in (v_mag[cb], v_ang[cb], i_mag, i_ang_n, freq[cb], rocof[cb])]
+            for arr in arrays:
+                arr[lost_c] = np.nan
+            self.next_k += 1
+            if lost_c.all():
+                continue  # a frame in which every PMU's data is lost is not sent at all
+            out.append(Frame(tag_s=tag, delivery_s=tag + delay, station_ids=self.station_ids, buses=self.buses,
+                             v_mag_pu=arrays[0], v_angle_rad=arrays[1], i_mag_pu=arrays[2], i_angle_rad=arrays[3],
+                             frequency_hz=arrays[4], rocof_hz_per_s=arrays[5],
+                             stat=np.where(lost_c, STAT_DATA_INVALID, 0).astype(np.uint16)))
+        self.prev = sample
+        return out
