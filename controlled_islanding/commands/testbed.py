@@ -66,6 +66,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--shed-delay-s', type=float, default=0.2, help='branch open -> load shed, s (default 0.2)')
     parser.add_argument('--run-after-s', type=float, default=3.0,
                         help='simulate at least this long after the request, s (default 3)')
+    parser.add_argument('--render', type=Path, default=None, metavar='RESULTS',
+                        help='run nothing: rebuild the table, --markdown and --figures-dir from a results folder of an '
+                             'earlier (or still running) testbed run; scenarios not finished yet are listed as missing')
     parser.add_argument('--no-baselines', action='store_true', help='skip the no-action and MILP runs')
     parser.add_argument('--timeout', type=float, default=900.0, help='give up on one closed-loop run after this, s')
 
@@ -402,8 +405,37 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
     return '\n'.join(out)
 
 
+def _publish(results: list[dict], args: argparse.Namespace, missing: list[str]) -> None:
+    """Copy the chosen figures to --figures-dir and write --markdown (called after every scenario)."""
+    import shutil
+
+    figures = []
+    if args.figures_dir is not None:
+        args.figures_dir.mkdir(parents=True, exist_ok=True)
+        chosen = {n.strip() for n in args.figure_scenarios.split(',') if n.strip()}
+        for r in results:
+            if chosen and r['scenario'] not in chosen:
+                continue
+            figures.append(Path(shutil.copy(r['figure'], args.figures_dir / Path(r['figure']).name)))
+    if args.markdown is not None:
+        text = markdown(results, args, figures, args.markdown)
+        if missing:
+            text += f'\nNot in this table (not finished when it was written): {", ".join(missing)}.\n'
+        args.markdown.write_text(text)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the testbed subcommand."""
+    if args.render is not None:
+        done = sorted(args.render.glob('*/result.json'))
+        if not done:
+            raise CliError(f'{args.render}: no */result.json; is it a testbed results folder?')
+        results = [json.loads(p.read_text()) for p in done]
+        wanted = [p.stem for p in (list(args.scenarios) + (unstable_scenarios() if args.all_unstable else []))]
+        missing = [n for n in wanted if n not in {r['scenario'] for r in results}]
+        _publish(results, args, missing)
+        print(json.dumps(results, default=str) if args.json else render(results))
+        return 0
     paths = list(args.scenarios) + (unstable_scenarios() if args.all_unstable else [])
     if not paths:
         raise CliError('name at least one scenario YAML, or --all-unstable')
@@ -423,18 +455,7 @@ def run(args: argparse.Namespace) -> int:
     for i, path in enumerate(paths):
         _say(quiet, f'testbed: scenario {i + 1}/{len(paths)}: {path}')
         results.append(run_scenario(path, results_dir, args, quiet, cache))
-    figures = []
-    if args.figures_dir is not None:
-        import shutil
-
-        args.figures_dir.mkdir(parents=True, exist_ok=True)
-        chosen = {n.strip() for n in args.figure_scenarios.split(',') if n.strip()}
-        for r in results:
-            if chosen and r['scenario'] not in chosen:
-                continue
-            figures.append(Path(shutil.copy(r['figure'], args.figures_dir / Path(r['figure']).name)))
-    if args.markdown is not None:
-        args.markdown.write_text(markdown(results, args, figures, args.markdown))
+        _publish(results, args, [p.stem for p in paths[i + 1:]])
     (results_dir / 'testbed.json').write_text(json.dumps(results, indent=1, default=str))
     if args.json:
         print(json.dumps(results, default=str))

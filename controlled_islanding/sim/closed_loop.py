@@ -32,8 +32,11 @@ the cut would have been made) to the end of the run:
   after the cut (the cut itself is a switching transient), within [v_min_pu, v_max_pu] (default 0.8 .. 1.2 pu).
 - machines tripped: synchronous machines whose status went to 0 during the run (by a protection model the
   case has; ANDES' IEEE 39 has none, so this is 0 there unless something else switches a machine).
-An island survives when all four hold. Load lost = load shed + the whole load of every island that did not
-survive (it would be lost to protection); an island with no machine is lost by definition.
+An island survives when all four hold. If ANDES stops converging after an action (it zeroes the voltage of a bus
+left with no in-service branch, so an island of one bus is numerically fragile), the run ends there and every
+island is reported as not survived, with the time: the simulation cannot say which one failed.
+Load lost = load shed + the whole load of every island that did not survive (it would be lost to protection);
+an island with no machine is lost by definition.
 """
 
 from __future__ import annotations
@@ -260,6 +263,7 @@ class GridRun:
         self.actions: list[Applied] = []
         self._pending: list[tuple[float, Applied, Callable[[], None]]] = []
         self.wall_s = 0.0
+        self.stopped_s: float | None = None  # where ANDES gave up after an action, if it did
 
     # --- actions ---------------------------------------------------------------------------------------------
     def open_branches(self, branch_ids: Sequence[str], at_s: float, why: str = 'open') -> Applied:
@@ -367,8 +371,11 @@ class GridRun:
             self.wall_s = time.monotonic() - start
         reached = float(ss.dae.t)
         if reached < self.run_until_s - 1e-6 or tds.busted:
-            raise ClosedLoopError(f'{self.scenario.path}: ANDES stopped at t = {reached:.3f} s before '
-                                  f'{self.run_until_s} s (the solver did not converge)')
+            if not self.actions:
+                raise ClosedLoopError(f'{self.scenario.path}: ANDES stopped at t = {reached:.3f} s before '
+                                      f'{self.run_until_s} s (the solver did not converge)')
+            # After a cut the solver can fail (an island of one bus is one ANDES zeroes): an outcome, not a crash.
+            self.stopped_s = reached
 
     def machines_tripped(self) -> tuple[str, ...]:
         """Return machines that were in service at the start and are out of service now."""
@@ -415,6 +422,9 @@ class GridRun:
                          bus_island, judged_from_s, self.config, float(self.ss.config.freq),
                          {k: self.island_load_mw(b) for k, b in _island_buses(self.bus_numbers, bus_island).items()},
                          shed_by_island or {}, self.machines_tripped())
+        if self.stopped_s is not None:
+            why = f'simulation stopped at {self.stopped_s:.3f} s (ANDES did not converge)'
+            islands = [replace(i, survived=False, why_not=(*i.why_not, why)) for i in islands]
         lost = sum(i.shed_mw + (0.0 if i.survived else i.load_mw - i.shed_mw) for i in islands)
         return Outcome(label=label, cut_branch_ids=tuple(cut_branch_ids), request_s=self.scenario.request_s,
                        opened_s=opened_s, judged_from_s=judged_from_s, islands=tuple(islands), load_lost_mw=lost,
