@@ -116,3 +116,17 @@ def test_bad_series_are_named(bad: np.ndarray, message: str) -> None:
 def test_bad_window(window: float) -> None:
     with pytest.raises(DTWError, match='window'):
         dtw_distance(np.zeros(3), np.zeros(3), window)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize('window', [None, 0, 1, 5, 30])
+def test_engine_equals_dtaidistance_to_1e_12(rng: np.random.Generator, window: int | None) -> None:
+    # Our compiled kernel against dtaidistance's C engine (its window counts the diagonal; it returns sqrt).
+    series = [np.cumsum(rng.normal(size=rng.integers(20, 160))) for _ in range(12)]
+    series += [s[:100].copy() for s in series[:4] if len(s) >= 100]  # equal lengths too
+    ours = dtw_distance_matrix(series, window)
+    theirs = np.asarray(dtaidistance_dtw.distance_matrix_fast(
+        series, window=None if window is None else window + 1, use_pruning=False), dtype=float) ** 2
+    off = ~np.eye(len(series), dtype=bool)
+    np.testing.assert_allclose(ours[off], theirs[off], rtol=1e-12, atol=0)
+    assert np.array_equal(dtw_distance_matrix(series, window, parallel=True), ours)
+    assert dtw_distance(series[0], series[1], window) == ours[0, 1]
