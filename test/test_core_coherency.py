@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from test_sim_bags import MISSED_BY_THE_K_RULE
 
 from controlled_islanding.core.coherency import CoherencyError, DTWCoherency
 from controlled_islanding.core.k_rules import pair_drift_rad
@@ -138,20 +139,33 @@ def _bag_entries() -> list[dict]:
 
 def bag_rotor_angles(bag, window_s: float = 4.0) -> tuple[list[str], np.ndarray]:
     """Estimate every generator's rotor angle from its terminal PMU over the window before the first request."""
-    col = {int(b): k for k, b in enumerate(bag.pmu_buses)}
+    stations = list(bag.pmu_station_ids)
     t = bag.frame_t_s
     request = float(bag.request_t_s[0])
     rows = (t >= request - window_s) & (t < request)
     names, series = [], []
     for g in bag.grid.generators:
-        c = col[g.bus]
+        # A machine sharing its bus has a channel of its own (sim/pmu.py): a bus total belongs to none of them.
+        own = f'PMU_{g.bus}/{g.name}'
+        c = stations.index(own if own in stations else f'PMU_{g.bus}')
         series.append(estimate_rotor_angle_rad(bag.v_mag_pu[rows, c], bag.v_angle_rad[rows, c],
                                                bag.i_mag_pu[rows, c], bag.i_angle_rad[rows, c], g.xq_pu, g.ra_pu))
         names.append(g.name)
     return names, np.array(series).T
 
 
-@pytest.mark.parametrize('entry', _bag_entries(), ids=lambda e: e['name'])
+# Bags whose final groups DTW coherency misses (issue 11 is open). Strict: a bag found again fails here until it is
+# taken out.
+KNOWN_MISSES = {
+    **{name: 'issue 11: the k rule misses these final groups at the request' for name in MISSED_BY_THE_K_RULE},
+    'ieee14_g1_unstable': 'the request comes 1 s after the fault: with the first second of the window lost, too '
+                          'little of the separation is left to see',
+}
+
+
+@pytest.mark.parametrize('entry', [pytest.param(e, id=e['name'], marks=pytest.mark.xfail(
+    strict=True, reason=KNOWN_MISSES[e['name']])) if e['name'] in KNOWN_MISSES else pytest.param(e, id=e['name'])
+    for e in _bag_entries()])
 def test_scenario_bags_truth_groups(entry: dict) -> None:
     from controlled_islanding.bagdata import load_bag
 
