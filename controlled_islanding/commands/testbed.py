@@ -451,16 +451,27 @@ def run(args: argparse.Namespace) -> int:
     results_dir.mkdir(parents=True)
     quiet = args.json
     cache: dict = {}
-    results = []
+    results: list[dict] = []
+    failures: list[str] = []
     for i, path in enumerate(paths):
         _say(quiet, f'testbed: scenario {i + 1}/{len(paths)}: {path}')
-        results.append(run_scenario(path, results_dir, args, quiet, cache))
-        _publish(results, args, [p.stem for p in paths[i + 1:]])
+        try:
+            results.append(run_scenario(path, results_dir, args, quiet, cache))
+        except CliError as exc:
+            if len(paths) == 1:
+                raise
+            # One scenario's failure is a row of the table, not the end of it.
+            _say(quiet, f'testbed {path.stem}: FAILED: {exc}')
+            failures.append(f'{path.stem}: {str(exc).splitlines()[0]}')
+            continue
+        _publish(results, args, [p.stem for p in paths[i + 1:]] + failures)
     (results_dir / 'testbed.json').write_text(json.dumps(results, indent=1, default=str))
     if args.json:
         print(json.dumps(results, default=str))
     else:
         print(render(results))
         print(f'results: {results_dir}')
-    failed = any(r['decision'] is None or r['restarts'] for r in results)
+    for failure in failures:
+        print(f'testbed: FAILED: {failure}', file=sys.stderr)
+    failed = bool(failures) or any(r['decision'] is None or r['restarts'] for r in results)
     return 1 if failed else 0

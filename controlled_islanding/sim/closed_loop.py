@@ -346,10 +346,11 @@ class GridRun:
                 omega_pu=np.concatenate([_var(dae, m.omega)[on] for m, on in syn]),
                 p_pu=np.concatenate([_var(dae, m.Pe)[on] for m, on in syn]),
                 q_pu=np.concatenate([_var(dae, m.Qe)[on] for m, on in syn]))
-            if self.samples and t_s <= self.samples[-1].t_s:
-                self.samples[-1] = sample  # both sides of a switching instant: keep the later one
-            else:
-                self.samples.append(sample)
+            # Both sides of a switching instant come at one time (keep the later); after a step that failed to
+            # converge ANDES retries from an earlier time with a shorter step (drop what it took back).
+            while self.samples and t_s <= self.samples[-1].t_s:
+                self.samples.pop()
+            self.samples.append(sample)
             if hook is not None:
                 hook(self, sample)
             due = [p for p in self._pending if p[0] <= t_s + 1e-9]
@@ -415,6 +416,8 @@ class GridRun:
 
         """
         t = np.array([s.t_s for s in self.samples])
+        if self.stopped_s is not None:
+            judged_from_s = min(judged_from_s, float(t[-1]))  # the solver gave up before the window began
         delta = np.vstack([s.delta_rad for s in self.samples])
         omega = np.vstack([s.omega_pu for s in self.samples])
         volts = np.vstack([s.bus_v_pu for s in self.samples])
