@@ -12,6 +12,7 @@ import copy
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 from builtin_interfaces.msg import Time
 from controlled_islanding_msgs.msg import CoherentGroups, IslandingRequest, NetworkSnapshot, PmuFrame, RotorAngles
@@ -34,8 +35,8 @@ DAY_S = 86_400
 MAX_STATIONS = 25  # small, so a few frames of odd station ids overflow it
 
 
-def bag_messages(n_frames: int) -> tuple[NetworkSnapshot, list[PmuFrame]]:
-    bag = REPO / 'bags' / default_bag()['bag']
+def bag_messages(n_frames: int, bag: Path | None = None) -> tuple[NetworkSnapshot, list[PmuFrame]]:
+    bag = bag or REPO / 'bags' / default_bag()['bag']
     frames, snapshot = [], None
     with AnyReader([bag], default_typestore=typestore()) as reader:
         for conn, _, raw in reader.messages():
@@ -258,3 +259,44 @@ def test_a_snapshot_with_another_generator_set_starts_a_new_window(upstream):
         'coherency did not group the new generator set'
     assert up.counter('coherency', 'rejected.unknown_id') == unknown_before
     up.healthy()
+
+
+def test_machines_sharing_a_bus_get_the_rotor_angle_of_their_own_channel():
+    """Where machines share a bus each has a PMU channel '<station>/<generator>'; a bus total fits none of them."""
+    from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
+
+    entry = next((e for e in manifest_entries() if any('/' in s for s in _station_ids(e))), None)
+    if entry is None:
+        pytest.skip('no bag with machines sharing a bus')
+    snapshot, frames = bag_messages(20, REPO / 'bags' / entry['bag'])
+    shared = [n for n in snapshot.generator_names
+              if any(m.station_id.endswith(f'/{n}') for m in frames[0].measurements)]
+    with graph('test_nodes_shared_bus', [(s, {'use_sim_time': True}) for s in NODES
+                                         if s.executable == 'pmu_ingestion']) as (sup, probe):
+        for msg_type, topic in ((PmuFrame, topics.PMU_FRAMES), (NetworkSnapshot, topics.NETWORK_SNAPSHOT),
+                                (Clock, topics.CLOCK)):
+            probe.publisher(msg_type, topic)
+        angles = probe.collect(RotorAngles, topics.ROTOR_ANGLES)
+        probe.wait_matched(topics.NETWORK_SNAPSHOT, 1)
+        probe.wait_matched(topics.PMU_FRAMES, 1)
+        probe.pubs[topics.NETWORK_SNAPSHOT].publish(snapshot)
+        probe.spin_for(0.5)
+        frame = frames[0]
+        probe.pubs[topics.CLOCK].publish(Clock(clock=frame.header.stamp))
+        probe.pubs[topics.PMU_FRAMES].publish(frame)
+        assert probe.spin_until(lambda: angles, 10.0), 'no rotor angles for the frame'
+    got = dict(zip(angles[0].generator_names, angles[0].angle_rad, strict=True))
+    row = list(snapshot.generator_names)
+    for name in shared:
+        m = next(m for m in frame.measurements if m.station_id.endswith(f'/{name}'))
+        k = row.index(name)
+        own = estimate_rotor_angle_rad(*([getattr(m, f)] for f in ('voltage_magnitude_pu', 'voltage_angle_rad',
+                                                                     'current_magnitude_pu', 'current_angle_rad')),
+                                       snapshot.generator_xq_pu[k], snapshot.generator_ra_pu[k])[0]
+        assert math.isclose(float(np.angle(np.exp(1j * (got[name] - own)))), 0.0, abs_tol=1e-6), name
+    assert len({round(got[n], 6) for n in shared}) == len(shared), 'machines on one bus got one angle'
+
+
+def _station_ids(entry: dict) -> set[str]:
+    _snapshot, frames = bag_messages(1, REPO / 'bags' / entry['bag'])
+    return {m.station_id for m in frames[0].measurements}

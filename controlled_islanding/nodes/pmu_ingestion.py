@@ -4,7 +4,9 @@ Frames are published as soon as they arrive, stamped with their time tag, so a f
 one; the coherency node orders its window by time tag. A frame repeating a time tag already seen is a
 duplicate; one older than the newest by more than `max_delay_s` is too late. A PMU whose STAT says "do not
 use", or that is absent from the frame, gives `valid = false` for its generator. Rotor angles come from the
-core estimator with the generator reactances of the latest /network/snapshot.
+core estimator with the generator reactances of the latest /network/snapshot. A generator's PMU is the channel
+whose station id ends in '/<generator name>' (where machines share a bus, each has its own current), else the
+one at its bus.
 
 Time tags are bounded by the node's own clock (sim time in replay): a frame or snapshot stamped more than
 `future_tolerance_s` ahead of it is refused, so it never becomes "the newest" that every honest frame would
@@ -188,16 +190,17 @@ class PmuIngestionNode(Node):
             self.diag.reject('time_backwards', f'PMU frame at {t:.3f} s is {self.newest_s - t:.3f} s older than '
                                                f'the newest; more than max_delay_s={self.max_delay_s}')
             return
-        by_bus = {}
+        by_bus, by_generator = {}, {}
         stations: set[str] = set()
         for m in frame.measurements:
             verdict = self._judge(m, stations)
             if verdict == 'use':
                 by_bus[int(m.bus)] = m
+                by_generator[m.station_id.rpartition('/')[2]] = m
             if verdict != 'rejected':
                 self._remember(m.station_id, int(m.bus), t if verdict == 'use' else -math.inf)
         try:
-            angles = self._angles(frame, by_bus)
+            angles = self._angles(frame, by_bus, by_generator)
         except RotorAngleError as exc:  # the snapshot validator should make this impossible; never fatal
             self.diag.reject('compute_failed', f'rotor angles of the frame at {t:.3f} s: {exc}')
             return
@@ -210,14 +213,18 @@ class PmuIngestionNode(Node):
         self.pub.publish(angles)
         self._account(t0)
 
-    def _angles(self, frame: PmuFrame, by_bus: dict[int, PmuMeasurement]) -> RotorAngles:
+    def _angles(self, frame: PmuFrame, by_bus: dict[int, PmuMeasurement],
+                by_generator: dict[str, PmuMeasurement]) -> RotorAngles:
         assert self.grid is not None
         gens = self.grid.generators
-        valid = np.array([g.bus in by_bus for g in gens])
+        # A channel of the machine's own ('<station>/<generator name>', where machines share a bus) carries its
+        # current; the rotor angle needs that current, never a bus total shared with another machine.
+        source = [by_generator.get(g.name) or by_bus.get(g.bus) for g in gens]
+        valid = np.array([m is not None for m in source])
         angles = np.zeros(len(gens))
         if valid.any():
             idx = np.flatnonzero(valid)
-            cols = np.array([[getattr(by_bus[gens[i].bus], f) for f in _FIELDS] for i in idx])
+            cols = np.array([[getattr(source[i], f) for f in _FIELDS] for i in idx])
             # One row = one time tag: the estimator unwraps along rows, never across generators.
             raw = estimate_rotor_angle_rad(
                 cols[None, :, 0], cols[None, :, 1], cols[None, :, 2], cols[None, :, 3],
