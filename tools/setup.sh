@@ -82,5 +82,20 @@ step="install controlled_islanding (editable)"
 step="import check"
 "$VENV/bin/python" -c "import controlled_islanding_msgs.msg, controlled_islanding_msgs.srv, controlled_islanding, rclpy"
 
+step="compile the numba kernels"
+# numba compiles on a process's first call and caches beside the sources; compiled here once, not by every node
+# process at its first decision (30 to 90 s each on a busy 2-core machine, past the supervisor's hang limit).
+echo "setup: compiling the numba kernels (DTW, PAM)"
+"$VENV/bin/python" -c "
+import numpy as np
+from controlled_islanding.core.dtw import dtw_distance_matrix
+from controlled_islanding.core.pam import pam
+rng = np.random.default_rng(0)
+for parallel in (False, True):
+    dtw_distance_matrix([rng.standard_normal(40) for _ in range(4)], window=10, parallel=parallel)
+for n in (40, 1200):
+    pam(rng.standard_normal((n, 2)), 2)
+"
+
 echo "$full_hash" >"$STAMP"
 echo "setup: done ($VENV)"
