@@ -19,7 +19,7 @@ from controlled_islanding.cli import main
 from controlled_islanding.core.grid import Grid
 
 BAGS = Path(__file__).resolve().parents[1] / 'bags'
-SPLITS = [e for e in yaml.safe_load((BAGS / 'index.yaml').read_text())['bags'] if e['expected_decision']['split']]
+SPLITS = [e for e in yaml.safe_load((BAGS / 'index.yaml').read_text())['bags'] if e['expected_decision'].get('split')]
 
 
 def case_of(entry: dict) -> str:
