@@ -399,7 +399,16 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
            f'the opening, simulated at least {args.run_after_s} s past the request.', '',
            '| ' + ' | '.join(HEADER) + ' |', '|' + '---|' * len(HEADER)]
     out += ['| ' + ' | '.join(row) + ' |' for row in table_rows(results)]
-    out.append('')
+    out += ['', 'Reading the table:',
+            "- The shed rule only covers islands short of generation (the paper's load to shed). An island with a "
+            'surplus gets no action in the testbed (no generator tripping, no overspeed protection is modelled), so '
+            'its machines speed up past 61.8 Hz and it counts as lost.',
+            '- "V min" is ANDES\' voltage variable: ANDES zeroes the voltage of a bus left with no in-service '
+            "branch, and a collapsing island can show 0 or a negative value (the solver's sign, not a magnitude). "
+            "Per-island figures are in each scenario's result.json in the results folder.",
+            "- The lockstep opening time is request + the graph's wall latency + the breaker time, so it varies "
+            'by tens of ms between runs; outcomes that change across the g6g7 variants with the same physics show '
+            'how sensitive a late cut is to it.', '']
     for fig in figures:
         out += [f'![{fig.stem}]({os.path.relpath(fig, page.parent)})', '']
     return '\n'.join(out)
@@ -420,7 +429,7 @@ def _publish(results: list[dict], args: argparse.Namespace, missing: list[str]) 
     if args.markdown is not None:
         text = markdown(results, args, figures, args.markdown)
         if missing:
-            text += f'\nNot in this table (not finished when it was written): {", ".join(missing)}.\n'
+            text += f'\nNot in this table (not run, failed, or unfinished when written): {", ".join(missing)}.\n'
         args.markdown.write_text(text)
 
 
