@@ -118,6 +118,21 @@ class BagData:
         """Number of true coherent groups, or None if the bag has none."""
         return None if self.truth_groups is None else len(set(self.truth_groups.values()))
 
+    def pmu_column(self, generator: str, bus: int) -> int:
+        """Return the PMU column of a generator: its own channel ('<station>/<name>') if it has one, else its bus's.
+
+        Raises:
+            BagDataError: No PMU at the generator's bus.
+
+        """
+        own = [j for j, s in enumerate(self.pmu_station_ids) if s.rpartition('/')[2] == generator and '/' in s]
+        at_bus = np.flatnonzero(self.pmu_buses == bus)
+        if own:
+            return own[0]
+        if not len(at_bus):
+            raise BagDataError(f'{self.path}: no PMU at bus {bus} of generator {generator}')
+        return int(at_bus[0])
+
     def tripped_branch_ids(self, before_s: float | None = None) -> tuple[str, ...]:
         """Return the branches out of service at a time, by replaying the status events.
 

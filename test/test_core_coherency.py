@@ -139,15 +139,12 @@ def _bag_entries() -> list[dict]:
 
 def bag_rotor_angles(bag, window_s: float = 4.0) -> tuple[list[str], np.ndarray]:
     """Estimate every generator's rotor angle from its terminal PMU over the window before the first request."""
-    stations = list(bag.pmu_station_ids)
     t = bag.frame_t_s
     request = float(bag.request_t_s[0])
     rows = (t >= request - window_s) & (t < request)
     names, series = [], []
     for g in bag.grid.generators:
-        # A machine sharing its bus has a channel of its own (sim/pmu.py): a bus total belongs to none of them.
-        own = f'PMU_{g.bus}/{g.name}'
-        c = stations.index(own if own in stations else f'PMU_{g.bus}')
+        c = bag.pmu_column(g.name, g.bus)
         series.append(estimate_rotor_angle_rad(bag.v_mag_pu[rows, c], bag.v_angle_rad[rows, c],
                                                bag.i_mag_pu[rows, c], bag.i_angle_rad[rows, c], g.xq_pu, g.ra_pu))
         names.append(g.name)

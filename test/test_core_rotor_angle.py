@@ -60,25 +60,38 @@ def test_bad_inputs_are_named() -> None:
         estimate_rotor_angle_rad(np.ones((5, 2)), np.ones((5, 2)), np.ones((5, 2)), np.ones((5, 2)), [0.5, 0.5, 0.5])
 
 
-def _clean_bag() -> Path | None:
+def _clean_bags() -> list[Path]:
+    """Return one bag without impairments per case file (per system and input format)."""
     index = REPO / 'bags' / 'index.yaml'
     if not index.exists():
-        return None
+        return []
+    chosen: dict[str, Path] = {}
     for entry in yaml.safe_load(index.read_text())['bags']:
+        case = yaml.safe_load((REPO / 'bags' / entry['scenario']).read_text())['case']
         if not entry.get('impairments') and (REPO / 'bags' / entry['bag']).exists():
-            return REPO / 'bags' / entry['bag']
-    return None
+            chosen.setdefault(case, REPO / 'bags' / entry['bag'])
+    return list(chosen.values())
 
 
-@pytest.mark.skipif(_clean_bag() is None, reason='no scenario bag without impairments in bags/')
-def test_error_against_simulator_truth_before_the_fault() -> None:
+# Found and not yet explained (issue 11): strict, so a fixed bag fails here until it is taken out.
+ROTOR_ANGLE_OFF = {
+    'ei33_bus101023_three_groups': 'GENCLS_8, on bus 101023 with GENROU_46, drifts up to 2.8 rad from ANDES before '
+                                   'the fault although it has a channel of its own',
+    'ieee14_g1_unstable': 'GENROU_1 (loads doubled) is 2.2 deg off ANDES at p99 before the fault, over the 1 deg bound',
+    'ieee14_psse_g1_borderline': 'GENROU_1 is 2.2 deg off ANDES at p99 before the fault, over the 1 deg bound',
+}
+
+
+@pytest.mark.parametrize('path', [pytest.param(p, id=p.name, marks=pytest.mark.xfail(
+    strict=True, reason=ROTOR_ANGLE_OFF[p.name])) if p.name in ROTOR_ANGLE_OFF else pytest.param(p, id=p.name)
+    for p in _clean_bags()])
+def test_error_against_simulator_truth_before_the_fault(path: Path) -> None:
     from controlled_islanding.bagdata import load_bag
 
-    bag = load_bag(_clean_bag())
-    col = {int(b): k for k, b in enumerate(bag.pmu_buses)}
+    bag = load_bag(path)
     steady = bag.frame_t_s < min([e.t_s for e in bag.branch_events] + [bag.frame_t_s[-1]]) - 0.5
     for g in bag.grid.generators:
-        c = col[g.bus]
+        c = bag.pmu_column(g.name, g.bus)
         est = estimate_rotor_angle_rad(bag.v_mag_pu[:, c], bag.v_angle_rad[:, c], bag.i_mag_pu[:, c],
                                        bag.i_angle_rad[:, c], g.xq_pu, g.ra_pu)
         column = bag.truth_angles_rad[:, bag.truth_generator_names.index(g.name)]

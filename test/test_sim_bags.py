@@ -124,11 +124,8 @@ def _rotor_angle_series(data: BagData) -> list[np.ndarray]:
     request = float(data.request_t_s[0])
     seen = (data.frame_t_s <= request + 1e-9) & (data.frame_delivery_s <= request + 1e-9)
     series = []
-    stations = list(data.pmu_station_ids)
     for gen in data.grid.generators:
-        # A machine sharing its bus has a channel of its own (sim/pmu.py).
-        own = f'PMU_{gen.bus}/{gen.name}'
-        j = stations.index(own if own in stations else f'PMU_{gen.bus}')
+        j = data.pmu_column(gen.name, gen.bus)
         columns = [a[seen, j] for a in (data.v_mag_pu, data.v_angle_rad, data.i_mag_pu, data.i_angle_rad)]
         series.append(estimate_rotor_angle_rad(*columns, xq_pu=gen.xq_pu, ra_pu=gen.ra_pu))
     return series
