@@ -1,7 +1,7 @@
 """What rosbag2's own tools read in a bag's metadata: the offered QoS of each topic, and the distribution.
 
 `ros2 bag play` offers each topic with the QoS recorded for it, and plays a topic with none as volatile,
-which our transient-local readers never match; `qos_profiles` turns a live QoS into the record. rosbags
+which our transient-local readers never match; `qos_profile` turns a live QoS into the record. rosbags
 writes `ros_distro: rosbags`; `ros2 bag` reads the distribution from that field, and our bags
 hold Jazzy's message definitions and type hashes, so it is set to jazzy once the writer has closed. (The
 copy of the metadata embedded in the MCAP file keeps rosbags' value: rosbag2 reads metadata.yaml.)
