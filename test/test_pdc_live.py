@@ -23,6 +23,7 @@ import signal
 import subprocess
 import sys
 import time
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -146,6 +147,8 @@ def test_live_c37118_stream_drives_the_graph_to_the_manifest_decision():
             sup.start(PDC_CLIENT, {'servers': str([f'127.0.0.1:{port}']), 'channel_map_file': map_file,
                                    'wait_for_subscribers': 2, 'use_sim_time': True})
             done = probe.spin_until(lambda: decisions and (commands or not entry['expected_decision']['split']), 40.0)
+            # The stream is paced in real time and the bag goes on after its request: wait for its last frames.
+            probe.spin_until(lambda: len({t for _, t in arrivals}) >= n_bag_frames(bag), 15.0)
             probe.spin_for(0.5)
             sup.check_alive([spec.executable for spec in GRAPH] + ['pdc_client'])
             diag = {name: dict(values) for name, values in probe.diagnostics.items()}
@@ -167,14 +170,7 @@ def test_live_c37118_stream_drives_the_graph_to_the_manifest_decision():
         assert {c.branch_id for _, c in commands} == set(expected['cut_branches'])
 
     # Every frame of the bag crossed TCP once, with its own time tag (to the microsecond of TIME_BASE).
-    from rosbags.highlevel import AnyReader
-
-    from controlled_islanding.interfaces import typestore
-
-    with AnyReader([bag], default_typestore=typestore()) as reader:
-        conns = [c for c in reader.connections if c.topic == topics.PMU_FRAMES]
-        bag_tags = [reader.deserialize(raw, c.msgtype).header.stamp for c, _, raw in reader.messages(conns)]
-    bag_ns = np.array(sorted(s.sec * 1_000_000_000 + s.nanosec for s in bag_tags))
+    bag_ns = bag_frame_tags_ns(bag)
     got_ns = np.array(sorted({t for _, t in arrivals}))
     assert len(got_ns) == len(arrivals), 'a time tag was published twice'
     assert len(got_ns) == len(bag_ns), f'{len(bag_ns) - len(got_ns)} frames lost'
@@ -203,3 +199,21 @@ def test_live_c37118_stream_drives_the_graph_to_the_manifest_decision():
     (run / 'figures.json').write_text(json.dumps(figures, indent=1))
     print(json.dumps(figures, indent=1))
     assert diag.get('pdc_client', {}).get('rejected') == '0', diag.get('pdc_client')
+
+
+@lru_cache(maxsize=4)
+def bag_frame_tags_ns(bag: Path) -> np.ndarray:
+    """Return the time tags of a bag's PMU frames, ns, ascending."""
+    from rosbags.highlevel import AnyReader
+
+    from controlled_islanding.interfaces import typestore
+
+    with AnyReader([bag], default_typestore=typestore()) as reader:
+        conns = [c for c in reader.connections if c.topic == topics.PMU_FRAMES]
+        tags = [reader.deserialize(raw, c.msgtype).header.stamp for c, _, raw in reader.messages(conns)]
+    return np.array(sorted(s.sec * 1_000_000_000 + s.nanosec for s in tags))
+
+
+def n_bag_frames(bag: Path) -> int:
+    """Return how many PMU frames a bag holds."""
+    return len(bag_frame_tags_ns(bag))
