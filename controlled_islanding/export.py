@@ -13,7 +13,6 @@ formats), so branch ids are matched in either orientation: ANDES names transform
 
 from __future__ import annotations
 
-import logging
 import os
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -82,22 +81,17 @@ def load_case(case: str | Path, addfile: str | Path | None = None) -> Any:
     """Return an ANDES System of a case (a file, or one bundled with ANDES) after its power flow.
 
     Raises:
-        ExportError: ANDES cannot read the case or its power flow fails.
+        ExportError: ANDES cannot load the case or solve its power flow.
 
     """
-    import andes
+    from controlled_islanding.sim.andes_sim import SimulationError, load_power_flow
 
-    from controlled_islanding.sim.andes_sim import pycode_dir
-
-    andes.config_logger(stream_level=logging.CRITICAL)
-    path = Path(case) if Path(case).exists() else Path(andes.get_case(str(case), check=False))
-    if not path.exists():
-        raise ExportError(f'case {case}: no such file, and not a case bundled with ANDES')
-    extra = {'addfile': str(addfile)} if addfile else {}
-    pycode_dir().mkdir(parents=True, exist_ok=True)
-    ss = andes.load(str(path), no_output=True, default_config=True, pycode_path=str(pycode_dir()), **extra)
-    if ss is None or not ss.PFlow.run() or not ss.PFlow.converged:
-        raise ExportError(f'case {case}: ANDES could not load it or solve its power flow')
+    try:
+        ss = load_power_flow(case, addfile)
+    except (SimulationError, FileNotFoundError, OSError) as exc:
+        raise ExportError(f'case {case}: ANDES could not load it: {exc}') from exc
+    if not ss.PFlow.converged:
+        raise ExportError(f'case {case}: its ANDES power flow did not converge')
     return ss
 
 

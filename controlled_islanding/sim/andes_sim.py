@@ -413,15 +413,15 @@ def _split_line(ss: Any, row: int, new_bus: int, position: float) -> int:
     return new_bus
 
 
-def power_flow_grid(case: str | Path, addfile: str | Path | None = None) -> Grid:
-    """Return an ANDES case's network after its power flow, as the core Grid a snapshot would carry.
+def load_power_flow(case: str | Path, addfile: str | Path | None = None) -> Any:
+    """Return an ANDES System of a case after its power flow (PSS/E lines put on the system base first).
 
     Args:
         case: A case file, or a case bundled with ANDES such as 'ieee14/ieee14_full.xlsx'.
         addfile: A dynamic data file for a PSS/E .raw case (its .dyr).
 
     Raises:
-        SimulationError: ANDES cannot read the case, or its buses are not numbered.
+        SimulationError: ANDES cannot read the case.
 
     """
     import andes
@@ -437,6 +437,22 @@ def power_flow_grid(case: str | Path, addfile: str | Path | None = None) -> Grid
     _psse_line_base(ss, path)
     ss.setup()
     ss.PFlow.run()
+    return ss
+
+
+def power_flow_grid(case: str | Path, addfile: str | Path | None = None) -> Grid:
+    """Return an ANDES case's network after its power flow, as the core Grid a snapshot would carry.
+
+    Args:
+        case: A case file, or a case bundled with ANDES such as 'ieee14/ieee14_full.xlsx'.
+        addfile: A dynamic data file for a PSS/E .raw case (its .dyr).
+
+    Raises:
+        SimulationError: ANDES cannot read the case, or its buses are not numbered.
+
+    """
+    path = Path(case)
+    ss = load_power_flow(case, addfile)
     try:
         bus_numbers = [int(b) for b in ss.Bus.idx.v]
     except (TypeError, ValueError):
