@@ -72,8 +72,14 @@ TOPIC_QOS: dict[str, QoSProfile] = {
 
 
 def qos_for(topic: str) -> QoSProfile:
-    """Return the documented QoS of a topic; unknown topics get reliable, volatile, depth 100."""
-    return TOPIC_QOS.get(topic, _qos(100))
+    """Return the documented QoS of a topic; unknown topics get reliable, volatile, depth 100.
+
+    The topic may be named as in the root namespace (/pmu/frames), relative (pmu/frames) or in any namespace
+    (/area1/pmu/frames): a name ending in a documented one has its QoS.
+    """
+    name = topic if topic.startswith('/') else f'/{topic}'
+    known = [k for k in TOPIC_QOS if name.endswith(k)]
+    return TOPIC_QOS[max(known, key=len)] if known else _qos(100)
 
 
 def message_class(type_name: str) -> type:
@@ -127,8 +133,102 @@ class LossCounter:
         return gap
 
 
+class TopicStatus:
+    """One input topic's status in diagnostic_updater's TopicDiagnostic form: frequency and time stamps.
+
+    Frequency (FrequencyStatus): messages over the last `window` publishes (one a second) divided by how far
+    the node clock moved meanwhile; OK within `tolerance` of the expected rate, WARN "Frequency too low." or
+    "Frequency too high." outside, ERROR "No events recorded." with none. The node clock is sim time in a
+    replay, so a replay at any speed is measured against bag time; while that clock stands (before the first
+    /clock, after the bag) no rate can be measured and nothing can be late: OK, and the message says so.
+    Time stamps (TimeStampStatus): the delay of header.stamp behind the node clock, since the last publish;
+    ERROR "Timestamps too far in future seen." / "... past seen." outside `stamp_bounds_s` (the node's own
+    acceptance bounds), WARN "No data since last update." when none came while the clock ran.
+
+    Args:
+        name: The status name, '<node>: <topic> topic status'.
+        rate_hz: Expected rate, Hz.
+        stamp_bounds_s: (earliest, latest) acceptable delay of a stamp behind the node clock, s.
+        tolerance: Fraction of the rate either side that is still OK (diagnostic_updater's default 0.1).
+        window: Publishes the rate is measured over (diagnostic_updater's default 5).
+
+    """
+
+    def __init__(self, name: str, rate_hz: float, stamp_bounds_s: tuple[float, float], tolerance: float = 0.1,
+                 window: int = 5) -> None:
+        self.name, self.rate_hz, self.stamp_bounds_s, self.tolerance = name, rate_hz, stamp_bounds_s, tolerance
+        self.count = 0
+        self._history: deque[tuple[float, int]] = deque(maxlen=window)  # (node clock s, count) per publish
+        self._delays_s: list[float] = []
+        self.level = DiagnosticStatus.OK
+        self.message = 'No events recorded.'
+        self.values: dict[str, str] = {}
+
+    def arrived(self, clock_s: float, stamp_s: float | None) -> None:
+        """Count one message; clock_s: the node clock at arrival (0: not running), stamp_s: its header stamp."""
+        self.count += 1
+        if clock_s > 0 and stamp_s is not None and stamp_s > 0:
+            self._delays_s.append(clock_s - stamp_s)
+
+    def update(self, clock_s: float) -> None:
+        """Take one window step at the node clock's clock_s (0: not running); set level, message and values."""
+        if self._history and clock_s < self._history[-1][0]:
+            self._history.clear()  # the clock went back (a new replay): an old window means nothing
+        oldest_s, oldest_count = self._history[0] if self._history else (clock_s, self.count)
+        duration_s = clock_s - oldest_s
+        events = self.count - oldest_count
+        if clock_s > 0:
+            self._history.append((clock_s, self.count))
+        low, high = self.rate_hz * (1 - self.tolerance), self.rate_hz * (1 + self.tolerance)
+        found: list[tuple[int, str]] = []
+        if clock_s <= 0 or duration_s <= 0:
+            found.append((DiagnosticStatus.OK, 'Node clock not running: no rate to measure.'))
+            freq = None
+        else:
+            freq = events / duration_s
+            if events == 0:
+                found.append((DiagnosticStatus.ERROR, 'No events recorded.'))
+            elif freq < low:
+                found.append((DiagnosticStatus.WARN, 'Frequency too low.'))
+            elif freq > high:
+                found.append((DiagnosticStatus.WARN, 'Frequency too high.'))
+            else:
+                found.append((DiagnosticStatus.OK, 'Desired frequency met'))
+        earliest, latest = self.stamp_bounds_s
+        delays = self._delays_s
+        if delays and min(delays) < earliest:
+            found.append((DiagnosticStatus.ERROR, 'Timestamps too far in future seen.'))
+        if delays and max(delays) > latest:
+            found.append((DiagnosticStatus.ERROR, 'Timestamps too far in past seen.'))
+        if not delays and freq is not None:
+            found.append((DiagnosticStatus.WARN, 'No data since last update.'))
+        self.level = max(level for level, _ in found)
+        self.message = '; '.join(text for level, text in found if level == self.level)
+        self.values = {
+            'Events in window': str(events), 'Events since startup': str(self.count),
+            'Duration of window (s)': f'{max(duration_s, 0.0):.6f}',
+            'Actual frequency (Hz)': f'{freq:.6f}' if freq is not None else 'n/a',
+            'Target frequency (Hz)': f'{self.rate_hz:.6f}',
+            'Minimum acceptable frequency (Hz)': f'{low:.6f}', 'Maximum acceptable frequency (Hz)': f'{high:.6f}',
+            'Earliest timestamp delay:': f'{min(delays):.6f}' if delays else 'n/a',
+            'Latest timestamp delay:': f'{max(delays):.6f}' if delays else 'n/a',
+            'Earliest acceptable timestamp delay:': f'{earliest:.6f}',
+            'Latest acceptable timestamp delay:': f'{latest:.6f}',
+        }
+        self._delays_s = []
+
+
 class Diagnostics:
     """Counts inputs, rejects, compute time and extra figures, and publishes them on /diagnostics.
+
+    One DiagnosticStatus for the node (named by its fully qualified name), then one per input topic with an
+    expected rate (`TopicStatus`). The node's level says what holds now:
+    - ERROR while a `fault` is raised, and for `diagnostics_hold_s` after the last callback exception;
+    - WARN while a `warn` condition is raised (e.g. a stale PMU), and for `diagnostics_hold_s` after the last
+      rejected input;
+    - OK otherwise. The hold (10 s by default) keeps a condition that recurs at least that often reading as
+      one lasting condition, and lets one that ended read as over. Counters (`rejected.*`, `error.*`) are
+      totals since the start and never go down.
 
     The publish timer runs on the steady clock, so an as-fast-as-possible replay with a racing /clock
     does not multiply the diagnostics traffic.
@@ -137,6 +237,10 @@ class Diagnostics:
     def __init__(self, node: Node, period_s: float = 1.0) -> None:
         self._node = node
         self._pub = node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos_for(topics.DIAGNOSTICS))
+        self.hold_s = float(declare_bounded(
+            node, 'diagnostics_hold_s', 10.0, 0.1, 86_400.0,
+            'the diagnostics level stays WARN this long after the last rejected input, and ERROR this long after '
+            'the last callback exception, then returns to OK if nothing else holds it, s', read_only=True))
         self._arrivals_s: deque[float] = deque(maxlen=4096)
         self.rejects: Counter[str] = Counter()
         self.received = 0
@@ -145,27 +249,45 @@ class Diagnostics:
         self.values: dict[str, str] = {}
         self.errors: Counter[str] = Counter()
         self.faults: dict[str, str] = {}
+        self.warnings: dict[str, str] = {}
+        self.topics: list[TopicStatus] = []
+        self._rejected_at_s: dict[str, float] = {}
+        self._failed_at_s: dict[str, float] = {}
         self._last_log_s: dict[str, float] = {}
         self._last_publish_s = 0.0
-        self._timer = node.create_timer(period_s, self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._timer = node.create_timer(period_s, self._tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
-    def subscribe(self, msg_type: type, topic: str, callback: Callable[[object], None]) -> object:
-        """Subscribe with the topic's documented QoS; count each message in, guard the callback, count losses.
+    def _clock_s(self) -> float:
+        return self._node.get_clock().now().nanoseconds * 1e-9
 
-        The losses are `lost.<topic>` in /diagnostics, present (0) from the start.
+    def subscribe(self, msg_type: type, topic: str, callback: Callable[[object], None],
+                  rate_hz: float | None = None, stamp_bounds_s: tuple[float, float] = (-1.0, 5.0)) -> object:
+        """Subscribe (in the node's namespace) with the topic's documented QoS; count, guard, count losses.
+
+        The losses are `lost.<topic>` in /diagnostics, present (0) from the start. With `rate_hz`, the topic
+        also gets its own status (`TopicStatus`): expected rate, Hz, and acceptable stamp delays, s.
         """
         counter = LossCounter()
         key = f'lost.{topic}'
         self.values[key] = '0'
         guarded = self.guard(callback)
+        status = None
+        if rate_hz is not None:
+            name = self._node.resolve_topic_name(topics.relative(topic))
+            status = TopicStatus(f'{self._node.get_fully_qualified_name()}: {name} topic status', rate_hz,
+                                 stamp_bounds_s)
+            self.topics.append(status)
 
         def take(msg: object, info: dict) -> None:
             if counter.seen(info.get('publication_sequence_number')):
                 self.values[key] = str(counter.lost)
             self.arrived()
+            if status is not None:
+                stamp = getattr(getattr(msg, 'header', None), 'stamp', None)
+                status.arrived(self._clock_s(), stamp.sec + stamp.nanosec * 1e-9 if stamp is not None else None)
             guarded(msg)
 
-        return self._node.create_subscription(msg_type, topic, take, qos_for(topic))
+        return self._node.create_subscription(msg_type, topics.relative(topic), take, qos_for(topic))
 
     def arrived(self) -> None:
         """Count one input message."""
@@ -182,6 +304,7 @@ class Diagnostics:
         """
         self.rejects[reason] += 1
         now = time.monotonic()
+        self._rejected_at_s[reason] = now
         # At 60 frames/s one broken PMU would flood the log and the topic: at most one line per reason per
         # second (the count says how many), and at most ten early diagnostics per second.
         if now - self._last_log_s.get(reason, -1e9) >= 1.0:
@@ -193,8 +316,9 @@ class Diagnostics:
     def guard(self, callback: Callable[..., object]) -> Callable[..., object]:
         """Wrap a callback so that an unexpected exception is logged with its traceback and counted, never fatal.
 
-        The count is `error.<callback name>` in /diagnostics, and the level is ERROR while any is counted: an
-        exception escaping a callback is a bug or an input no validator foresaw, and the node must go on.
+        The count is `error.<callback name>` in /diagnostics, and the level is ERROR for `diagnostics_hold_s`
+        after each: an exception escaping a callback is a bug or an input no validator foresaw, and the node
+        must go on.
         """
         key = getattr(callback, '__name__', 'callback')
 
@@ -204,6 +328,7 @@ class Diagnostics:
                 return callback(*args, **kwargs)
             except Exception:  # noqa: BLE001  the whole point: nothing from one input may end the process
                 self.errors[key] += 1
+                self._failed_at_s[key] = time.monotonic()
                 self._node.get_logger().error(f'{key} failed ({self.errors[key]} so far):\n{traceback.format_exc()}')
                 self.publish()
                 return None
@@ -212,11 +337,20 @@ class Diagnostics:
 
     def fault(self, key: str, detail: str | None) -> None:
         """Raise (detail given) or clear (None) a lasting condition that keeps the level at ERROR."""
+        self._condition(self.faults, key, detail, self._node.get_logger().error)
+
+    def warn(self, key: str, detail: str | None) -> None:
+        """Raise (detail given) or clear (None) a lasting condition that keeps the level at least at WARN."""
+        self._condition(self.warnings, key, detail, self._node.get_logger().warning)
+
+    def _condition(self, held: dict[str, str], key: str, detail: str | None, log: Callable[[str], object]) -> None:
         if detail is None:
-            self.faults.pop(key, None)
-        elif self.faults.get(key) != detail:
-            self.faults[key] = detail
-            self._node.get_logger().error(f'{key}: {detail}')
+            if held.pop(key, None) is not None:
+                self._node.get_logger().info(f'{key}: over')
+                self.publish()
+        elif held.get(key) != detail:
+            held[key] = detail
+            log(f'{key}: {detail}')
             self.publish()
 
     def computed(self, seconds: float) -> None:
@@ -229,13 +363,33 @@ class Diagnostics:
         now = time.monotonic()
         return sum(1 for t in self._arrivals_s if now - t <= 2.0) / 2.0
 
+    def _tick(self) -> None:
+        clock_s = self._clock_s()
+        for status in self.topics:
+            status.update(clock_s)
+        self.publish()
+
+    def level(self) -> tuple[int, str]:
+        """Return the node's level now and its message."""
+        now = time.monotonic()
+        failed = sorted(k for k, t in self._failed_at_s.items() if now - t < self.hold_s)
+        rejected = sorted(k for k, t in self._rejected_at_s.items() if now - t < self.hold_s)
+        errors = [f'{k}: {v}' for k, v in sorted(self.faults.items())]
+        if failed:
+            errors.append(f'callback errors in the last {self.hold_s:g} s: {", ".join(failed)}')
+        warnings = [f'{k}: {v}' for k, v in sorted(self.warnings.items())]
+        if rejected:
+            warnings.append(f'inputs rejected in the last {self.hold_s:g} s: {", ".join(rejected)}')
+        if errors:
+            return DiagnosticStatus.ERROR, '; '.join(errors + warnings)
+        if warnings:
+            return DiagnosticStatus.WARN, '; '.join(warnings)
+        return DiagnosticStatus.OK, 'ok'
+
     def publish(self) -> None:
-        """Publish one DiagnosticStatus for this node."""
+        """Publish the node's DiagnosticStatus and its topics' ones."""
         self._last_publish_s = time.monotonic()
-        if self.faults or self.errors:
-            level = DiagnosticStatus.ERROR
-        else:
-            level = DiagnosticStatus.WARN if self.rejects else DiagnosticStatus.OK
+        level, message = self.level()
         pairs = {
             'input_rate_hz': f'{self.input_rate_hz():.1f}',
             'received': str(self.received),
@@ -246,18 +400,15 @@ class Diagnostics:
         pairs.update({f'rejected.{k}': str(v) for k, v in sorted(self.rejects.items())})
         pairs.update({f'error.{k}': str(v) for k, v in sorted(self.errors.items())})
         pairs.update({f'fault.{k}': v for k, v in sorted(self.faults.items())})
+        pairs.update({f'warn.{k}': v for k, v in sorted(self.warnings.items())})
         pairs.update(self.values)
-        if self.faults:
-            message = '; '.join(f'{k}: {v}' for k, v in sorted(self.faults.items()))
-        elif self.errors:
-            message = f'{sum(self.errors.values())} callback errors'
-        else:
-            message = f'{sum(self.rejects.values())} inputs rejected' if self.rejects else 'ok'
-        status = DiagnosticStatus(
+        statuses = [DiagnosticStatus(
             level=level, name=self._node.get_fully_qualified_name(), hardware_id='controlled_islanding',
-            message=message,
-            values=[KeyValue(key=k, value=v) for k, v in pairs.items()])
-        array = DiagnosticArray(status=[status])
+            message=message, values=[KeyValue(key=k, value=v) for k, v in pairs.items()])]
+        statuses += [DiagnosticStatus(level=t.level, name=t.name, hardware_id='controlled_islanding', message=t.message,
+                                      values=[KeyValue(key=k, value=v) for k, v in t.values.items()])
+                     for t in self.topics]
+        array = DiagnosticArray(status=statuses)
         array.header.stamp = self._node.get_clock().now().to_msg()
         self._pub.publish(array)
 

@@ -118,12 +118,15 @@ def config_dir() -> Path:
     raise SupervisorError(f'config/ not found; looked in {", ".join(map(str, candidates))}')
 
 
-def node_command(spec: NodeSpec, overrides: Mapping[str, object] | None = None) -> list[str]:
+def node_command(spec: NodeSpec, overrides: Mapping[str, object] | None = None, namespace: str = '',
+                 remaps: Mapping[str, str] | None = None) -> list[str]:
     """Return the command line that runs one executable with its parameter file and overrides.
 
     Args:
         spec: The executable and its parameter file.
         overrides: Parameters set after the file (`-p name:=value`), e.g. use_sim_time.
+        namespace: The node's namespace (`-r __ns:=`), e.g. '/area1'; '' = the root namespace.
+        remaps: Name remapping rules (`-r from:=to`), e.g. {'/clock': '/area1/clock'}.
 
     Returns:
         The argv list, running the module with this interpreter.
@@ -131,6 +134,10 @@ def node_command(spec: NodeSpec, overrides: Mapping[str, object] | None = None) 
     """
     argv = [sys.executable, '-m', f'controlled_islanding.nodes.{spec.executable}', '--ros-args',
             '--params-file', str(config_dir() / spec.params_file)]
+    if namespace.strip('/'):
+        argv += ['-r', f'__ns:=/{namespace.strip("/")}']
+    for source, target in dict(remaps or {}).items():
+        argv += ['-r', f'{source}:={target}']
     for name, value in dict(overrides or {}).items():
         text = str(value).lower() if isinstance(value, bool) else str(value)
         argv += ['-p', f'{name}:={text}']
@@ -153,18 +160,23 @@ class Supervisor:
         log_dir: Each child's stdout and stderr go to <log_dir>/<name>.log.
         policy: Which children `supervise` restarts and watches for hangs, and how; None: none (a dead
             child is only seen by `check_alive`).
+        namespace: Namespace of every child not started with its own, e.g. '/area1'; '' = the root one.
+        remaps: Name remapping rules for every child, e.g. {'/clock': '/area1/clock'}.
 
     """
 
-    def __init__(self, env: Mapping[str, str], log_dir: Path, policy: RestartPolicy | None = None) -> None:
+    def __init__(self, env: Mapping[str, str], log_dir: Path, policy: RestartPolicy | None = None,
+                 namespace: str = '', remaps: Mapping[str, str] | None = None) -> None:
         self.env = dict(env)
+        self.namespace = namespace
+        self.remaps = dict(remaps or {})
         self.log_dir = Path(log_dir)
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.children: dict[str, subprocess.Popen] = {}
         self.watchdog = Watchdog(policy) if policy is not None else None
         self.restarts: list[RestartRecord] = []
         self.hangs: list[HangRecord] = []
-        self._launch: dict[str, tuple[NodeSpec, dict[str, object]]] = {}
+        self._launch: dict[str, tuple[NodeSpec, dict[str, object], str]] = {}
         self._t0_s = time.monotonic()
 
     def __enter__(self) -> Supervisor:
@@ -174,8 +186,14 @@ class Supervisor:
         self.stop_all()
 
     def start(self, spec: NodeSpec, overrides: Mapping[str, object] | None = None, name: str | None = None,
-              ) -> subprocess.Popen:
+              namespace: str | None = None) -> subprocess.Popen:
         """Start one executable as its own process (own session, so a terminal Ctrl-C reaches only us).
+
+        Args:
+            spec: The executable and its parameter file.
+            overrides: Parameters set after the file.
+            name: The child's name here (its log file); default the executable's.
+            namespace: The node's namespace; default the supervisor's.
 
         Raises:
             SupervisorError: A child of that name is already running.
@@ -184,13 +202,13 @@ class Supervisor:
         name = name or spec.executable
         if name in self.children and self.children[name].poll() is None:
             raise SupervisorError(f'{name} is already running (pid {self.children[name].pid})')
-        self._launch[name] = (spec, dict(overrides or {}))
+        self._launch[name] = (spec, dict(overrides or {}), self.namespace if namespace is None else namespace)
         return self._spawn(name)
 
     def _spawn(self, name: str) -> subprocess.Popen:
-        spec, overrides = self._launch[name]
+        spec, overrides, namespace = self._launch[name]
         with open(self.log_dir / f'{name}.log', 'ab') as log:
-            child = subprocess.Popen(node_command(spec, overrides), env=self.env, stdout=log,
+            child = subprocess.Popen(node_command(spec, overrides, namespace, self.remaps), env=self.env, stdout=log,
                                      stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                      start_new_session=True, preexec_fn=_die_with_parent)
         self.children[name] = child

@@ -33,11 +33,13 @@ class Probe:
         self.pubs = {}
         self.received: dict[str, list] = {}
         self.diagnostics: dict[str, dict[str, str]] = {}
+        self.levels: dict[str, tuple[int, str]] = {}  # status name -> (level, message)
         self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diag, qos_for(topics.DIAGNOSTICS))
 
     def _on_diag(self, msg: DiagnosticArray) -> None:
         for status in msg.status:
             self.diagnostics[status.name.lstrip('/')] = {kv.key: kv.value for kv in status.values}
+            self.levels[status.name.lstrip('/')] = (status.level, status.message)
 
     def publisher(self, msg_type: type, topic: str):
         """Return (and keep) a publisher with the topic's documented QoS."""
@@ -96,15 +98,18 @@ def graph(name: str, specs_and_overrides: list) -> Iterator[tuple[Supervisor, Pr
 
     Args:
         name: Run name, for the log directory under build/.
-        specs_and_overrides: (NodeSpec, parameter overrides) pairs to start.
+        specs_and_overrides: (NodeSpec, parameter overrides) pairs to start, or (NodeSpec, overrides,
+            namespace) triples; a namespaced child's log is <namespace>.<executable>.log.
 
     """
     with isolated_ros_environment(BUILD / 'ros_log' / name) as env:
         # Nodes that sign or check signatures use keys this test run made, never the user's own.
         env = {**env, 'CONTROLLED_ISLANDING_KEYS': str(made_test_keys())}
         with Supervisor(env, BUILD / 'test_nodes' / name / f'{time.time_ns()}') as sup:
-            for spec, overrides in specs_and_overrides:
-                sup.start(spec, overrides)
+            for spec, overrides, *namespace in specs_and_overrides:
+                ns = namespace[0].strip('/') if namespace else ''
+                sup.start(spec, overrides, name=f'{ns.replace("/", ".")}.{spec.executable}' if ns else None,
+                          namespace=ns)
             probe = Probe(int(env['ROS_DOMAIN_ID']))
             try:
                 yield sup, probe

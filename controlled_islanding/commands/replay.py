@@ -30,13 +30,19 @@ stopped on exit, Ctrl-C or error.
 
 DDS domain: if ROS_DOMAIN_ID is set, the graph joins it, so your own tools see its topics (discovery
 stays on loopback unless ROS_AUTOMATIC_DISCOVERY_RANGE says otherwise); another graph on that domain
-will see and disturb it. With --isolate, or with ROS_DOMAIN_ID unset, the graph gets a free private
-domain on loopback.
+will see and disturb it, unless each runs in its own --namespace. With --isolate, or with ROS_DOMAIN_ID
+unset, the graph gets a free private domain on loopback.
+
+Namespace: with --namespace /area1 every node of the graph, the player and the recorder run in /area1
+(/area1/pmu/frames, /area1/breaker_command/set_armed, ...), and the bag's clock is /area1/clock, so two
+replays in two namespaces share one domain without crosstalk. /diagnostics stays global; each status is
+named by its node's full name (/area1/pmu_ingestion).
 
 Examples (bag names from bags/index.yaml):
   controlled-islanding replay bags/ieee39_g6g7_unstable            real time
   controlled-islanding replay bags/ieee39_g6g7_unstable --fast --json
   controlled-islanding replay bags/ieee39_g6g7_unstable --probe-hz 20   extra requests: a latency benchmark
+  controlled-islanding replay bags/ieee39_g6g7_unstable --fast --namespace /area1   one area of several
 """
 
 REPO = Path(__file__).resolve().parents[2]
@@ -67,6 +73,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--no-record', action='store_true',
                         help='do not run the recorder (no output bag, so no figures): less load while benchmarking')
     parser.add_argument('--timeout', type=float, default=120.0, help='give up after this many wall seconds')
+    parser.add_argument('--namespace', default='', metavar='NS',
+                        help='run the whole graph in this ROS namespace, e.g. /area1 (default: the root one)')
 
 
 @dataclass
@@ -104,9 +112,25 @@ def _bag_topics(bag: Path) -> dict[str, int]:
         raise CliError(f'bag {bag}: cannot read it as a rosbag2 bag: {exc}') from exc
 
 
+def namespace_name(namespace: str) -> str:
+    """Return a namespace as ROS writes it ('' for the root one, else '/area1'); raise CliError if invalid."""
+    from rclpy.exceptions import InvalidNamespaceException
+    from rclpy.validate_namespace import validate_namespace
+
+    name = f'/{namespace.strip("/")}' if namespace.strip('/') else ''
+    try:
+        validate_namespace(name or '/')
+    except InvalidNamespaceException as exc:
+        raise CliError(f'--namespace {namespace!r} is not a ROS namespace: {exc}') from exc
+    return name
+
+
 def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: float, timeout_s: float,
-              quiet: bool, arm: bool = True, record: bool = True, isolate: bool = True) -> tuple[Observation, dict]:
+              quiet: bool, arm: bool = True, record: bool = True, isolate: bool = True, namespace: str = '',
+              ) -> tuple[Observation, dict]:
     """Run the node graph on a bag; return what the observer saw and the player's speed report.
+
+    The graph runs in `namespace` ('' = the root one), with its own /clock there (`<namespace>/clock`).
 
     Raises:
         CliError: The bag is unreadable, a node died, or no decision came in time.
@@ -130,6 +154,13 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
     bag_topics = _bag_topics(bag)
     n_requests = bag_topics.get(topics.ISLANDING_REQUEST, 0)
     played = [t for t in bag_topics if t not in topics.TRUTH_TOPICS] + [topics.CLOCK]
+    ns = namespace_name(namespace)
+    # Two replays on one domain have two bag clocks: each graph's /clock is its own.
+    remaps = {topics.CLOCK: f'{ns}{topics.CLOCK}'} if ns else {}
+
+    def graph_topic(topic: str) -> str:
+        return remaps.get(topic, topics.in_namespace(topic, ns))
+
     obs = Observation()
     logs = results / 'logs'
     with graph_environment(results / 'ros_log', isolate) as env:
@@ -137,7 +168,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
         os.environ.update(env)
         context = rclpy.Context()
         rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
-        node = rclpy.create_node('replay_observer', context=context)
+        node = rclpy.create_node('replay_observer', context=context, namespace=ns or None)
         executor = rclpy.executors.SingleThreadedExecutor(context=context)
         executor.add_node(node)
 
@@ -158,21 +189,26 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
 
         def on_diag(msg: DiagnosticArray) -> None:
             for status in msg.status:
-                obs.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
-                obs.heartbeats_s[status.name] = time.monotonic()
+                # /diagnostics is global: only this graph's nodes, named as the supervisor names them.
+                if not status.name.startswith(f'{ns}/'):
+                    continue
+                name = status.name[len(ns):]
+                obs.diagnostics[name] = {kv.key: kv.value for kv in status.values}
+                obs.heartbeats_s[name] = time.monotonic()
 
-        node.create_subscription(IslandingRequest, topics.ISLANDING_REQUEST, on_request,
-                                 qos_for(topics.ISLANDING_REQUEST))
-        node.create_subscription(IslandingDecision, topics.ISLANDING_DECISION, on_decision,
-                                 qos_for(topics.ISLANDING_DECISION))
-        node.create_subscription(BreakerCommand, topics.BREAKER_COMMANDS,
-                                 lambda m: obs.commands.append((time.monotonic(), m)), qos_for(topics.BREAKER_COMMANDS))
-        node.create_subscription(CoherentGroups, topics.COHERENT_GROUPS, on_groups, qos_for(topics.COHERENT_GROUPS))
-        node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, on_diag, qos_for(topics.DIAGNOSTICS))
-        probe_pub = node.create_publisher(IslandingRequest, topics.ISLANDING_REQUEST, qos_for(topics.ISLANDING_REQUEST))
+        def subscribe(msg_type: type, topic: str, callback) -> None:
+            node.create_subscription(msg_type, topics.relative(topic), callback, qos_for(topic))
+
+        subscribe(IslandingRequest, topics.ISLANDING_REQUEST, on_request)
+        subscribe(IslandingDecision, topics.ISLANDING_DECISION, on_decision)
+        subscribe(BreakerCommand, topics.BREAKER_COMMANDS, lambda m: obs.commands.append((time.monotonic(), m)))
+        subscribe(CoherentGroups, topics.COHERENT_GROUPS, on_groups)
+        subscribe(DiagnosticArray, topics.DIAGNOSTICS, on_diag)
+        probe_pub = node.create_publisher(IslandingRequest, topics.relative(topics.ISLANDING_REQUEST),
+                                          qos_for(topics.ISLANDING_REQUEST))
         report_file = results / 'player_report.json'
         try:
-            with Supervisor(env, logs, PIPELINE_POLICY) as sup:
+            with Supervisor(env, logs, PIPELINE_POLICY, namespace=ns, remaps=remaps) as sup:
                 obs.restarts, obs.hangs = sup.restarts, sup.hangs
                 sim = {'use_sim_time': True}
                 extra = {'breaker_command': {'audit_log': results / 'breaker_audit.jsonl', 'key_dir': key_dir},
@@ -183,15 +219,15 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                     sup.start(RECORDER, {**sim, 'output': results / 'output_bag'})
                 _say(quiet, f'replay: started {len(GRAPH)} nodes{" and the recorder" if record else ""} '
                             f'(logs in {logs})')
-                arm_client = node.create_client(SetArmed, '/breaker_command/set_armed')
+                arm_client = node.create_client(SetArmed, 'breaker_command/set_armed')
                 if not arm_client.wait_for_service(timeout_sec=20.0):
                     sup.check_alive()
-                    raise CliError('breaker_command did not offer /breaker_command/set_armed within 20 s')
+                    raise CliError(f'breaker_command did not offer {ns}/breaker_command/set_armed within 20 s')
                 # The service can be discovered before it has matched our reply reader; Fast DDS then drops the
                 # response ("failed to send response"). Arming is idempotent, so ask again, with a fresh nonce.
                 for _attempt in range(3):
-                    request = signing.signed_arm_request(SetArmed.Request(), operator_key, '/breaker_command', arm,
-                                                         time.time())
+                    request = signing.signed_arm_request(SetArmed.Request(), operator_key, f'{ns}/breaker_command',
+                                                         arm, time.time())
                     future = arm_client.call_async(request)
                     if spin_for(5.0, future.done):
                         break
@@ -208,8 +244,9 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 wiring: dict[str, tuple[int, int]] = {}
                 stable_since = begun = time.monotonic()
                 while time.monotonic() < begun + 20.0:
-                    now_counts = {t: node.count_subscribers(t) for t in played}
-                    now_wiring = {t: (node.count_publishers(t), node.count_subscribers(t)) for t in internal}
+                    now_counts = {t: node.count_subscribers(graph_topic(t)) for t in played}
+                    now_wiring = {t: (node.count_publishers(graph_topic(t)), node.count_subscribers(graph_topic(t)))
+                                  for t in internal}
                     if now_counts != counts or now_wiring != wiring:
                         counts, wiring, stable_since = now_counts, now_wiring, time.monotonic()
                     elif time.monotonic() - stable_since >= 1.0 and all(min(w) > 0 for w in wiring.values()):
@@ -464,7 +501,7 @@ def write_figures(bag: Path, results: Path, summary: dict) -> list[Path]:
 
 def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float = 1.0, probe_hz: float = 0.0,
            timeout_s: float = 120.0, figures: bool = True, quiet: bool = False, arm: bool = True,
-           record: bool = True, isolate: bool = True) -> dict:
+           record: bool = True, isolate: bool = True, namespace: str = '') -> dict:
     """Replay a bag through the graph; write the results folder; return the summary.
 
     Raises:
@@ -475,6 +512,7 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
         raise CliError(f'bag {bag} does not exist')
     if rate <= 0:
         raise CliError(f'--rate {rate} must be positive')
+    namespace = namespace_name(namespace)
     if results is None:
         stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
         results = Path('results') / f'replay-{bag.name}-{stamp}'
@@ -483,8 +521,9 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
         raise CliError(f'results folder {results} exists; name a new one')
     results.mkdir(parents=True)
     obs, report = run_graph(bag, results, fast=fast, rate=rate, probe_hz=probe_hz, timeout_s=timeout_s,
-                            quiet=quiet, arm=arm, record=record, isolate=isolate)
+                            quiet=quiet, arm=arm, record=record, isolate=isolate, namespace=namespace)
     summary = summarize(bag, results, obs, report)
+    summary['namespace'] = namespace
     if figures and record:
         try:
             summary['figures'] = [str(p) for p in write_figures(bag, results, summary)]
@@ -505,7 +544,7 @@ def run(args: argparse.Namespace) -> int:
         return _run_repeated(args)
     summary = replay(args.bag, args.results, fast=args.fast, rate=args.rate, probe_hz=args.probe_hz,
                      timeout_s=args.timeout, figures=not args.no_figures, quiet=args.json, arm=not args.disarmed,
-                     record=not args.no_record, isolate=args.isolate)
+                     record=not args.no_record, isolate=args.isolate, namespace=args.namespace)
     if args.json:
         print(json.dumps(summary, default=str))
     else:
@@ -524,7 +563,7 @@ def _run_repeated(args: argparse.Namespace) -> int:
     for i in range(args.repeat):
         summary = replay(args.bag, base / f'run-{i}', fast=args.fast, rate=args.rate, probe_hz=args.probe_hz,
                          timeout_s=args.timeout, figures=False, quiet=True, arm=not args.disarmed,
-                         record=not args.no_record, isolate=args.isolate)
+                         record=not args.no_record, isolate=args.isolate, namespace=args.namespace)
         outcomes.add((summary['split'], tuple(sorted(summary.get('cut_branch_ids', [])))))
         failures.append(graph_failure(summary))
         latencies += summary['latency_ms']['samples']  # the bag's requests and any --probe-hz ones

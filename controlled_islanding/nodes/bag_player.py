@@ -2,7 +2,9 @@
 
 Timing follows the bag's log times divided by `rate`; `as_fast_as_possible` drops the waits. /clock carries
 the bag time of every message, for nodes running with use_sim_time. Ground-truth topics (/truth/...) are never
-published unless `publish_truth` is set, so the graph under test cannot see the answer.
+published unless `publish_truth` is set, so the graph under test cannot see the answer. Each bag topic is
+played under its name relative to the player's namespace (a bag of /pmu/frames plays on /area1/pmu/frames in
+/area1); /clock stays global unless remapped.
 
 In as-fast-as-possible mode with `lockstep_on_requests` (the default), the player keeps the graph in step at
 each islanding request: before publishing it, it waits until /rotor_angles has caught up with the newest PMU
@@ -79,7 +81,7 @@ class BagPlayerNode(Node):
                 for conn in chosen:
                     if conn.topic not in self.pubs:
                         self.pubs[conn.topic] = self.create_publisher(
-                            message_class(conn.msgtype), conn.topic, qos_for(conn.topic))
+                            message_class(conn.msgtype), topics.relative(conn.topic), qos_for(conn.topic))
                 self.messages = [(c.topic, t, bytes(raw)) for c, t, raw in reader.messages(connections=chosen)]
         except NodeSetupError:
             raise
@@ -95,9 +97,9 @@ class BagPlayerNode(Node):
         self.lockstep_subs = []
         if self.lockstep:
             self.lockstep_subs = [
-                self.create_subscription(IslandingDecision, topics.ISLANDING_DECISION, self._on_decision,
-                                         qos_for(topics.ISLANDING_DECISION)),
-                self.create_subscription(RotorAngles, topics.ROTOR_ANGLES, self._on_angles,
+                self.create_subscription(IslandingDecision, topics.relative(topics.ISLANDING_DECISION),
+                                         self._on_decision, qos_for(topics.ISLANDING_DECISION)),
+                self.create_subscription(RotorAngles, topics.relative(topics.ROTOR_ANGLES), self._on_angles,
                                          qos_for(topics.ROTOR_ANGLES))]
         self.diag = Diagnostics(self)
         self.get_logger().info(f'{len(self.messages)} messages on {len(self.pubs)} topics from {bag}')

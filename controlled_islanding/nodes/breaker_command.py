@@ -149,13 +149,14 @@ class BreakerCommandNode(Node):
             self.diag.fault('audit', f'{exc}; nothing will be commanded')
         self.topology = Topology(future_tolerance_s=self.future_tolerance_s)
         self.inputs = ClockGate(self, self.diag, self.future_tolerance_s, 200, self._apply_input)
-        self.pub = self.create_publisher(BreakerCommand, topics.BREAKER_COMMANDS, qos_for(topics.BREAKER_COMMANDS))
-        self.create_subscription(IslandingDecision, topics.ISLANDING_DECISION, self.diag.guard(self.on_decision),
-                                 qos_for(topics.ISLANDING_DECISION))
-        self.create_subscription(NetworkSnapshotMsg, topics.NETWORK_SNAPSHOT, self.diag.guard(self.on_snapshot),
-                                 qos_for(topics.NETWORK_SNAPSHOT))
-        self.create_subscription(BranchStatus, topics.BRANCH_STATUS, self.diag.guard(self.on_branch_status),
-                                 qos_for(topics.BRANCH_STATUS))
+        self.pub = self.create_publisher(BreakerCommand, topics.relative(topics.BREAKER_COMMANDS),
+                                         qos_for(topics.BREAKER_COMMANDS))
+        self.create_subscription(IslandingDecision, topics.relative(topics.ISLANDING_DECISION),
+                                 self.diag.guard(self.on_decision), qos_for(topics.ISLANDING_DECISION))
+        self.create_subscription(NetworkSnapshotMsg, topics.relative(topics.NETWORK_SNAPSHOT),
+                                 self.diag.guard(self.on_snapshot), qos_for(topics.NETWORK_SNAPSHOT))
+        self.create_subscription(BranchStatus, topics.relative(topics.BRANCH_STATUS),
+                                 self.diag.guard(self.on_branch_status), qos_for(topics.BRANCH_STATUS))
         self.create_service(SetArmed, '~/set_armed', self.diag.guard(self.on_set_armed))
         if self.audit is not None:
             state = self.audit.state

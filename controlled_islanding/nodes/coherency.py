@@ -96,9 +96,14 @@ class CoherencyNode(Node):
         self.pending: list[tuple[IslandingRequest, float]] = []
         self.diag = Diagnostics(self)
         self.inputs = ClockGate(self, self.diag, future_tolerance_s, self.max_held, self._use)
-        self.pub = self.create_publisher(CoherentGroups, topics.COHERENT_GROUPS, qos_for(topics.COHERENT_GROUPS))
+        self.pub = self.create_publisher(CoherentGroups, topics.relative(topics.COHERENT_GROUPS),
+                                         qos_for(topics.COHERENT_GROUPS))
         self.diag.subscribe(NetworkSnapshot, topics.NETWORK_SNAPSHOT, self.on_snapshot)
-        self.diag.subscribe(RotorAngles, topics.ROTOR_ANGLES, self.on_angles)
+        rate_fps = float(declare_bounded(self, 'rate_fps', 60.0, 0.1, 10_000.0,
+                                         'expected rotor-angle samples per second (the PMU rate), for the '
+                                         '/rotor_angles frequency status in /diagnostics', read_only=True))
+        self.diag.subscribe(RotorAngles, topics.ROTOR_ANGLES, self.on_angles, rate_fps,
+                            (-future_tolerance_s, self.max_sample_age_s))
         self.diag.subscribe(IslandingRequest, topics.ISLANDING_REQUEST, self.on_request)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(float(self.get_parameter('period_s').value), self.diag.guard(self.on_period), clock=steady)

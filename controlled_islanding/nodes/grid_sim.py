@@ -146,17 +146,19 @@ class GridSimNode(Node):
         self.pmu = PmuStream(self.scenario, self.grid_run.generator_names, self.grid_run.generator_buses,
                              self.grid_run.bus_numbers, float(self.grid_run.ss.config.freq))
         self.report_file = self.get_parameter('report_file').value
-        pub = {t: self.create_publisher(cls, t, qos_for(t)) for t, cls in (
+        pub = {t: self.create_publisher(cls, topics.relative(t), qos_for(t)) for t, cls in (
             (topics.NETWORK_SNAPSHOT, NetworkSnapshot), (topics.PMU_FRAMES, PmuFrame),
             (topics.BRANCH_STATUS, BranchStatus), (topics.ISLANDING_REQUEST, IslandingRequest))}
         self.pubs = pub
         self.clock_pub = self.create_publisher(Clock, topics.CLOCK, qos_for(topics.CLOCK))
-        self.assessment_pub = self.create_publisher(DiagnosticArray, ASSESSMENT_TOPIC, qos_for(topics.DIAGNOSTICS))
-        self.create_subscription(BreakerCommand, topics.BREAKER_COMMANDS, self._on_command,
+        self.assessment_pub = self.create_publisher(DiagnosticArray, topics.relative(ASSESSMENT_TOPIC),
+                                                    qos_for(topics.DIAGNOSTICS))
+        self.create_subscription(BreakerCommand, topics.relative(topics.BREAKER_COMMANDS), self._on_command,
                                  qos_for(topics.BREAKER_COMMANDS))
-        self.create_subscription(IslandingDecision, topics.ISLANDING_DECISION, self._on_decision,
+        self.create_subscription(IslandingDecision, topics.relative(topics.ISLANDING_DECISION), self._on_decision,
                                  qos_for(topics.ISLANDING_DECISION))
-        self.create_subscription(RotorAngles, topics.ROTOR_ANGLES, self._on_angles, qos_for(topics.ROTOR_ANGLES))
+        self.create_subscription(RotorAngles, topics.relative(topics.ROTOR_ANGLES), self._on_angles,
+                                 qos_for(topics.ROTOR_ANGLES))
         self.diag = Diagnostics(self)
         self.request_id = f'{self.scenario.name}/closed-loop-request-1'
         self.decisions: dict[str, IslandingDecision] = {}

@@ -116,18 +116,18 @@ class PartitioningNode(Node):
         self.answered_set: set[str] = set()
         self.diag = Diagnostics(self)
         self.inputs = ClockGate(self, self.diag, self.future_tolerance_s, 1000, self._apply_input)
-        self.decision_pub = self.create_publisher(IslandingDecision, topics.ISLANDING_DECISION,
+        self.decision_pub = self.create_publisher(IslandingDecision, topics.relative(topics.ISLANDING_DECISION),
                                                   qos_for(topics.ISLANDING_DECISION))
-        self.request_pub = self.create_publisher(IslandingRequest, topics.ISLANDING_REQUEST,
+        self.request_pub = self.create_publisher(IslandingRequest, topics.relative(topics.ISLANDING_REQUEST),
                                                  qos_for(topics.ISLANDING_REQUEST))
         guard = self.diag.guard
-        self.create_subscription(NetworkSnapshotMsg, topics.NETWORK_SNAPSHOT, guard(self.on_snapshot),
+        self.create_subscription(NetworkSnapshotMsg, topics.relative(topics.NETWORK_SNAPSHOT), guard(self.on_snapshot),
                                  qos_for(topics.NETWORK_SNAPSHOT))
-        self.create_subscription(BranchStatus, topics.BRANCH_STATUS, guard(self.on_branch_status),
+        self.create_subscription(BranchStatus, topics.relative(topics.BRANCH_STATUS), guard(self.on_branch_status),
                                  qos_for(topics.BRANCH_STATUS))
-        self.create_subscription(CoherentGroups, topics.COHERENT_GROUPS, guard(self.on_groups),
+        self.create_subscription(CoherentGroups, topics.relative(topics.COHERENT_GROUPS), guard(self.on_groups),
                                  qos_for(topics.COHERENT_GROUPS))
-        self.create_subscription(IslandingRequest, topics.ISLANDING_REQUEST, guard(self.on_request),
+        self.create_subscription(IslandingRequest, topics.relative(topics.ISLANDING_REQUEST), guard(self.on_request),
                                  qos_for(topics.ISLANDING_REQUEST))
         self.create_service(RequestIslanding, '~/request', guard(self.on_service))
         steady = Clock(clock_type=ClockType.STEADY_TIME)

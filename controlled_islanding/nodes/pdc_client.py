@@ -191,7 +191,7 @@ class PdcClientNode(Node):
         self.assembler = PdcAssembler(channel_map, max_time_error_s)
         self.aligner = TimeAligner(align_wait_s)
         self.diag = Diagnostics(self)
-        self.pub = self.create_publisher(PmuFrame, topics.PMU_FRAMES, qos_for(topics.PMU_FRAMES))
+        self.pub = self.create_publisher(PmuFrame, topics.relative(topics.PMU_FRAMES), qos_for(topics.PMU_FRAMES))
         self.events: queue.Queue = queue.Queue()
         self.published = 0
         self.newest_ns = 0

@@ -92,9 +92,11 @@ class PmuIngestionNode(Node):
         self.last_angle_rad: dict[str, float] = {}
         self.diag = Diagnostics(self)
         self.inputs = ClockGate(self, self.diag, future_tolerance_s, max_held, self._use, _RELEASE_PERIOD_S)
-        self.pub = self.create_publisher(RotorAngles, topics.ROTOR_ANGLES, qos_for(topics.ROTOR_ANGLES))
+        self.pub = self.create_publisher(RotorAngles, topics.relative(topics.ROTOR_ANGLES),
+                                         qos_for(topics.ROTOR_ANGLES))
         self.diag.subscribe(NetworkSnapshot, topics.NETWORK_SNAPSHOT, self.on_snapshot)
-        self.diag.subscribe(PmuFrame, topics.PMU_FRAMES, self.on_frame)
+        self.diag.subscribe(PmuFrame, topics.PMU_FRAMES, self.on_frame, self.rate_fps,
+                            (-future_tolerance_s, self.max_delay_s))
 
     def _use(self, item: tuple[str, object]) -> None:
         kind, msg = item
@@ -251,6 +253,8 @@ class PmuIngestionNode(Node):
         # Named up to a point: the count says how many, and a diagnostics message must stay small.
         more = ',...' if len(stale) > _MAX_STALE_NAMED else ''
         self.diag.values['stale_pmu_ids'] = ','.join(stale[:_MAX_STALE_NAMED]) + more
+        self.diag.warn('stale_pmus', f'{len(stale)} PMU(s) without usable data for more than {self.stale_pmu_s:g} s: '
+                                     f'{self.diag.values["stale_pmu_ids"]}' if stale else None)
         self.diag.values['stations_remembered'] = str(len(self.stations))
         self.diag.values['stations_forgotten'] = str(self.stations_forgotten)
 

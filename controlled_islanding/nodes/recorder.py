@@ -10,6 +10,10 @@ message logged at 0 would start the bag in 1970; such early messages wait (at mo
 and are written at the first valid time. The bag is written inside a temporary directory under its final
 name, and that directory's content is renamed to `output` when the node stops, so a half-written bag never
 carries the final name and the storage file inside is named after the bag.
+
+Topics are named as in the root namespace (/pmu/frames) and subscribed in the recorder's namespace
+(/area1/pmu/frames in /area1), and recorded under the root-namespace name, so the bag of one area replays
+into any other; the global /diagnostics carries every area's statuses.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from controlled_islanding.node_common import (
     qos_for,
     spin_node,
 )
+from controlled_islanding.topics import relative
 
 
 class RecorderNode(Node):
@@ -72,7 +77,7 @@ class RecorderNode(Node):
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def _qos(self, topic: str) -> QoSProfile:
-        infos = self.get_publishers_info_by_topic(topic)
+        infos = self.get_publishers_info_by_topic(relative(topic))
         qos = qos_for(topic)
         if infos and any(i.qos_profile.durability != DurabilityPolicy.TRANSIENT_LOCAL for i in infos):
             qos.durability = DurabilityPolicy.VOLATILE
@@ -83,10 +88,11 @@ class RecorderNode(Node):
     def _discover(self) -> None:
         types = dict(self.get_topic_names_and_types())
         for topic in self.topics:
+            name = self.resolve_topic_name(relative(topic))
             # A topic seen only through its readers has no offered QoS yet to record, or to match.
-            if topic in self.subs or topic not in types or not self.get_publishers_info_by_topic(topic):
+            if topic in self.subs or name not in types or not self.get_publishers_info_by_topic(name):
                 continue
-            msgtype = types[topic][0]
+            msgtype = types[name][0]
             try:
                 cls = message_class(msgtype)
                 conn = self.writer.add_connection(topic, msgtype, typestore=typestore(),
@@ -97,11 +103,11 @@ class RecorderNode(Node):
                 continue
             self.connections[topic] = conn
             self.subs[topic] = self.create_subscription(
-                cls, topic, lambda raw, c=conn: self._write(c, raw), self._qos(topic), raw=True)
-            self.get_logger().info(f'recording {topic} ({msgtype})')
+                cls, relative(topic), lambda raw, c=conn: self._write(c, raw), self._qos(topic), raw=True)
+            self.get_logger().info(f'recording {name} as {topic} ({msgtype})')
 
     def _offered(self, topic: str) -> list:
-        return [qos_profile(i.qos_profile) for i in self.get_publishers_info_by_topic(topic)]
+        return [qos_profile(i.qos_profile) for i in self.get_publishers_info_by_topic(relative(topic))]
 
     def _write(self, conn, raw: bytes) -> None:
         self.diag.arrived()
