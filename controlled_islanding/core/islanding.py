@@ -4,12 +4,16 @@ Generation in an island is the scheduled dispatch of its generators (`Generator.
 capacity: the paper's Table II (island 1 of case 1: 16.20 pu against 16.13 pu of load) and Table VI
 (23.50 pu against 21.59 pu) are exactly MATPOWER case39's dispatch. Imbalance = generation - load;
 load to shed = max(0, load - generation).
+
+Partial observability (the paper's abstract): a generator with no PMU has no coherent group. The caller names
+it as unobserved; it carries no must-link or cannot-link constraint, its bus is placed by the flow-weighted
+graph like a load bus, and its dispatch counts in whichever island it lands in.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Collection, Mapping
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
@@ -34,6 +38,7 @@ class IslandingDecision:
         island_imbalance_mw: Generation minus load per island, MW.
         island_shed_mw: Load to shed per island so generation covers load, MW.
         disrupted_mw: Eq. 9, the sum over cut branches of (|P_from| + |P_to|) / 2, MW.
+        unobserved_generators: Generators decided without a group (no PMU); their island is their bus's.
 
     """
 
@@ -45,6 +50,7 @@ class IslandingDecision:
     island_imbalance_mw: tuple[float, ...]
     island_shed_mw: tuple[float, ...]
     disrupted_mw: float
+    unobserved_generators: tuple[str, ...] = ()
 
     @property
     def n_islands(self) -> int:
@@ -121,27 +127,36 @@ def evaluate_partition(grid: Grid, bus_island: Mapping[int, int]) -> IslandingDe
     )
 
 
-def check_generator_groups(grid: Grid, generator_groups: Mapping[str, int]) -> dict[str, int]:
+def check_generator_groups(grid: Grid, generator_groups: Mapping[str, int],
+                           unobserved: Collection[str] = ()) -> dict[str, int]:
     """Validate generator groups against a grid.
 
     Args:
         grid: The grid.
-        generator_groups: Group (0-based) of every generator, by generator name.
+        generator_groups: Group (0-based) of every observed generator, by generator name.
+        unobserved: Names of the generators that have no group because nothing measured them. Being explicit
+            keeps a generator dropped by mistake an error, never a silently unconstrained machine.
 
     Returns:
         The groups as a plain dict of ints.
 
     Raises:
-        IslandingError: An unknown or missing generator, or group numbers not 0 .. k-1.
+        IslandingError: An unknown generator, one both grouped and unobserved, one neither, no generator
+            observed, or group numbers not 0 .. k-1.
 
     """
     names = {g.name for g in grid.generators}
-    unknown = sorted(set(generator_groups) - names)
+    unknown = sorted((set(generator_groups) | set(unobserved)) - names)
     if unknown:
         raise IslandingError(f'unknown generator(s) {unknown}; {grid.name} has {sorted(names)}')
-    missing = sorted(names - set(generator_groups))
+    both = sorted(set(generator_groups) & set(unobserved))
+    if both:
+        raise IslandingError(f'generator(s) {both} are both in a group and listed as unobserved')
+    missing = sorted(names - set(generator_groups) - set(unobserved))
     if missing:
-        raise IslandingError(f'generator(s) {missing} are in no group; groups must cover every generator')
+        raise IslandingError(f'generator(s) {missing} are in no group and not listed as unobserved')
+    if names and not generator_groups:
+        raise IslandingError('no generator is observed: there are no groups to decide on')
     groups = {str(n): int(k) for n, k in generator_groups.items()}
     present = set(groups.values())
     if present != set(range(len(present))):
@@ -150,7 +165,7 @@ def check_generator_groups(grid: Grid, generator_groups: Mapping[str, int]) -> d
 
 
 def decide(grid: Grid, generator_groups: Mapping[str, int],
-           partitioner: Partitioner | None = None) -> IslandingDecision:
+           partitioner: Partitioner | None = None, unobserved: Collection[str] = ()) -> IslandingDecision:
     """Decide the islands for given coherent generator groups (Algorithm 1, steps 4 to 9, and the cut set).
 
     One group means "no split": every bus in island 0, nothing to open. Otherwise island i holds
@@ -158,8 +173,10 @@ def decide(grid: Grid, generator_groups: Mapping[str, int],
 
     Args:
         grid: The grid with its current branch statuses; flows are computed by AC power flow if absent.
-        generator_groups: Group (0-based) of every generator, by name.
-        partitioner: The bus partitioner; default `ConstrainedSpectralPartition()`.
+        generator_groups: Group (0-based) of every observed generator, by name.
+        partitioner: The bus partitioner; default `ConstrainedSpectralPartition()`. It must leave generators
+            missing from the groups unconstrained.
+        unobserved: The generators without a group (see `check_generator_groups`).
 
     Returns:
         The decision.
@@ -169,14 +186,16 @@ def decide(grid: Grid, generator_groups: Mapping[str, int],
         SpectralError: The partitioner cannot split the grid (e.g. a group with no path to its buses).
 
     """
-    groups = check_generator_groups(grid, generator_groups)
+    groups = check_generator_groups(grid, generator_groups, unobserved)
     if not grid.has_flows:
         grid = grid.with_flows()
-    if len(set(groups.values())) == 1:
-        return evaluate_partition(grid, dict.fromkeys(grid.buses, 0))
-    if partitioner is None:
-        from controlled_islanding.core.spectral import ConstrainedSpectralPartition
+    if len(set(groups.values())) <= 1:
+        decision = evaluate_partition(grid, dict.fromkeys(grid.buses, 0))
+    else:
+        if partitioner is None:
+            from controlled_islanding.core.spectral import ConstrainedSpectralPartition
 
-        partitioner = ConstrainedSpectralPartition()
-    labels = partitioner.fit(grid, groups).labels_
-    return evaluate_partition(grid, {b: int(i) for b, i in zip(grid.buses, labels, strict=True)})
+            partitioner = ConstrainedSpectralPartition()
+        labels = partitioner.fit(grid, groups).labels_
+        decision = evaluate_partition(grid, {b: int(i) for b, i in zip(grid.buses, labels, strict=True)})
+    return replace(decision, unobserved_generators=tuple(sorted(unobserved)))

@@ -102,11 +102,11 @@ def _symmetric(grid: Grid, branches: list, w: np.ndarray) -> sparse.csr_array:
 
 
 def _bus_groups(grid: Grid, generator_groups: Mapping[str, int]) -> dict[int, int]:
-    """Return the coherent group of each generator bus."""
+    """Return the coherent group of each generator bus; a generator left out of the groups constrains nothing."""
     out: dict[int, int] = {}
     for g in grid.generators:
         if g.name not in generator_groups:
-            raise SpectralError(f'generator {g.name} has no coherent group')
+            continue
         k = int(generator_groups[g.name])
         if out.setdefault(g.bus, k) != k:
             raise SpectralError(f'bus {g.bus} holds generators of groups {out[g.bus]} and {k}; '
@@ -161,7 +161,8 @@ class ConstrainedSpectralPartition:
 
         Args:
             grid: The grid with flows (post-outage topology).
-            generator_groups: Group (0-based) of every generator, by name; at least two groups.
+            generator_groups: Group (0-based) of every generator, by name; at least two groups. A generator left out
+                (no PMU) is unconstrained: its bus is placed like a load bus.
 
         Returns:
             self.
@@ -307,7 +308,7 @@ def repair_partition(grid: Grid, generator_groups: Mapping[str, int], labels: np
 
     Args:
         grid: The grid (in-service branches define connectivity).
-        generator_groups: Group (0-based) of every generator, by name.
+        generator_groups: Group (0-based) of every generator, by name; generators left out are unconstrained.
         labels: Proposed island of each bus, aligned with `grid.buses` (island g for group g).
         weights: Eq. 4 weights (MW, sparse or dense n x n) used to choose where released buses go; default
             from the grid's flows, or 1 per branch when the grid has none.
