@@ -49,6 +49,9 @@ the bag), DTW coherency with --k-rule is run on windows ending every --lead-step
 the end of the bag; the earliest request time whose groups are the final (true) groups is reported against the
 first pole slip: lead = slip - found, >= 0 means found before the slip.
 
+--observability FILE.md instead drops PMUs (the largest machines kept first, and seeded random placements) at
+100/75/50/25 % coverage and scores each placement's decision against the truth and the MILP (docs/observability.md).
+
 --k-rules FILE.md instead compares every k rule (core/k_rules.py) on the bags and on --andes scenarios
 (simulated here, the simulator's own rotor angles), and writes the table (docs/coherency_rules.md).
 
@@ -173,6 +176,11 @@ def add_arguments(parser) -> None:
                         help='spacing of the request times tried for the detection lead, s (default: %(default)s)')
     parser.add_argument('--k-rules', type=Path, metavar='FILE.md',
                         help='compare every k rule on the bags (and --andes scenarios) and write this page instead')
+    parser.add_argument('--observability', type=Path, metavar='FILE.md',
+                        help='instead, sweep PMU coverage (100/75/50/25 %%: the largest machines first, and '
+                             '--draws seeded random placements) on the bags and write the table (docs/observability.md)')
+    parser.add_argument('--draws', type=int, default=5, help='random placements per coverage (--observability)')
+    parser.add_argument('--seed', type=int, default=0, help='seed of the random placements (--observability)')
     parser.add_argument('--andes', action='append', type=Path, metavar='SCENARIO.yaml', default=[],
                         help='with --k-rules: also simulate this scenario in ANDES and compare on its rotor angles')
     parser.add_argument('--time-limit-s', type=float, default=60.0,
@@ -213,6 +221,8 @@ def run(args) -> int:
             raise CliError(str(exc)) from exc
     if args.k_rules:
         return _compare_rules(args, bags)
+    if args.observability:
+        return _sweep_observability(args, bags)
     if args.andes:
         raise CliError('--andes is for --k-rules')
     cases: list[CaseReport] = []
@@ -279,6 +289,31 @@ def _compare_rules(args, bags) -> int:
     study.write_report(results, args.k_rules, chosen=args.k_rule, command=command, window_s=args.window_s,
                        step_s=args.lead_step_s)
     print(f'report: {args.k_rules}', file=sys.stderr)
+    return 0
+
+
+def _sweep_observability(args, bags) -> int:
+    """Sweep PMU coverage on every bag; print the table and write the page."""
+    from controlled_islanding import coherency_rules as study
+    from controlled_islanding import observability_sweep as obs
+
+    if not bags:
+        raise CliError('--observability needs at least one BAG')
+    rows = []
+    for bag in bags:
+        scenario = study.scenario_from_bag(bag, _manifest_entry(bag))
+        try:
+            rows += obs.sweep(scenario, bag.grid_at(scenario.request_s + 1e-9), draws=args.draws, seed=args.seed,
+                              window_s=args.window_s, max_groups=args.max_groups, k_rule=args.k_rule,
+                              dtw_band=args.dtw_band_samples or None, time_limit_s=args.time_limit_s,
+                              progress=_progress)
+        except obs.SweepError as exc:
+            raise CliError(str(exc)) from exc
+    print('\n'.join(obs.table(rows)))
+    command = ' '.join(['controlled-islanding evaluate', *args.bags, '--observability', str(args.observability),
+                        f'--draws {args.draws} --seed {args.seed}'])
+    obs.write_report(rows, args.observability, command=command, k_rule=args.k_rule, window_s=args.window_s)
+    print(f'report: {args.observability}', file=sys.stderr)
     return 0
 
 
@@ -353,15 +388,16 @@ def generator_series(bag, start_s: float, end_s: float) -> tuple[np.ndarray, lis
         EvaluateError: A generator without a PMU at its bus, or fewer than 2 valid samples for one.
 
     """
+    from controlled_islanding.bagdata import BagDataError
     from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
 
     grid = bag.grid
-    column = {int(b): j for j, b in enumerate(bag.pmu_buses)}
-    missing = [g.name for g in grid.generators if g.bus not in column]
-    if missing:
-        raise EvaluateError(f'generators {missing} have no PMU at their bus; coherency needs every generator')
+    try:
+        # A machine's own channel where machines share a bus: the bus's one channel would give them one series.
+        cols = [bag.pmu_column(g.name, g.bus) for g in grid.generators]
+    except BagDataError as exc:
+        raise EvaluateError(f'{exc}; coherency needs every generator') from exc
     rows = (bag.frame_t_s >= start_s - 1e-9) & (bag.frame_t_s <= end_s + 1e-9)
-    cols = [column[g.bus] for g in grid.generators]
     angles = np.asarray(estimate_rotor_angle_rad(
         bag.v_mag_pu[np.ix_(rows, cols)], bag.v_angle_rad[np.ix_(rows, cols)], bag.i_mag_pu[np.ix_(rows, cols)],
         bag.i_angle_rad[np.ix_(rows, cols)], np.array([g.xq_pu for g in grid.generators]),
