@@ -114,8 +114,8 @@ def _bus_groups(grid: Grid, generator_groups: Mapping[str, int]) -> dict[int, in
     return out
 
 
-def _check_connected(grid: Grid, w: sparse.csr_array) -> tuple[list[list[int]], list[list[float]]]:
-    """Return the adjacency lists of the weight graph (ascending neighbours) and the matching weights (MW).
+def _check_connected(grid: Grid, w: sparse.csr_array) -> list[list[int]]:
+    """Return the adjacency lists of the weight graph (ascending neighbours).
 
     Raises:
         SpectralError: The graph is not connected.
@@ -127,9 +127,8 @@ def _check_connected(grid: Grid, w: sparse.csr_array) -> tuple[list[list[int]], 
         smallest = sorted(grid.buses[i] for i in np.flatnonzero(piece == int(np.argmin(sizes))))
         raise SpectralError(f'grid {grid.name!r} is not connected with its in-service branches: {n_pieces} '
                             f'pieces, the smallest holding buses {smallest}')
-    ptr, nbr, wt = w.indptr, w.indices, w.data
-    return ([nbr[ptr[i]:ptr[i + 1]].tolist() for i in range(len(ptr) - 1)],
-            [wt[ptr[i]:ptr[i + 1]].tolist() for i in range(len(ptr) - 1)])
+    ptr, nbr = w.indptr, w.indices
+    return [nbr[ptr[i]:ptr[i + 1]].tolist() for i in range(len(ptr) - 1)]
 
 
 class ConstrainedSpectralPartition:
@@ -335,7 +334,9 @@ def repair_partition(grid: Grid, generator_groups: Mapping[str, int], labels: np
     weights = sparse.csr_array(weights)
     weights.sum_duplicates()
     weights.sort_indices()
-    adj, adj_w = _check_connected(grid, weights)
+    adj = _check_connected(grid, weights)
+    coo = weights.tocoo()
+    edges = (coo.row.astype(np.int64), coo.col.astype(np.int64), coo.data)
     lab = np.array(labels, dtype=int).copy()
     if lab.shape != (n,):
         raise SpectralError(f'labels have shape {lab.shape}, expected ({n},)')
@@ -345,61 +346,51 @@ def repair_partition(grid: Grid, generator_groups: Mapping[str, int], labels: np
         lab[idx[bus]] = grp
     # Joining one group's path may cut through another group's island, so repeat until a pass changes nothing.
     for _ in range(n + 1):
-        if not any([_join_group(lab, owner, adj, grp, buses) for grp in sorted(set(bus_group.values()))]):
+        if not any([_join_group(lab, owner, adj, edges, grp, buses) for grp in sorted(set(bus_group.values()))]):
             break
     else:
         raise SpectralError("could not join every group's generators into one connected island")
     free = np.zeros(n, dtype=bool)
     for grp in sorted(set(bus_group.values())):
-        seeds = np.flatnonzero(owner == grp)
-        keep = _reach(adj, seeds, lambda j, g=grp: lab[j] == g)
-        free |= (lab == grp) & ~keep
+        piece = _pieces_within(edges, lab == grp)
+        seeded = np.unique(piece[owner == grp])
+        free |= (lab == grp) & ~np.isin(piece, seeded)
     free |= ~np.isin(lab, list(set(bus_group.values())))
+    rows, cols, w_mw = edges
     while free.any():
-        best: tuple[float, int, list[int]] | None = None
-        for piece in _pieces(adj, free):
-            score = np.zeros(lab.max() + 1)
-            for i in piece:
-                for j, w_ij in zip(adj[i], adj_w[i], strict=True):
-                    if not free[j]:
-                        score[lab[j]] += w_ij
-            if score.max() > 0 and (best is None or score.max() > best[0]):
-                best = (float(score.max()), int(score.argmax()), piece)
-        if best is None:
+        # Pieces are numbered by their lowest bus index and argmax takes the first maximum, so ties go to the
+        # lowest piece and then the lowest island, whatever the solver's order.
+        piece = _pieces_within(edges, free)
+        out = free[rows] & ~free[cols]
+        score = np.zeros((int(piece.max()) + 1, int(lab.max()) + 1))
+        np.add.at(score, (piece[rows[out]], lab[cols[out]]), w_mw[out])
+        best = int(np.argmax(score.max(axis=1)))
+        if score[best].max() <= 0:
             raise SpectralError('released buses touch no island')  # unreachable on a connected grid
-        lab[best[2]] = best[1]
-        free[best[2]] = False
+        chosen = piece == best
+        lab[chosen] = int(np.argmax(score[best]))
+        free[chosen] = False
     return lab
 
 
-def _reach(adj: list[list[int]], seeds: np.ndarray, allowed) -> np.ndarray:
-    """Return the buses reachable from seeds through allowed buses (breadth first)."""
-    seen = np.zeros(len(adj), dtype=bool)
-    seen[seeds] = True
-    queue = deque(int(s) for s in seeds)
-    while queue:
-        i = queue.popleft()
-        for j in adj[i]:
-            if not seen[j] and allowed(j):
-                seen[j] = True
-                queue.append(j)
-    return seen
+def _pieces_within(edges: tuple[np.ndarray, np.ndarray, np.ndarray], mask: np.ndarray) -> np.ndarray:
+    """Return the connected piece of each bus of mask, numbered in order of their lowest bus index; -1 elsewhere.
 
-
-def _pieces(adj: list[list[int]], mask: np.ndarray) -> list[list[int]]:
-    """Return the connected pieces of the buses in mask."""
-    seen = ~mask.copy()
-    out = []
-    for s in np.flatnonzero(mask):
-        if seen[s]:
-            continue
-        piece = np.flatnonzero(_reach(adj, np.array([s]), lambda j: mask[j]) & mask)
-        seen[piece] = True
-        out.append(piece.tolist())
+    edges holds both directions of every weighted pair (row, column, weight), as a symmetric COO matrix does.
+    """
+    rows, cols, _ = edges
+    keep = mask[rows] & mask[cols]
+    n = len(mask)
+    graph = sparse.csr_array((np.ones(int(keep.sum())), (rows[keep], cols[keep])), shape=(n, n))
+    # Buses outside mask are pieces of their own here; dropping them keeps the lowest-index order of the rest.
+    labels = connected_components(graph, directed=False)[1]
+    out = np.full(n, -1)
+    out[mask] = np.unique(labels[mask], return_inverse=True)[1]
     return out
 
 
-def _join_group(lab: np.ndarray, owner: np.ndarray, adj: list[list[int]], grp: int, buses: list[int]) -> bool:
+def _join_group(lab: np.ndarray, owner: np.ndarray, adj: list[list[int]],
+                edges: tuple[np.ndarray, np.ndarray, np.ndarray], grp: int, buses: list[int]) -> bool:
     """Relabel shortest paths so that all of group grp's generator buses share one connected piece.
 
     Returns:
@@ -409,7 +400,8 @@ def _join_group(lab: np.ndarray, owner: np.ndarray, adj: list[list[int]], grp: i
     gens = np.flatnonzero(owner == grp)
     changed = False
     while True:
-        main = _reach(adj, gens[:1], lambda j: lab[j] == grp)
+        piece = _pieces_within(edges, lab == grp)
+        main = piece == piece[gens[0]]
         apart = [int(g) for g in gens if not main[g]]
         if not apart:
             return changed
