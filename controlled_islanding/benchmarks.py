@@ -113,3 +113,147 @@ def regional_swings(grid, groups: dict[str, int], samples: int, fps: float = 60.
     base = [0.3 * np.sin(2 * np.pi * rng.uniform(0.3, 1.5) * t + rng.uniform(0, 6)) + r * np.pi * (t / span) ** 2
             for r in range(k)]
     return [base[groups[g.name]] + np.cumsum(rng.normal(0, 0.002, samples)) for g in grid.generators]
+
+
+# ---------------------------------------------------------------------------------------------------- rotor angle DSE
+# Machine data as ANDES holds it after setup (per unit on the system base, M = 2H on the system base), by the
+# core.dse.MachineData column each fills. Classical machines (GENCLS) have only M, D, ra and x'd.
+_ANDES_MACHINE_COLUMNS = {'m_s': 'M', 'd_pu': 'D', 'ra_pu': 'ra', 'xd1_pu': 'xd1', 'xd_pu': 'xd', 'xq_pu': 'xq',
+                          'xq1_pu': 'xq1', 'td10_s': 'Td10', 'tq10_s': 'Tq10', 'xd2_pu': 'xd2', 'xq2_pu': 'xq2',
+                          'xl_pu': 'xl', 'td20_s': 'Td20', 'tq20_s': 'Tq20', 's10': 'S10', 's12': 'S12'}
+
+
+def andes_machine_data(ss, names):
+    """Return core.dse.MachineData of the named synchronous machines of a set-up ANDES System, in that order.
+
+    A classical machine's xq is x'd (what its stator presents; ANDES copies it only at TDS initialisation).
+    """
+    from andes.core.param import NumParam
+
+    from controlled_islanding.core.dse import MachineData
+
+    rows: dict[str, dict[str, float]] = {}
+    for model in (m for m in ss.groups['SynGen'].models.values() if m.n > 0):
+        for k, name in enumerate(model.name.v):
+            row = {}
+            for col, attr in _ANDES_MACHINE_COLUMNS.items():
+                param = getattr(model, attr, None)
+                row[col] = float(param.v[k]) if isinstance(param, NumParam) else float('nan')
+            if model.class_name == 'GENCLS':
+                row['xq_pu'] = row['xd1_pu']
+                row['s10'] = row['s12'] = float('nan')  # no saturation in the model; keep it out of the data
+            row['model'] = model.class_name
+            rows[str(name)] = row
+    missing = [n for n in names if n not in rows]
+    if missing:
+        raise ValueError(f'ANDES case has no synchronous machine named {missing[:3]}')
+    columns = {col: np.array([rows[n][col] for n in names]) for col in _ANDES_MACHINE_COLUMNS}
+    return MachineData(names=tuple(names), model=tuple(rows[n]['model'] for n in names), **columns)
+
+
+def dse_cache_dir() -> Path:
+    """Where simulations for the DSE benchmark are cached (build/dse_cache in the checkout)."""
+    from controlled_islanding.sim.andes_sim import pycode_dir
+
+    return pycode_dir().parent / 'dse_cache'
+
+
+def simulate_cached(scenario_path: Path, end_s: float | None = None):
+    """Return (scenario, Simulation, MachineData) of a scenario file, the ANDES run cached by its content.
+
+    Args:
+        scenario_path: A scenario YAML (bags/*.yaml).
+        end_s: Simulate only up to this time, s (None: the scenario's end).
+
+    """
+    import dataclasses
+    import hashlib
+    import pickle
+
+    import andes
+
+    from controlled_islanding.sim.andes_sim import load_power_flow, simulate
+    from controlled_islanding.sim.scenario import load_scenario
+
+    scenario = load_scenario(scenario_path)
+    if end_s is not None and end_s < scenario.end_s:
+        scenario = dataclasses.replace(scenario, end_s=float(end_s))
+    key = hashlib.sha256(repr((scenario.simulation_key(), andes.__version__)).encode()).hexdigest()[:16]
+    path = dse_cache_dir() / f'{scenario.name}-{key}.pkl'
+    if path.exists():
+        sim, machines = pickle.loads(path.read_bytes())
+        return scenario, sim, machines
+    sim = simulate(scenario, progress=False)
+    ss = load_power_flow(scenario.case, scenario.addfile)
+    machines = andes_machine_data(ss, list(sim.generator_names))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(pickle.dumps((sim, machines)))
+    return scenario, sim, machines
+
+
+DSE_SCENARIOS = ('ieee39_case2_g3_unstable', 'ieee39_paper_case2', 'ieee39_g6g7_unstable', 'ieee14_g1_unstable',
+                 'ieee14_psse_g1_borderline', 'pjm5bus_three_groups')
+# Below this terminal voltage a machine's phasors carry no angle (ANDES zeroes the voltage of buses it drops):
+# samples there count for no estimator.
+DEAD_TERMINAL_PU = 0.05
+
+
+def rotor_angle_errors(scenario_path: Path, estimators: dict[str, Callable]) -> dict:
+    """Rotor angle error of each estimator against ANDES' delta on one scenario, before and after its first event.
+
+    Args:
+        scenario_path: A scenario YAML; its ANDES run is cached (simulate_cached).
+        estimators: Label -> fn(machines, t_s, v_mag, v_angle, i_mag, i_angle) returning angles (n_frames, n_machines).
+
+    Returns:
+        {'scenario', 'models': source model per machine, 'event_s', 'dead': samples left out,
+         'errors': label -> |error| in deg (n_frames, n_machines), NaN where left out, 'before': frame mask,
+         'seconds': label -> wall time of the estimator}.
+
+    """
+    from controlled_islanding.sim.pmu import measure
+
+    scenario, sim, machines = simulate_cached(scenario_path)
+    pmu = measure(sim, scenario)
+    cols = []
+    for name, bus in zip(sim.generator_names, sim.generator_buses, strict=True):
+        own = f'PMU_{bus}/{name}'
+        cols.append(pmu.station_ids.index(own if own in pmu.station_ids else f'PMU_{bus}'))
+    phasors = [x[:, cols] for x in (pmu.v_mag_pu, pmu.v_angle_rad, pmu.i_mag_pu, pmu.i_angle_rad)]
+    event_s = min([f.start_s for f in scenario.faults] + [t.t_s for t in scenario.trips] + [scenario.end_s])
+    dead = ~(phasors[0] >= DEAD_TERMINAL_PU)
+    errors, seconds = {}, {}
+    for label, fn in estimators.items():
+        t0 = time.perf_counter()
+        est = fn(machines, pmu.tag_s, *phasors)
+        seconds[label] = time.perf_counter() - t0
+        err = np.degrees(np.abs(np.angle(np.exp(1j * (est - pmu.truth_delta_rad)))))
+        errors[label] = np.where(dead, np.nan, err)
+    return {'scenario': scenario.name, 'models': machines.model, 'event_s': event_s, 'dead': int(dead.sum()),
+            'errors': errors, 'before': pmu.tag_s < event_s, 'seconds': seconds, 'frames': len(pmu.tag_s)}
+
+
+def dse_cost_per_frame(n_machines: int, model: str, frames: int = 120) -> tuple[float, float]:
+    """Return (CPU ms, wall ms) per frame of RotorAngleDSE on n synthetic machines of one model, steady frames.
+
+    The machines' data are typical of a 100 MVA base (not of any case); frames move every angle a little.
+    """
+    from controlled_islanding.core.dse import MachineData, RotorAngleDSE
+
+    rng = np.random.default_rng(n_machines)
+    n = n_machines
+
+    def full(value):
+        return np.full(n, value)
+
+    machines = MachineData(names=tuple(f'G{k}' for k in range(n)), m_s=rng.uniform(5, 20, n), d_pu=full(0.0),
+                           xd1_pu=rng.uniform(0.2, 0.4, n), xd_pu=full(1.8), xq_pu=full(1.7), xq1_pu=full(0.5),
+                           td10_s=full(6.0), tq10_s=full(0.5), xd2_pu=full(0.15), xq2_pu=full(0.15), xl_pu=full(0.1),
+                           td20_s=full(0.03), tq20_s=full(0.05), s10=full(0.1), s12=full(0.4))
+    dse = RotorAngleDSE(model=model).fit(machines)
+    v_ang = rng.uniform(-0.3, 0.3, n)
+    dse.update(0.0, full(1.0), v_ang, full(0.8), v_ang - 0.2)
+    cpu0, wall0 = time.process_time(), time.perf_counter()
+    for k in range(1, frames + 1):
+        dse.update(k / 60.0, full(1.0), v_ang + 1e-3 * k, full(0.8), v_ang - 0.2 + 1e-3 * k)
+    return 1e3 * (time.process_time() - cpu0) / frames, 1e3 * (time.perf_counter() - wall0) / frames
