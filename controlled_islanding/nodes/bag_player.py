@@ -8,11 +8,21 @@ played under its name relative to the player's namespace (a bag of /pmu/frames p
 
 In as-fast-as-possible mode with `lockstep_on_requests` (the default), the player keeps the graph in step at
 each islanding request: before publishing it, it waits until /rotor_angles has caught up with the newest PMU
-frame played; after it, data keeps flowing in bag order (frames delayed past the request still arrive after
-it, as in real time, up to `lockstep_lead_s` of bag time past it) but /clock stays at the request time until a
-decision is out, plus `lockstep_settle_s` for its consumers to handle it (each wait at most
-`lockstep_timeout_s`). So the decision sees the data a
-real-time replay would, and no node sees it as stale on the replayed clock, however loaded the machine is.
+frame played, and then until /coherent_groups has (coherency has taken every sample up to that frame: a
+coherency node still working through a backlog, or through its first, slow computation, would otherwise get
+the request seconds late and partitioning refuse it as stale, which real time never sees); after it, data
+keeps flowing in bag order (frames delayed past the request still arrive after it, as in real time, up to
+`lockstep_lead_s` of bag time past it) but /clock stays at the request time until a decision is out, plus
+`lockstep_settle_s` for its consumers to handle it. A wait for the decision lasts at most `lockstep_timeout_s`;
+a wait for rotor angles or groups lasts until they stop moving towards the newest frame for that long, since
+under load each stage can take longer than any fixed time while it still catches up. So the decision
+sees the data a real-time replay would, and no node sees it as stale on the replayed clock, however loaded the
+machine is.
+
+While it waits (lockstep, or between messages), the player publishes the current /clock again every
+`clock_heartbeat_s` of wall time: rclpy's time source reads /clock best effort, so a node can lose the last
+/clock sample before a wait, and its clock would then stand still for the whole wait, holding every stamp more
+than its `future_tolerance_s` ahead (a lockstep wait for data held that way could only time out).
 """
 
 from __future__ import annotations
@@ -25,7 +35,7 @@ import time
 from pathlib import Path
 
 from builtin_interfaces.msg import Time
-from controlled_islanding_msgs.msg import IslandingDecision, RotorAngles
+from controlled_islanding_msgs.msg import CoherentGroups, IslandingDecision, RotorAngles
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rosbags.highlevel import AnyReader
@@ -34,6 +44,8 @@ from rosgraph_msgs.msg import Clock
 from controlled_islanding import topics
 from controlled_islanding.interfaces import typestore
 from controlled_islanding.node_common import Diagnostics, NodeSetupError, message_class, qos_for, spin_node
+
+_STAMP_ROUNDING_NS = 1_000
 
 
 class BagPlayerNode(Node):
@@ -50,11 +62,12 @@ class BagPlayerNode(Node):
         self.declare_parameter('wait_for_subscriber_count', 1)
         self.declare_parameter('min_subscribers', [''])
         self.declare_parameter('lockstep_on_requests', True)
-        self.declare_parameter('lockstep_timeout_s', 5.0)
+        self.declare_parameter('lockstep_timeout_s', 10.0)
         self.declare_parameter('lockstep_settle_s', 0.1)
         self.declare_parameter('lockstep_lead_s', 0.5)
         self.declare_parameter('report_file', '')
         self.declare_parameter('clock_min_step_s', 0.0)
+        self.declare_parameter('clock_heartbeat_s', 0.05)
         # Topics another source feeds live (e.g. /pmu/frames from pdc_client): the bag's copy is not played.
         self.declare_parameter('withhold_topics', [''])
         bag = self.get_parameter('bag').value
@@ -70,6 +83,9 @@ class BagPlayerNode(Node):
         self.lockstep_lead_ns = int(float(self.get_parameter('lockstep_lead_s').value) * 1e9)
         self.report_file = self.get_parameter('report_file').value
         self.clock_step_ns = int(float(self.get_parameter('clock_min_step_s').value) * 1e9)
+        self.clock_heartbeat_s = float(self.get_parameter('clock_heartbeat_s').value)
+        if self.clock_heartbeat_s <= 0.0:
+            raise NodeSetupError(f'parameter clock_heartbeat_s={self.clock_heartbeat_s} must be positive')
         publish_truth = bool(self.get_parameter('publish_truth').value)
         self.messages: list[tuple[str, int, bytes]] = []
         self.pubs = {}
@@ -94,13 +110,18 @@ class BagPlayerNode(Node):
         self.decisions = 0
         self.held_s: dict[str, float] = {}  # wall time spent in each lockstep wait
         self.newest_angle_ns = -1
+        self.newest_groups_ns = -1
+        self.clock_ns: int | None = None  # the bag time last published on /clock
+        self.clock_sent_at = 0.0  # wall (monotonic) time it was last published, s
         self.lockstep_subs = []
         if self.lockstep:
             self.lockstep_subs = [
                 self.create_subscription(IslandingDecision, topics.relative(topics.ISLANDING_DECISION),
                                          self._on_decision, qos_for(topics.ISLANDING_DECISION)),
                 self.create_subscription(RotorAngles, topics.relative(topics.ROTOR_ANGLES), self._on_angles,
-                                         qos_for(topics.ROTOR_ANGLES))]
+                                         qos_for(topics.ROTOR_ANGLES)),
+                self.create_subscription(CoherentGroups, topics.relative(topics.COHERENT_GROUPS), self._on_groups,
+                                         qos_for(topics.COHERENT_GROUPS))]
         self.diag = Diagnostics(self)
         self.get_logger().info(f'{len(self.messages)} messages on {len(self.pubs)} topics from {bag}')
 
@@ -111,12 +132,27 @@ class BagPlayerNode(Node):
         stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         self.newest_angle_ns = max(self.newest_angle_ns, stamp_ns)
 
-    def _hold(self, executor: SingleThreadedExecutor, what: str, done) -> None:
-        t0 = time.monotonic()
-        self._spin_until(executor, t0 + self.lockstep_timeout_s, done)
+    def _on_groups(self, msg: CoherentGroups) -> None:
+        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        self.newest_groups_ns = max(self.newest_groups_ns, stamp_ns)
+
+    def _publish_clock(self, clock_ns: int) -> None:
+        assert self.clock_pub is not None
+        self.clock_pub.publish(Clock(clock=Time(sec=clock_ns // 1_000_000_000, nanosec=clock_ns % 1_000_000_000)))
+        self.clock_ns, self.clock_sent_at = clock_ns, time.monotonic()
+
+    def _hold(self, executor: SingleThreadedExecutor, what: str, done, progress=lambda: None) -> None:
+        """Spin until done(), or until progress() (a stamp, say) has stood still for lockstep_timeout_s."""
+        t0 = last_move = time.monotonic()
+        seen = progress()
+        while not done() and time.monotonic() < last_move + self.lockstep_timeout_s:
+            self._spin_until(executor, min(last_move + self.lockstep_timeout_s, time.monotonic() + 0.1), done)
+            if progress() != seen:
+                seen, last_move = progress(), time.monotonic()
         self.held_s[what] = self.held_s.get(what, 0.0) + time.monotonic() - t0
         if not done():
-            self.get_logger().warning(f'lockstep: no {what} within lockstep_timeout_s={self.lockstep_timeout_s}')
+            self.get_logger().warning(f'lockstep: no {what}, and no progress towards it for lockstep_timeout_s='
+                                      f'{self.lockstep_timeout_s}')
 
     @staticmethod
     def _frame_stamp_ns(raw: bytes, t_ns: int) -> int:
@@ -128,10 +164,17 @@ class BagPlayerNode(Node):
 
     def _spin_until(self, executor: SingleThreadedExecutor, deadline: float, done=lambda: False) -> None:
         while not done():
-            left = deadline - time.monotonic()
+            now = time.monotonic()
+            left = deadline - now
             if left <= 0:
                 return
-            executor.spin_once(timeout_sec=left)
+            if self.clock_ns is not None:
+                beat = self.clock_sent_at + self.clock_heartbeat_s
+                if now >= beat:
+                    self._publish_clock(self.clock_ns)
+                    beat = self.clock_sent_at + self.clock_heartbeat_s
+                left = min(left, beat - now)
+            executor.spin_once(timeout_sec=max(left, 0.0))
 
     def wait_for_subscribers(self, executor: SingleThreadedExecutor) -> None:
         """Wait for subscribers (`min_subscribers` 'topic=count', else `wait_for_subscriber_count`), or the time."""
@@ -159,7 +202,6 @@ class BagPlayerNode(Node):
         """Publish every message at its time; return a report with the speed against real time."""
         t0_ns = self.messages[0][1]
         start = time.monotonic()
-        last_clock_ns = None
         last_frame_ns = -1
         frozen_at_ns = None  # lockstep: bag time stays here from a request until its decision is handled
         waiting_for = 0
@@ -172,17 +214,22 @@ class BagPlayerNode(Node):
                 # lockstep_lead_s, not more, so wait for the decision before going further.
                 self._hold(executor, 'decision', lambda w=waiting_for: self.decisions >= w)
             if self.lockstep and request and last_frame_ns >= 0:
+                # A loaded machine can make either stage take longer than any fixed time while it still moves on;
+                # the wait ends early only when the stage stops moving (a dead or hung node).
                 self._hold(executor, 'rotor angles up to the newest frame',
-                           lambda f=last_frame_ns: self.newest_angle_ns >= f)
+                           lambda f=last_frame_ns: self.newest_angle_ns >= f, lambda: self.newest_angle_ns)
+                # Coherency stamps its groups with its newest sample's time as float seconds, which rounds a
+                # POSIX stamp by up to ~0.2 us.
+                self._hold(executor, 'coherent groups up to the newest frame',
+                           lambda f=last_frame_ns: self.newest_groups_ns >= f - _STAMP_ROUNDING_NS,
+                           lambda: self.newest_groups_ns)
             if frozen_at_ns is not None and self.decisions >= waiting_for:
                 self._spin_until(executor, time.monotonic() + self.lockstep_settle_s)
                 frozen_at_ns = None
             clock_ns = t_ns if frozen_at_ns is None else frozen_at_ns
-            if self.clock_pub is not None and (last_clock_ns is None or request
-                                               or clock_ns - last_clock_ns >= self.clock_step_ns):
-                self.clock_pub.publish(Clock(clock=Time(sec=clock_ns // 1_000_000_000,
-                                                        nanosec=clock_ns % 1_000_000_000)))
-                last_clock_ns = clock_ns
+            if self.clock_pub is not None and (self.clock_ns is None or request
+                                               or clock_ns - self.clock_ns >= self.clock_step_ns):
+                self._publish_clock(clock_ns)
             self.pubs[topic].publish(raw)
             self.diag.arrived()
             if topic == topics.PMU_FRAMES:

@@ -1,0 +1,121 @@
+"""bag_player's lockstep at a request, as a real process against a probe that plays the graph's part.
+
+The probe answers like the pipeline would, but on a schedule the test sets: rotor angles at once (pmu_ingestion
+caught up), coherent groups for the newest frame only HOLD_S later (a coherency node still working through its
+backlog, or through its first, slow DTW computation: 1.2-3.0 s measured on a loaded machine). The request must
+not go out before those groups: partitioning waits only groups_wait_s of wall time for the request's groups and
+then refuses it as stale, which a real-time replay never does. Meanwhile /clock must keep coming: the nodes' time
+source reads it best effort, and a node that lost the last sample before the wait would otherwise hold every
+stamp ahead of its stale clock for the whole wait.
+"""
+
+from __future__ import annotations
+
+import time
+import uuid
+
+import pytest
+from controlled_islanding_msgs.msg import CoherentGroups, IslandingDecision, IslandingRequest, PmuFrame, RotorAngles
+from nodes_harness import BUILD, graph
+from rclpy.serialization import serialize_message
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosgraph_msgs.msg import Clock
+
+from controlled_islanding import topics
+from controlled_islanding.interfaces import typestore
+from controlled_islanding.messages import split_stamp, stamp_s
+from controlled_islanding.node_common import qos_for
+from controlled_islanding.supervisor import PLAYER
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+T0_NS = 1_767_225_600 * 1_000_000_000
+FPS = 60
+N_FRAMES = 91  # 1.5 s
+REQUEST_AT = 45  # the request is logged with frame 45, after frames 0..44
+HOLD_S = 1.0  # how long the probe's "coherency" lags behind the newest frame, wall s
+
+
+def frame_ns(k: int) -> int:
+    return T0_NS + k * 1_000_000_000 // FPS
+
+
+def write_bag(path) -> None:
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = {}
+
+        def put(topic, msg, t_ns):
+            if topic not in conns:
+                name = type(msg).__module__.split('.')[0] + '/msg/' + type(msg).__name__
+                conns[topic] = writer.add_connection(topic, name, typestore=typestore())
+            writer.write(conns[topic], t_ns, serialize_message(msg))
+
+        for k in range(N_FRAMES):
+            if k == REQUEST_AT:
+                request = IslandingRequest(request_id='req-1', reason='test')
+                request.header.stamp.sec, request.header.stamp.nanosec = divmod(frame_ns(k), 1_000_000_000)
+                put(topics.ISLANDING_REQUEST, request, frame_ns(k))
+            frame = PmuFrame()
+            frame.header.stamp.sec, frame.header.stamp.nanosec = divmod(frame_ns(k), 1_000_000_000)
+            put(topics.PMU_FRAMES, frame, frame_ns(k))
+
+
+def test_request_waits_for_groups_up_to_the_newest_frame_while_clock_keeps_coming():
+    run = BUILD / 'test_nodes' / f'lockstep_{uuid.uuid4().hex}'
+    run.mkdir(parents=True)
+    bag = run / 'in_bag'
+    write_bag(bag)
+    with graph('test_nodes_player_lockstep', []) as (sup, probe):
+        node = probe.node
+        angles_pub = node.create_publisher(RotorAngles, topics.ROTOR_ANGLES, qos_for(topics.ROTOR_ANGLES))
+        groups_pub = node.create_publisher(CoherentGroups, topics.COHERENT_GROUPS, qos_for(topics.COHERENT_GROUPS))
+        decision_pub = node.create_publisher(IslandingDecision, topics.ISLANDING_DECISION,
+                                             qos_for(topics.ISLANDING_DECISION))
+        seen: dict[str, float] = {}  # event -> wall time
+        clocks: list[tuple[float, int]] = []  # (wall time, bag time ns)
+
+        def groups_at(stamp) -> CoherentGroups:
+            msg = CoherentGroups(generator_names=['G1', 'G2'], group=[0, 1], k=2, method='dtw')
+            # Stamped as the coherency node does, through float seconds.
+            msg.header.stamp.sec, msg.header.stamp.nanosec = split_stamp(stamp_s(stamp))
+            return msg
+
+        def on_frame(frame: PmuFrame) -> None:
+            angles_pub.publish(RotorAngles(header=frame.header, generator_names=['G1', 'G2'],
+                                           generator_buses=[1, 2], angle_rad=[0.0, 0.0], valid=[True, True]))
+            k = round((frame.header.stamp.sec * 1_000_000_000 + frame.header.stamp.nanosec - T0_NS) * FPS / 1e9)
+            if k == REQUEST_AT - 15:
+                groups_pub.publish(groups_at(frame.header.stamp))  # groups that lag the newest frame are no answer
+            if k == REQUEST_AT - 1:
+                seen['newest_frame'] = time.monotonic()
+                seen['newest_stamp'] = frame.header.stamp
+
+        def on_request(msg: IslandingRequest) -> None:
+            seen.setdefault('request', time.monotonic())
+            decision_pub.publish(IslandingDecision(request_id=msg.request_id, request_stamp=msg.header.stamp,
+                                                   status=IslandingDecision.STATUS_NO_SPLIT))
+
+        node.create_subscription(PmuFrame, topics.PMU_FRAMES, on_frame, qos_for(topics.PMU_FRAMES))
+        node.create_subscription(IslandingRequest, topics.ISLANDING_REQUEST, on_request,
+                                 qos_for(topics.ISLANDING_REQUEST))
+        node.create_subscription(Clock, topics.CLOCK, lambda m: clocks.append(
+            (time.monotonic(), m.clock.sec * 1_000_000_000 + m.clock.nanosec)), qos_for(topics.CLOCK))
+        player = sup.start(PLAYER, {'bag': bag, 'as_fast_as_possible': True, 'report_file': run / 'report.json',
+                                    'lockstep_timeout_s': 5.0, 'clock_min_step_s': 0.05})
+
+        def release_groups() -> bool:
+            if 'groups' not in seen and 'newest_frame' in seen and time.monotonic() >= seen['newest_frame'] + HOLD_S:
+                groups_pub.publish(groups_at(seen['newest_stamp']))
+                seen['groups'] = time.monotonic()
+            return player.poll() is not None
+
+        assert probe.spin_until(release_groups, 30.0), 'player did not finish'
+        assert player.returncode == 0, sup.log_tail('bag_player')
+    assert 'request' in seen, sup.log_tail('bag_player')
+    assert 'groups' in seen and seen['request'] >= seen['groups'], (
+        f'the request went out {seen["request"] - seen["newest_frame"]:.2f} s after the newest frame, before the '
+        f'groups for it ({HOLD_S} s after it)')
+    # Nothing else is published while the player holds the request back: every /clock then is a heartbeat.
+    held = [ns for t, ns in clocks if seen['newest_frame'] + 0.2 <= t <= seen['groups']]
+    assert len(held) >= 5, f'{len(held)} /clock messages in {HOLD_S - 0.2:.1f} s of lockstep wait'
+    assert set(held) == {held[0]} and held[0] <= frame_ns(REQUEST_AT - 1)
