@@ -33,7 +33,7 @@ class Probe:
         self.pubs = {}
         self.received: dict[str, list] = {}
         self.diagnostics: dict[str, dict[str, str]] = {}
-        self.levels: dict[str, tuple[int, str]] = {}  # status name -> (level, message)
+        self.levels: dict[str, tuple[bytes, str]] = {}  # status name -> (level, message)
         self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diag, qos_for(topics.DIAGNOSTICS))
 
     def _on_diag(self, msg: DiagnosticArray) -> None:

@@ -183,10 +183,10 @@ def test_levels_follow_the_current_state_and_pmu_frames_has_a_frequency_status(a
     probe.pubs[topics.in_namespace(topics.NETWORK_SNAPSHOT, '/area1')].publish(snap)
 
     def level(name: str) -> int:
-        return probe.levels.get(name, (-1, ''))[0]
+        return probe.levels.get(name, (b'', ''))[0]
 
     def message(name: str) -> str:
-        return probe.levels.get(name, (-1, ''))[1]
+        return probe.levels.get(name, (b'', ''))[1]
 
     stream = Stream(probe, frames, '/area1')
     # The rate window spans 5 one-second publishes: it must first fill with streaming.
