@@ -2,10 +2,10 @@
 
 pmu_ingestion and partitioning run in /area1 and in /area2, on one domain, on wall time. Each node's whole
 interface (topics, services) lies in its namespace, apart from the global /diagnostics, /rosout and
-/parameter_events. A request in one area is decided there, on that area's data, and nowhere else. On
-/area1/pmu_ingestion, fed 60 frames/s from the default bag (restamped to now): /pmu/frames has a
-diagnostic_updater frequency status that meets 60 Hz; a PMU left out of the frames for longer than
-`stale_pmu_s` turns the node WARN, naming it, and OK again once it is back; a rejected frame is WARN for
+/parameter_events, and its config/*.yaml reaches it there. A request in one area is decided there, on that area's
+data, and nowhere else. On /area1/pmu_ingestion, fed 60 frames/s from the default bag (restamped to now):
+/pmu/frames has a diagnostic_updater frequency status that meets 60 Hz; a PMU left out of the frames for longer
+than `stale_pmu_s` turns the node WARN, naming it, and OK again once it is back; a rejected frame is WARN for
 `diagnostics_hold_s`, then OK, while its counter stays; when the frames stop, the frequency status falls.
 """
 
@@ -17,10 +17,12 @@ import time
 from pathlib import Path
 
 import pytest
+import yaml
 from builtin_interfaces.msg import Time
 from controlled_islanding_msgs.msg import CoherentGroups, IslandingDecision, IslandingRequest, NetworkSnapshot, PmuFrame
 from diagnostic_msgs.msg import DiagnosticStatus
 from nodes_harness import graph
+from rcl_interfaces.srv import GetParameters
 from rclpy._rclpy_pybind11 import NodeNameNonExistentError
 from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
@@ -28,7 +30,7 @@ from rosbags.highlevel import AnyReader
 from controlled_islanding import topics
 from controlled_islanding.commands.demo import default_bag, manifest_entries
 from controlled_islanding.interfaces import typestore
-from controlled_islanding.supervisor import GRAPH
+from controlled_islanding.supervisor import GRAPH, config_dir
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -61,8 +63,7 @@ def areas():
     if not manifest_entries():
         pytest.skip('no bags in bags/index.yaml')
     snapshot, groups, frames = bag_messages()
-    overrides = {'pmu_ingestion': {'diagnostics_hold_s': HOLD_S, 'rate_fps': RATE_HZ},
-                 'partitioning': {'groups_wait_s': 0.5}}
+    overrides = {'pmu_ingestion': {'diagnostics_hold_s': HOLD_S, 'rate_fps': RATE_HZ}, 'partitioning': {}}
     specs = [(s, overrides[s.executable], area) for area in AREAS for s in NODES]
     with graph('test_nodes_namespaces', specs) as (sup, probe):
         for area in AREAS:
@@ -104,6 +105,14 @@ def test_every_name_of_a_namespaced_node_is_in_its_namespace(areas):
             outside = sorted(n for n in interface(probe, node, area)
                              if not n.startswith(f'{area}/') and n not in topics.GLOBAL)
             assert not outside, f'{area}/{node} uses names outside its namespace: {outside}'
+    # The parameter files key each node as /**/<name>, so they reach it in any namespace.
+    configured = yaml.safe_load((config_dir() / 'partitioning.yaml').read_text())['/**/partitioning']
+    wait_s = configured['ros__parameters']['groups_wait_s']
+    assert wait_s != 0.5, 'the configured value must differ from the default for this check to mean anything'
+    for area in AREAS:
+        got = probe.call(GetParameters, f'{area}/partitioning/get_parameters', GetParameters.Request(
+            names=['groups_wait_s'])).values[0].double_value
+        assert got == wait_s, f'{area}/partitioning runs without config/partitioning.yaml'
     for topic in (topics.PMU_FRAMES, topics.ROTOR_ANGLES, topics.ISLANDING_DECISION, topics.NETWORK_SNAPSHOT):
         users = [i.node_name for i in (probe.node.get_publishers_info_by_topic(topic)
                                        + probe.node.get_subscriptions_info_by_topic(topic))]

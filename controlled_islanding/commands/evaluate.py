@@ -198,7 +198,7 @@ def _coherency_node_parameters() -> dict[str, Any]:
         return {}
     import yaml
 
-    return dict(((yaml.safe_load(path.read_text()) or {}).get('coherency') or {}).get('ros__parameters') or {})
+    return dict(((yaml.safe_load(path.read_text()) or {}).get('/**/coherency') or {}).get('ros__parameters') or {})
 
 
 def run(args) -> int:
