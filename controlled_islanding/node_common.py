@@ -180,7 +180,7 @@ class TopicStatus:
         if clock_s > 0:
             self._history.append((clock_s, self.count))
         low, high = self.rate_hz * (1 - self.tolerance), self.rate_hz * (1 + self.tolerance)
-        found: list[tuple[int, str]] = []
+        found: list[tuple[bytes, str]] = []  # (DiagnosticStatus level, a byte field; message)
         if clock_s <= 0 or duration_s <= 0:
             found.append((DiagnosticStatus.OK, 'Node clock not running: no rate to measure.'))
             freq = None
@@ -369,7 +369,7 @@ class Diagnostics:
             status.update(clock_s)
         self.publish()
 
-    def level(self) -> tuple[int, str]:
+    def level(self) -> tuple[bytes, str]:
         """Return the node's level now and its message."""
         now = time.monotonic()
         failed = sorted(k for k, t in self._failed_at_s.items() if now - t < self.hold_s)
