@@ -28,7 +28,8 @@ def test_case1_json_is_table1(capsys: pytest.CaptureFixture[str]) -> None:
 
 @pytest.mark.parametrize('flows', ['pre', 'post'])
 def test_case2_json_is_table5(capsys: pytest.CaptureFixture[str], flows: str) -> None:
-    out = run_json(capsys, [*CASE2, '--flows', flows])
+    # Post-outage flows make moving bus 14 0.4 MW better than Table V, so the paper's method alone is asked for.
+    out = run_json(capsys, [*CASE2, '--flows', flows, '--no-refine'])
     assert out['islands'][0] == [15, 16, 19, 20, 21, 22, 23, 24, 33, 34, 35, 36]
     assert out['cut_branch_ids'] == ['14-15']
     assert out['island_balance'][0]['generation_mw'] == pytest.approx(2350.0)

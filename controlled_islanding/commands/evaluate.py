@@ -178,7 +178,8 @@ def add_arguments(parser) -> None:
                         help='compare every k rule on the bags (and --andes scenarios) and write this page instead')
     parser.add_argument('--observability', type=Path, metavar='FILE.md',
                         help='instead, sweep PMU coverage (100/75/50/25 %%: the largest machines first, and '
-                             '--draws seeded random placements) on the bags and write the table (docs/observability.md)')
+                             '--draws seeded random placements) on the bags and write the table '
+                             '(docs/observability.md)')
     parser.add_argument('--draws', type=int, default=5, help='random placements per coverage (--observability)')
     parser.add_argument('--seed', type=int, default=0, help='seed of the random placements (--observability)')
     parser.add_argument('--andes', action='append', type=Path, metavar='SCENARIO.yaml', default=[],

@@ -43,6 +43,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              'or the post-outage AC power flow')
     parser.add_argument('--beta', type=float, default=0.2,
                         help='eq. 7 threshold as a fraction of its feasibility bound (default 0.2)')
+    parser.add_argument('--no-refine', action='store_true',
+                        help="stop at the paper's method (eqs. 4-8, k-medoids, repair): no single-bus moves that "
+                             'lower the disrupted flow afterwards')
     parser.add_argument('--json', action='store_true', help='print one JSON object instead of a table')
 
 
@@ -95,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
             grid = base.with_flows().with_outages(outages)
         else:
             grid = base.with_outages(outages).with_flows()
-        decision = decide(grid, groups, ConstrainedSpectralPartition(beta=args.beta))
+        decision = decide(grid, groups, ConstrainedSpectralPartition(beta=args.beta, refine=not args.no_refine))
     except (GridError, IslandingError, SpectralError) as exc:
         raise CliError(str(exc)) from exc
     islands = [decision.island_buses(i) for i in range(decision.n_islands)]

@@ -45,6 +45,13 @@ path (fewest branches) through buses that hold no other group's generator; every
 that is cut off from its generators is released, and released pieces are attached one by one to the
 neighbouring island they exchange most flow with. The result: island g is connected and holds exactly
 group g's generators.
+
+Refinement (`refine_partition`, `refine=True`; off by default for now: the paper's method alone): the relaxation
+minimises a ratio of cut to volume, not eq. 9 itself, and the repair only makes the islands valid, so single
+boundary buses are then moved while each move lowers the cut weight and keeps every island connected with
+its generators. On regional groupings of case39, case118, ieee14, nordic44 and EI_33 (k = 2 to 4) this reached
+the MILP's optimum in 13 of 15 cases where the repaired relaxation did in 4; it is a local search, and on
+case300 and EI_33 with k = 2 it stopped 4x and 2x above the optimum.
 """
 
 from __future__ import annotations
@@ -139,21 +146,25 @@ class ConstrainedSpectralPartition:
             mu_{k-1}(Q_N) * vol, or of the way from 1^T Q 1 to it when that is higher (see the module docstring).
         random_state: Seeds ARPACK's starting vector (PAM's BUILD initialisation is deterministic).
         repair: Apply `repair_partition` (on by default; off only to study the raw relaxation).
+        refine: After the repair, move single boundary buses while that lowers eq. 9 (`refine_partition`).
+            Off by default: the paper's method stops at the repaired relaxation.
 
     Attributes:
         labels_: Island (= coherent group, 0-based) of each bus, aligned with `grid.buses`.
         relaxed_labels_: The k-medoids result mapped to groups, before the repair.
         repaired_buses_: Bus numbers the repair moved.
+        refined_buses_: Bus numbers the refinement moved (empty without refine).
         eigenvalues_: The k-1 eigenvalues of eq. 8 used.
         embedding_: Rows of u = D^-1/2 V* (buses by k-1) that k-medoids clustered.
         beta_: The absolute beta used.
 
     """
 
-    def __init__(self, beta: float = 0.2, random_state: int = 0, repair: bool = True) -> None:
+    def __init__(self, beta: float = 0.2, random_state: int = 0, repair: bool = True, refine: bool = False) -> None:
         self.beta = beta
         self.random_state = random_state
         self.repair = repair
+        self.refine = refine
 
     def fit(self, grid: Grid, generator_groups: Mapping[str, int]) -> ConstrainedSpectralPartition:
         """Partition the buses.
@@ -227,6 +238,11 @@ class ConstrainedSpectralPartition:
         self.relaxed_labels_ = relaxed
         self.labels_ = repair_partition(grid, generator_groups, relaxed, w) if self.repair else relaxed.copy()
         self.repaired_buses_ = [b for b, a, c in zip(buses, relaxed, self.labels_, strict=True) if a != c]
+        self.refined_buses_ = []
+        if self.refine and self.repair:
+            repaired = self.labels_
+            self.labels_ = refine_partition(grid, generator_groups, repaired, w)
+            self.refined_buses_ = [b for b, a, c in zip(buses, repaired, self.labels_, strict=True) if a != c]
         return self
 
 
@@ -371,6 +387,82 @@ def repair_partition(grid: Grid, generator_groups: Mapping[str, int], labels: np
         lab[chosen] = int(np.argmax(score[best]))
         free[chosen] = False
     return lab
+
+
+def refine_partition(grid: Grid, generator_groups: Mapping[str, int], labels: np.ndarray,
+                     weights: sparse.csr_array) -> np.ndarray:
+    """Move single buses across island boundaries while each move lowers the cut weight (eq. 9).
+
+    A bus may move to a neighbouring island when it holds no grouped generator, the move lowers the weight
+    of the cut branches by more than 1e-9 of the total weight, and its own island stays connected without
+    it. The largest gain moves first (ties: lowest bus index, then lowest island). Every move lowers the cut,
+    so it ends. This is a local search from the repaired relaxation: it does not reach the MILP's optimum
+    in general, only a partition no single bus move improves.
+
+    Args:
+        grid: The grid.
+        generator_groups: Group (0-based) of every grouped generator, by name; the others are free to move.
+        labels: A repaired partition (connected islands, each holding exactly its group's generator buses).
+        weights: Eq. 4 weights, MW, symmetric.
+
+    Returns:
+        The refined island of each bus, aligned with `grid.buses`.
+
+    """
+    bus_group = _bus_groups(grid, generator_groups)
+    idx = {b: i for i, b in enumerate(grid.buses)}
+    n = len(idx)
+    lab = np.array(labels, dtype=int).copy()
+    fixed = np.zeros(n, dtype=bool)
+    fixed[[idx[b] for b in bus_group]] = True
+    w = sparse.csr_array(weights)
+    w.sum_duplicates()
+    w.sort_indices()
+    adj = _check_connected(grid, w)
+    ptr, nbr, wt = w.indptr, w.indices, w.data
+    k = int(lab.max()) + 1
+    # to[i, c]: weight from bus i to island c; a move of i to c gains to[i, c] - to[i, lab[i]].
+    to = np.zeros((n, k))
+    np.add.at(to, (np.repeat(np.arange(n), np.diff(ptr)), lab[nbr]), wt)
+    tol = 1e-9 * float(wt.sum())
+    blocked: set[tuple[int, int]] = set()  # (bus, island) moves refused for connectivity since the last move
+    while True:
+        gain = to - to[np.arange(n), lab][:, None]
+        gain[np.arange(n), lab] = -np.inf
+        gain[fixed] = -np.inf
+        for bus, isl in blocked:
+            gain[bus, isl] = -np.inf
+        best = int(np.argmax(gain))
+        i, c = divmod(best, k)
+        if not gain[i, c] > tol:
+            return lab
+        if not _stays_connected(adj, lab, i):
+            blocked.add((i, c))
+            continue
+        old = lab[i]
+        lab[i] = c
+        row = nbr[ptr[i]:ptr[i + 1]]
+        np.subtract.at(to, (row, old), wt[ptr[i]:ptr[i + 1]])
+        np.add.at(to, (row, c), wt[ptr[i]:ptr[i + 1]])
+        blocked.clear()
+
+
+def _stays_connected(adj: list[list[int]], lab: np.ndarray, i: int) -> bool:
+    """Return whether bus i's island stays connected without it (a breadth-first search that stops early)."""
+    own = lab[i]
+    targets = {j for j in adj[i] if lab[j] == own and j != i}
+    if len(targets) <= 1:
+        return True
+    start = targets.pop()
+    seen = {start, i}
+    queue = deque([start])
+    while queue and targets:
+        for j in adj[queue.popleft()]:
+            if j not in seen and lab[j] == own:
+                seen.add(j)
+                targets.discard(j)
+                queue.append(j)
+    return not targets
 
 
 def _pieces_within(edges: tuple[np.ndarray, np.ndarray, np.ndarray], mask: np.ndarray) -> np.ndarray:
