@@ -50,8 +50,8 @@ Refinement (`refine_partition`, `refine=True`; off by default for now: the paper
 minimises a ratio of cut to volume, not eq. 9 itself, and the repair only makes the islands valid, so single
 boundary buses are then moved while each move lowers the cut weight and keeps every island connected with
 its generators. On regional groupings of case39, case118, ieee14, nordic44 and EI_33 (k = 2 to 4) this reached
-the MILP's optimum in 13 of 15 cases where the repaired relaxation did in 4; it is a local search, and on
-case300 and EI_33 with k = 2 it stopped 4x and 2x above the optimum.
+the MILP's optimum in 14 of 15 cases where the repaired relaxation did in 5; it is a local search: on EI_33 with
+k = 2 it stopped 2x above the optimum, and on case300 it reached it for k = 3 only (4x above it for k = 2).
 """
 
 from __future__ import annotations
