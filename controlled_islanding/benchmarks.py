@@ -208,10 +208,12 @@ def rotor_angle_errors(scenario_path: Path, estimators: dict[str, Callable]) -> 
     Returns:
         {'scenario', 'models': source model per machine, 'event_s', 'dead': samples left out,
          'errors': label -> |error| in deg (n_frames, n_machines), NaN where left out, 'before': frame mask,
-         'seconds': label -> wall time of the estimator}.
+         'seconds': label -> wall time of the estimator, 'estimates': label -> angles, rad, 't_s': time tags,
+         'request_s': the islanding request, 'truth_labels': sim.truth's final groups}.
 
     """
     from controlled_islanding.sim.pmu import measure
+    from controlled_islanding.sim.truth import truth_groups
 
     scenario, sim, machines = simulate_cached(scenario_path)
     pmu = measure(sim, scenario)
@@ -222,15 +224,24 @@ def rotor_angle_errors(scenario_path: Path, estimators: dict[str, Callable]) -> 
     phasors = [x[:, cols] for x in (pmu.v_mag_pu, pmu.v_angle_rad, pmu.i_mag_pu, pmu.i_angle_rad)]
     event_s = min([f.start_s for f in scenario.faults] + [t.t_s for t in scenario.trips] + [scenario.end_s])
     dead = ~(phasors[0] >= DEAD_TERMINAL_PU)
-    errors, seconds = {}, {}
+    errors, seconds, estimates = {}, {}, {}
     for label, fn in estimators.items():
         t0 = time.perf_counter()
         est = fn(machines, pmu.tag_s, *phasors)
         seconds[label] = time.perf_counter() - t0
         err = np.degrees(np.abs(np.angle(np.exp(1j * (est - pmu.truth_delta_rad)))))
         errors[label] = np.where(dead, np.nan, err)
+        estimates[label] = est
     return {'scenario': scenario.name, 'models': machines.model, 'event_s': event_s, 'dead': int(dead.sum()),
-            'errors': errors, 'before': pmu.tag_s < event_s, 'seconds': seconds, 'frames': len(pmu.tag_s)}
+            'errors': errors, 'before': pmu.tag_s < event_s, 'seconds': seconds, 'frames': len(pmu.tag_s),
+            'estimates': estimates, 't_s': pmu.tag_s, 'request_s': scenario.request_s,
+            'truth_labels': truth_groups(pmu.tag_s, pmu.truth_delta_rad)}
+
+
+def same_grouping(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two labelings group the machines alike (labels may be numbered differently)."""
+    a, b = np.asarray(a), np.asarray(b)
+    return bool(np.array_equal(np.equal.outer(a, a), np.equal.outer(b, b)))
 
 
 def dse_cost_per_frame(n_machines: int, model: str, frames: int = 120) -> tuple[float, float]:

@@ -225,7 +225,14 @@ def _percentiles(values: np.ndarray) -> str:
 
 def bench_dse(bags: Path, names: list[str] | None) -> None:
     """Print the DSE's rotor angle error against the steady-state estimate, and its cost per frame."""
-    from controlled_islanding.benchmarks import DEAD_TERMINAL_PU, DSE_SCENARIOS, dse_cost_per_frame, rotor_angle_errors
+    from controlled_islanding.benchmarks import (
+        DEAD_TERMINAL_PU,
+        DSE_SCENARIOS,
+        dse_cost_per_frame,
+        rotor_angle_errors,
+        same_grouping,
+    )
+    from controlled_islanding.core.coherency import DTWCoherency
     from controlled_islanding.core.dse import RotorAngleDSE
     from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
 
@@ -260,6 +267,14 @@ def bench_dse(bags: Path, names: list[str] | None) -> None:
                       f' {ms:>8.2f}')
         if res['dead']:
             print(f'  {"":<26} ({res["dead"]} machine samples left out: dead terminal)')
+        window = (res['t_s'] > res['request_s'] - 3.0) & (res['t_s'] <= res['request_s'])
+        cells = []
+        for label in ('steady state', 'DSE (richest)'):
+            labels = DTWCoherency(window=30).fit(list(res['estimates'][label][window].T)).labels_
+            cells.append(f'{label} k={labels.max() + 1} '
+                         f'{"= truth" if same_grouping(labels, res["truth_labels"]) else "differs"}')
+        print(f'  {"":<26} DTW coherency over the 3 s before the request ({res["request_s"]:g} s), band 30: truth '
+              f'k={res["truth_labels"].max() + 1}; ' + '; '.join(cells))
         sys.stdout.flush()
     print(f'Cost per frame of RotorAngleDSE (synthetic machines, steady frames), CPU ms (wall ms), {load_average()}:')
     for model in ('classical', 'genrou'):
