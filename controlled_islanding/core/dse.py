@@ -36,9 +36,17 @@ The filter is the unscented transform with kappa = 0 (the cubature rule: 2n equa
 no tuning and never has negative weights. Process noise is additive, scaled per machine by its initial output;
 measurement noise follows the total vector error (C37.118 allows 1 %) of V and of I seen through x_s.
 
-Lost and flagged data: a machine whose phasors are NaN or flagged invalid in a frame gets a prediction-only step
-with its last inputs held. After a gap longer than ``max_gap_s`` the estimate is withdrawn (NaN) and the machine is
-re-initialised at its next valid frame, from the steady-state relations, on the 2 pi branch nearest its last angle.
+Between frames the inputs are taken to change linearly, but a fault or a switching makes them jump at an unknown
+instant within the frame; the covariance is widened by that uncertainty (the change of the state derivative
+between the frame's two inputs, times the step, uniform over the step), which is what keeps the filter from
+trusting its prediction across a fault's inception or clearing.
+
+Lost and flagged data: a machine whose phasors are NaN or flagged invalid in a frame gets a prediction-only step:
+the voltage and current held, the electrical torque taken equal to the mechanical one (holding the last measured
+one would keep accelerating the machine), and the speed's uncertainty growing by a random walk of the size of a
+swing. The first frame after lost ones counts as blind too (its held inputs are stale). After a gap longer than
+``max_gap_s`` the estimate is withdrawn (NaN) and the machine is re-initialised at its next valid frame, from the
+steady-state relations, on the 2 pi branch nearest its last angle. Frames must come in time order.
 Each model class runs one batched filter for all its machines: one set of numpy calls per frame.
 """
 
