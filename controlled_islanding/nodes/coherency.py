@@ -109,6 +109,7 @@ class CoherencyNode(Node):
         self.create_timer(float(self.get_parameter('period_s').value), self.diag.guard(self.on_period), clock=steady)
         # Polls for the wait deadlines only while a request waits (no 100 Hz wake-ups when idle).
         self.pending_timer = self.create_timer(0.01, self.diag.guard(self._serve_pending), clock=steady)
+        self._warm_up_engine()
 
     def _use(self, item: tuple[str, object]) -> None:
         kind, msg = item
@@ -148,6 +149,24 @@ class CoherencyNode(Node):
         self.buses = [bus_of[n] for n in self.names]
         while self.early:
             self._take_angles(self.early.popleft())
+
+    def _warm_up_engine(self) -> None:
+        """Group a made-up window once, before spinning, so that the DTW engine is loaded before any real window.
+
+        numba loads the compiled engine on its first call: about 45 MB and 1-5 s on the shared 2-core machine.
+        Paid at start-up (within the supervisor's start-up grace), it is neither the first request's latency, nor
+        a callback long enough to look hung, nor a step in the memory of a node that has been running (the fuzz
+        soak measured it as growth; docs/nodes.md, "Fuzz soak").
+        """
+        t0 = time.perf_counter()
+        ramp = np.linspace(0.0, 2.0 * np.pi, self.min_samples)
+        # Two groups, one slipping a pole: the same path through the k rule as a real split.
+        series = [ramp * (i % 2) for i in range(self.max_groups + 2)]
+        try:
+            DTWCoherency(max_groups=self.max_groups, window=self.band, k_rule=self.k_rule).fit(series)
+        except Exception as exc:  # noqa: BLE001  a made-up window only loads the engine; its answer is unused
+            self.get_logger().info(f'DTW warm-up grouping failed ({exc}); continuing')
+        self.diag.values['warm_up_ms'] = f'{(time.perf_counter() - t0) * 1e3:.1f}'
 
     def on_angles(self, msg: RotorAngles) -> None:
         """Check one sample's shape and stamp; use it, hold it, or refuse it."""
