@@ -22,7 +22,7 @@ import os
 import random
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from controlled_islanding import topics
@@ -50,29 +50,45 @@ PACER: dict[str, str] = {
 PACE_WINDOW = 60
 # Topics whose readers keep only the latest message or a few (keep last 1 and 16): one message per gap of wall
 # time, at least LATEST_ONLY_GAP_S (about the time a node takes to decode an IEEE 39 snapshot). The gap doubles
-# whenever a receiver counts a loss (`lost.<topic>`, at most MAX_GAP_S) and shrinks again after 100 messages
-# without one, so nearly every message is judged, and the few that are not are counted. A message at or beyond
-# the caps is followed by a wait until the pacer has taken it: its decode takes long enough to lose the next.
+# whenever a receiver counts a loss (`lost.<topic>`, at most MAX_GAP_S) and halves again after QUIET_MESSAGES
+# without one: it settles where about one message in QUIET_MESSAGES is lost, and every loss is counted. (Shrunk
+# by only 0.8, a gap pushed to MAX_GAP_S by the losses around the messages at the caps never came down, and
+# 10,000 snapshots took 30 min.) A message at or beyond the caps is followed by a wait until every receiver has
+# taken it (BIG_WAIT_S at most): its decode takes long enough for a keep-last-1 reader to lose the next ones,
+# and partitioning and breaker_command count no losses.
 LATEST_ONLY = (topics.NETWORK_SNAPSHOT, topics.COHERENT_GROUPS)
 LATEST_ONLY_GAP_S = 0.004
 MAX_GAP_S = 0.25
+QUIET_MESSAGES = 100
+BIG_WAIT_S = 20.0
 # A pacer that neither takes nor counts as lost what was sent for this long (s) has dropped it uncounted (a
-# node without loss counting); those messages are written off so that pacing never waits on them again.
+# node without loss counting); those messages are written off so that pacing never waits on them again. After a
+# message at the caps the allowance is BIG_STALL_S: decoding one shows no progress until it is done.
 STALL_S = 0.5
+BIG_STALL_S = 5.0
 # The fuzz runs on a sim clock this far (s) before the bag's first message, so nothing the fuzz leaves
 # behind is newer than the bag's data, and the clock only ever moves forward.
 FUZZ_CLOCK_LEAD_S = 86_400.0
 RSS_LIMIT_MB = 20.0
-# The kinds of each topic that are as large as the nodes' caps admit, or one element larger. Before the RSS
-# baseline, each node gets each of them once: decoding one raises the heap's high-water mark by up to ~20 MB,
-# once (the allocator keeps freed memory for reuse), and a long-running node pays that the first time such a
-# message comes, not again. The growth over the fuzz is then measured from that warm baseline and judged;
-# the cold growth is printed beside it (docs/nodes.md, "Fuzz soak", has both at two N).
+# Wall time the nodes get to publish their first diagnostics, s (also the supervisor's start-up grace in the soak):
+# coherency imports scipy and loads numba's DTW engine, which took over 20 s on the shared 2-core machine under a
+# load average of 15.
+STARTUP_S = 90.0
+# The kinds of each topic that are as large as the nodes' caps admit, or one element larger. Decoding one takes
+# tens of MB of small objects and buffers; freed, most of it stays with the allocator (glibc heap, Python's
+# object arenas) for reuse, and how much stays grows with the first few such messages until it covers them:
+# a node given only these messages grew 80.9 -> 93.3 -> 94.7 MB after 1, 10 and 20 of them, then stayed at
+# 94.7 MB to 150. So before the RSS baseline, each node gets every one of these kinds, round after round, until
+# two rounds running add less than WARM_PLATEAU_KB to every node (at most WARM_ROUNDS): the warm baseline is
+# a node that has already held the largest messages its caps admit. The growth over the fuzz is measured from
+# there and judged; the cold growth is printed beside it. docs/nodes.md, "Fuzz soak", has the diagnosis.
 LARGEST_KINDS: dict[str, tuple[str, ...]] = {
     topics.PMU_FRAMES: ('over_cap', 'at_cap_unknown'), topics.NETWORK_SNAPSHOT: ('over_cap', 'at_cap_nan'),
     topics.ROTOR_ANGLES: ('over_cap', 'at_cap_renamed'), topics.COHERENT_GROUPS: ('over_cap',),
     topics.ISLANDING_DECISION: ('over_cap',),
 }
+WARM_PLATEAU_KB = 1024
+WARM_ROUNDS = 12
 # Caps of the nodes as configured in config/*.yaml (messages.Limits and the per-node parameters).
 MAX_PMUS_PER_FRAME = 10_000
 MAX_BUSES = 50_000
@@ -121,9 +137,12 @@ class NodeResult:
 
     Attributes:
         name: The node.
-        deaths: Exits and hangs the supervisor saw (each followed by a restart).
+        deaths: Exits and hangs the supervisor saw from the first fuzz message on (each followed by a restart).
+        startup_restarts: Restarts before any fuzz message was sent (a node that took longer than the
+            supervisor's heartbeat allowance to start, on a loaded machine): reported, not judged, since no
+            input can have caused them.
         rss_before_kb: VmRSS before the warm-up, kB.
-        rss_warm_kb: VmRSS after the warm-up (the largest message of every kind, once), kB.
+        rss_warm_kb: VmRSS after the warm-up (the largest messages of every kind, until RSS levels off), kB.
         rss_after_fuzz_kb: VmRSS after the last topic settled, kB (None if the process changed).
         rss_growth_mb: rss_after_fuzz_kb - rss_warm_kb, MB (1 MB = 1024 kB): what the fuzz added to a node
             that has already held the largest messages its caps admit. The judged figure.
@@ -133,6 +152,7 @@ class NodeResult:
 
     name: str
     deaths: int = 0
+    startup_restarts: int = 0
     rss_before_kb: int | None = None
     rss_warm_kb: int | None = None
     rss_after_fuzz_kb: int | None = None
@@ -179,6 +199,7 @@ class FuzzReport:
         nodes: One result per pipeline node.
         commands_during_fuzz: Breaker commands seen on /breaker/commands before the replay (0 required).
         replay: The replay afterwards.
+        warm_rounds: Rounds of the largest messages sent before the RSS baseline (see LARGEST_KINDS).
         failures: One line per check that did not hold; empty = pass.
         results_dir: Node logs, the breaker audit log and report.json.
         wall_s: Wall time of the whole run, s.
@@ -191,6 +212,7 @@ class FuzzReport:
     nodes: list[NodeResult] = field(default_factory=list)
     commands_during_fuzz: int = 0
     replay: ReplayResult | None = None
+    warm_rounds: int = 0
     failures: list[str] = field(default_factory=list)
     results_dir: str = ''
     wall_s: float = 0.0
@@ -723,7 +745,7 @@ def _counters(diag: dict[str, str]) -> dict[str, int]:
 
 def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, key_dir: Path,
              progress: Callable[[str], None] = lambda _line: None, topic_names: tuple[str, ...] = FUZZ_TOPICS,
-             ) -> FuzzReport:
+             warm_rounds: int = WARM_ROUNDS) -> FuzzReport:
     """Start the graph, fuzz every topic, replay the bag through the same graph, and judge.
 
     Args:
@@ -735,6 +757,7 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
         key_dir: Signing keys (made if missing): partitioning signs, the operator arms.
         progress: Called with one line per step.
         topic_names: The topics to fuzz, in order.
+        warm_rounds: Most rounds of the largest messages before the RSS baseline (see LARGEST_KINDS).
 
     Raises:
         FuzzError: The graph or the bag could not be brought up.
@@ -827,15 +850,19 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
             return done()
 
         try:
-            with Supervisor(env, results / 'logs', PIPELINE_POLICY) as sup:
+            # The start-up grace of the soak's own machine, which other work may load: a node killed for a slow
+            # start before any fuzz message only delays the run (and is reported, not judged).
+            policy = replace(PIPELINE_POLICY, startup_grace_s=STARTUP_S)
+            with Supervisor(env, results / 'logs', policy) as sup:
                 extra = {'breaker_command': {'audit_log': results / 'breaker_audit.jsonl', 'key_dir': key_dir},
                          'partitioning': {'key_dir': key_dir}}
                 for spec in GRAPH:
                     sup.start(spec, {'use_sim_time': True, **extra.get(spec.executable, {})})
                 progress(f'fuzz: started {", ".join(names)} (logs in {results / "logs"})')
-                if not spin(sup, 30.0, lambda: all(n in heartbeats for n in names)):
+                if not spin(sup, STARTUP_S, lambda: all(n in heartbeats for n in names)):
                     sup.check_alive()
-                    raise FuzzError(f'no diagnostics within 30 s from {[n for n in names if n not in heartbeats]}')
+                    silent = [n for n in names if n not in heartbeats]
+                    raise FuzzError(f'no diagnostics within {STARTUP_S:.0f} s from {silent}')
                 arm_client = node.create_client(SetArmed, '/breaker_command/set_armed')
                 if not arm_client.wait_for_service(timeout_sec=20.0):
                     raise FuzzError('breaker_command did not offer /breaker_command/set_armed within 20 s')
@@ -852,16 +879,22 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
                 pubs[topics.NETWORK_SNAPSHOT].publish(good)
                 spin(sup, 3.0)
                 pids = {n: sup.children[n].pid for n in names}
+                restarts_at_start = len(sup.restarts)
                 rss_before = {n: rss_kb(pids[n]) for n in names}
                 trusted = signing.fingerprint(
                     signing.load_public_key(signing.key_paths(key_dir, 'partitioning').public))
                 adversary = Adversary(seeds, seed, sim_now_s, trusted)
-                for topic in topic_names:
-                    _warm_up(topic, adversary, pubs[topic], diagnostics, spin, sup)
-                spin(sup, 2.0)
-                rss_warm = {n: rss_kb(pids[n]) for n in names}
+                rss_warm, flat = rss_before, 0
+                while report.warm_rounds < warm_rounds and flat < 2:
+                    for topic in topic_names:
+                        _warm_up(topic, adversary, pubs[topic], diagnostics, spin, sup)
+                    spin(sup, 2.0)
+                    previous, rss_warm = rss_warm, {n: rss_kb(pids[n]) for n in names}
+                    report.warm_rounds += 1
+                    grew = any((rss_warm[n] or 0) - (previous[n] or 0) >= WARM_PLATEAU_KB for n in names)
+                    flat = 0 if grew else flat + 1
                 progress(f'fuzz: breaker_command armed; {per_topic} messages per topic, seed {seed}; RSS (MB) '
-                         'before / after the warm-up: ' + ', '.join(
+                         f'before / after {report.warm_rounds} warm-up rounds: ' + ', '.join(
                              f'{n} {(rss_before[n] or 0) / 1024:.1f} / {(rss_warm[n] or 0) / 1024:.1f}'
                              for n in names))
                 for topic in topic_names:
@@ -883,7 +916,8 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
                 report.replay = _replay(sup, node, spin, bag, entry, seeds, results, decisions, commands,
                                         replaying, PLAYER, progress)
                 for nr in report.nodes:
-                    nr.deaths = sum(1 for r in sup.restarts if r.name == nr.name)
+                    nr.startup_restarts = sum(1 for r in sup.restarts[:restarts_at_start] if r.name == nr.name)
+                    nr.deaths = sum(1 for r in sup.restarts[restarts_at_start:] if r.name == nr.name)
         except SupervisorError as exc:
             raise FuzzError(str(exc)) from exc
         finally:
@@ -923,6 +957,31 @@ def _warm_up(topic: str, adversary: Adversary, pub: object, diagnostics: dict, s
     spin(sup, 1.0)
 
 
+@dataclass
+class Gap:
+    """Wall time between messages to keep-last readers: doubled on a loss, halved after QUIET_MESSAGES without.
+
+    Attributes:
+        s: The gap now, s.
+        losses: Losses counted so far.
+        quiet: Messages sent since the last loss or change.
+
+    """
+
+    s: float = LATEST_ONLY_GAP_S
+    losses: int = 0
+    quiet: int = 0
+
+    def sent(self, losses: int) -> None:
+        """Take the receivers' total count of losses after one more message was sent."""
+        if losses > self.losses:
+            self.s, self.losses, self.quiet = min(2.0 * self.s, MAX_GAP_S), losses, 0
+            return
+        self.quiet += 1
+        if self.quiet >= QUIET_MESSAGES:
+            self.s, self.quiet = max(0.5 * self.s, LATEST_ONLY_GAP_S), 0
+
+
 def _fuzz_topic(topic: str, n: int, adversary: Adversary, pub: object, diagnostics: dict, spin: Callable,
                 sup: object) -> TopicResult:
     """Publish n defective messages on one topic, paced by the receiving node; count what the receivers did."""
@@ -942,6 +1001,7 @@ def _fuzz_topic(topic: str, n: int, adversary: Adversary, pub: object, diagnosti
 
     received0 = count(pacer, 'received')
     lost0 = {r: count(r, lost_key) for r in receivers}
+    taken0 = {r: count(r, 'received') + count(r, lost_key) for r in receivers}
 
     def received() -> int:
         return count(pacer, 'received') - received0
@@ -950,29 +1010,47 @@ def _fuzz_topic(topic: str, n: int, adversary: Adversary, pub: object, diagnosti
         return count(node, lost_key) - lost0[node]
 
     written_off = 0
+    owed_off = {r: 0 for r in receivers}
 
     def outstanding() -> int:
         return result.sent - received() - lost(pacer) - written_off
 
+    def owed(node: str) -> int:
+        """Messages of this phase a receiver has neither taken nor counted as lost (nor been written off for)."""
+        return result.sent - (count(node, 'received') + count(node, lost_key) - taken0[node]) - owed_off[node]
+
     latest_only = topic in LATEST_ONLY
-    gap_s, losses, quiet = LATEST_ONLY_GAP_S, 0, 0
+    gap = Gap()
     for _ in range(n):
         kind, msg = adversary.make(topic)
         result.kinds[kind] = result.kinds.get(kind, 0) + 1
         pub.publish(msg)
         result.sent += 1
         if latest_only:
-            now_lost = sum(lost(r) for r in receivers)
-            if now_lost > losses:
-                gap_s, losses, quiet = min(2 * gap_s, MAX_GAP_S), now_lost, 0
-            else:
-                quiet += 1
-                if quiet >= 100:
-                    gap_s, quiet = max(0.8 * gap_s, LATEST_ONLY_GAP_S), 0
+            gap.sent(sum(lost(r) for r in receivers))
         big = latest_only and kind.startswith(('over_cap', 'at_cap'))
-        if big or outstanding() >= PACE_WINDOW:
+        if big:
+            # Taken by every receiver: each has taken or counted as lost everything sent so far, or (partitioning
+            # and breaker_command count no losses) taken one more message since this one was published.
+            at_publish = {r: count(r, 'received') for r in receivers}
+            progress_at, seen = time.monotonic(), {r: owed(r) for r in receivers}
+
+            def all_took(at_publish: dict[str, int] = at_publish) -> bool:
+                nonlocal progress_at, seen
+                now = {r: owed(r) for r in receivers}
+                if now != seen:
+                    progress_at, seen = time.monotonic(), now
+                took = all(v <= 0 or count(r, 'received') > at_publish[r] for r, v in now.items())
+                return took or time.monotonic() - progress_at > BIG_STALL_S
+
+            spin(sup, BIG_WAIT_S, all_took)
+            for r in receivers:
+                owed_off[r] += max(0, owed(r))
+            if outstanding() > 0:
+                written_off += outstanding()
+        elif outstanding() >= PACE_WINDOW:
             # Wait for the pacer to catch up, but only while it makes progress.
-            target = 1 if big else PACE_WINDOW // 2
+            target = PACE_WINDOW // 2
             progress_at, seen = time.monotonic(), outstanding()
 
             def caught_up(target: int = target) -> bool:
@@ -984,7 +1062,7 @@ def _fuzz_topic(topic: str, n: int, adversary: Adversary, pub: object, diagnosti
             if not spin(sup, 10.0, caught_up) or outstanding() >= target:
                 written_off += max(0, outstanding() - (target - 1))
         else:
-            spin(sup, gap_s if latest_only else 0.0)
+            spin(sup, gap.s if latest_only else 0.0)
 
     def snapshot() -> dict:
         return {r: _counters(diagnostics.get(r, {})) for r in receivers}
@@ -1094,8 +1172,12 @@ def render(report: FuzzReport) -> str:
         cold = f'({n.rss_cold_growth_mb:+.1f})' if n.rss_cold_growth_mb is not None else '-'
         lines.append(f'{n.name:<16} {n.deaths:>6} {mb(n.rss_before_kb):>12} {mb(n.rss_warm_kb):>8} '
                      f'{mb(n.rss_after_fuzz_kb):>9} {growth:>10} {cold:>12}')
-    lines.append(f'growth MB = after - warm: the warm-up sent each node the largest message of every kind once '
-                 f'(limit {RSS_LIMIT_MB:.0f} MB)')
+    lines.append(f'growth MB = after - warm: the warm-up sent each node the largest message of every kind, '
+                 f'{report.warm_rounds} rounds, until its RSS levelled off (limit {RSS_LIMIT_MB:.0f} MB)')
+    slow = [f'{n.name} {n.startup_restarts}' for n in report.nodes if n.startup_restarts]
+    if slow:
+        lines.append(f'restarted before the first fuzz message (no heartbeat in time at start-up; not judged): '
+                     f'{", ".join(slow)}')
     lines += ['', f'breaker commands during the fuzz: {report.commands_during_fuzz}']
     r = report.replay
     if r is not None:

@@ -60,6 +60,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--breaker-trials', type=int, default=0, metavar='N',
                         help='instead: soak breaker_command alone with N adversarial decisions and arm requests '
                              '(kill -9 restarts included) and check its audit log against every breaker rule')
+    parser.add_argument('--warm-rounds', type=int, default=None, metavar='R',
+                        help='most rounds of the largest messages of every kind before the RSS baseline; rounds stop '
+                             'once two in a row add < 1 MB to every node (default 12)')
     parser.add_argument('--keys', type=Path, default=None,
                         help='signing key directory, made if missing (default build/fuzz/keys)')
 
@@ -84,6 +87,8 @@ def run(args: argparse.Namespace) -> int:
         return _run_breaker_soak(args)
     if args.per_topic < 1:
         raise CliError(f'--per-topic {args.per_topic} must be at least 1')
+    if args.warm_rounds is not None and args.warm_rounds < 1:
+        raise CliError(f'--warm-rounds {args.warm_rounds} must be at least 1')
     bag, entry = _manifest_entry(args.bag)
     if not bag.exists():
         raise CliError(f'bag {bag} does not exist')
@@ -97,7 +102,8 @@ def run(args: argparse.Namespace) -> int:
         print(line, file=sys.stderr if args.json else sys.stdout, flush=True)
 
     try:
-        report = fuzzing.run_soak(args.per_topic, args.seed, bag, entry, results, keys, progress)
+        report = fuzzing.run_soak(args.per_topic, args.seed, bag, entry, results, keys, progress,
+                                  warm_rounds=fuzzing.WARM_ROUNDS if args.warm_rounds is None else args.warm_rounds)
     except fuzzing.FuzzError as exc:
         raise CliError(str(exc)) from exc
     if args.json:
