@@ -18,6 +18,9 @@ Diagnostics kept beside the truth:
 - `pole_slip_groups(t_s, delta_rad, until_s)`: the former rule, complete-linkage clusters of the largest
   separation max |d_p - d_q| over [0, until_s] cut at pi rad, i.e. who had already slipped by the request.
 - `first_pole_slip_s`: the first time tag at which any two machines are more than pi rad apart.
+- `separation_visible_s`: the request-time rule of the scenarios made for other systems (bags/README.md): the
+  first time tag, outside every fault, at which two machines of different final groups are more than 90 deg
+  apart, i.e. the earliest moment an operator can see the separation coming.
 """
 
 from __future__ import annotations
@@ -27,6 +30,10 @@ from scipy.cluster.hierarchy import fcluster, linkage
 from scipy.spatial.distance import squareform
 
 POLE_SLIP_RAD = np.pi
+# Two groups whose angle has moved 90 deg apart are past the crest of the power-angle curve P = Pmax sin(delta)
+# that ties them for any pre-fault angle between them in [0, 90) deg: further separation lowers the power that
+# pulls them back. It is also the lower bound of the issue's "borderline" (90 to 180 deg at the request).
+SEPARATION_VISIBLE_RAD = np.pi / 2
 
 
 class TruthError(ValueError):
@@ -141,3 +148,37 @@ def first_pole_slip_s(t_s: np.ndarray, delta_rad: np.ndarray) -> float | None:
     spread = d.max(axis=1) - d.min(axis=1)
     hits = np.flatnonzero(spread > POLE_SLIP_RAD)
     return float(np.asarray(t_s)[hits[0]]) if len(hits) else None
+
+
+def separation_visible_s(t_s: np.ndarray, delta_rad: np.ndarray, groups: np.ndarray,
+                         faults_s: list[tuple[float, float]] = (), angle_rad: float = SEPARATION_VISIBLE_RAD
+                         ) -> float | None:
+    """Return the first time tag, outside every fault, at which two final groups are more than angle_rad apart.
+
+    Args:
+        t_s: Time tags, s.
+        delta_rad: Rotor angles, rad, shape (len(t_s), n_gen).
+        groups: Final group of every generator (truth_groups).
+        faults_s: (start, clear) of every fault, s; tags in [start, clear) are skipped (no request during a
+            fault: the protection clears it first).
+        angle_rad: Separation between deviations d = delta - delta(0) that counts as visible, rad.
+
+    Returns:
+        The time tag, s; None when the system stays one group or never separates that far.
+
+    Raises:
+        TruthError: No samples, or shapes disagree.
+
+    """
+    d = _deviations(t_s, delta_rad)
+    groups = np.asarray(groups)
+    across = groups[:, None] != groups[None, :]
+    if not across.any():
+        return None
+    t = np.asarray(t_s, dtype=float)
+    gap = np.array([np.abs(row[:, None] - row[None, :])[across].max() for row in d])
+    outside = np.ones(len(t), dtype=bool)
+    for start, clear in faults_s:
+        outside &= ~((t >= start - 1e-9) & (t < clear - 1e-9))
+    hits = np.flatnonzero((gap > angle_rad) & outside)
+    return float(t[hits[0]]) if len(hits) else None
