@@ -37,7 +37,8 @@ A scenario is a YAML mapping. Every key except `case`, `end_s` and `islanding_re
       delay_jitter_s: 0.02               # ... and standard deviation, s (frames can arrive out of order)
       silent_pmu_bus: 35                 # this bus's PMU stops reporting ...
       silent_from_s: 6.0                 # ... from this time, s
-    islanding_request_s: 9.0             # when the islanding request is published, s
+    islanding_request_s: 9.0             # when the islanding request is published, s (a design choice: bags/README.md
+                                         # states the rule the scenarios on other systems follow)
 
 Branches are named `"<from>-<to>"` by the bus numbers of the case's Line data, `"<from>-<to>#<n>"` for the n-th
 parallel line; either bus order is accepted in a scenario. A mid-line fault's `position` is the fraction of the
