@@ -1,4 +1,4 @@
-"""k rules: each rule behind DTWCoherency, the drift measure, and the separation rule's physics on synthetic swings."""
+"""k rules: each rule behind DTWCoherency, the drift and runaway measures, the separation rule's physics and groups."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from controlled_islanding.core.coherency import CoherencyError, DTWCoherency
-from controlled_islanding.core.k_rules import RULES, SeparationRule, ThresholdRule, pair_drift_rad
+from controlled_islanding.core.k_rules import RULES, SeparationRule, ThresholdRule, pair_drift_rad, pair_runaway
 
 RATE_FPS = 60.0
 WINDOW_S = 3.0
@@ -84,6 +84,45 @@ def test_three_areas_two_of_them_slipping_apart() -> None:
     group_of = [0, 0, 0, 1, 1, 2, 2, 0]
     series = [rng.uniform(-1, 1) + drifts[g] + 0.05 * np.sin(2 * np.pi * 1.4 * t + rng.uniform(0, 6)) for g in group_of]
     assert partition(DTWCoherency(k_rule='separation').fit(series).labels_) == partition(group_of)
+
+
+def test_a_runaway_from_rest_is_split_while_its_trend_over_the_window_is_still_small() -> None:
+    # At rest for 2.6 s, then area B accelerates away: 130 deg from where it rested at the end of the window.
+    # The trend over the window, mostly at rest, is below the pi / 2 bar; the runaway from rest is not.
+    end_rad = np.radians(130.0)
+    series = two_areas(lambda t: end_rad * np.clip((t - 2.6) / (WINDOW_S - 2.6), 0.0, None) ** 2)
+    est = DTWCoherency(k_rule='separation').fit(series)
+    assert est.rule_.scores_['max_drift_rad'] < np.pi / 2
+    assert partition(est.labels_) == partition(AREAS)
+
+
+def test_a_swing_from_rest_that_slows_down_is_not_a_runaway_however_far_it_goes() -> None:
+    t = np.arange(0.0, WINDOW_S, 1.0 / RATE_FPS)
+    rest = np.zeros_like(t)
+    # 150 deg out by the end of the window, but decelerating to a stop there: a swing that will come back.
+    slowing = np.radians(150.0) * np.sin(np.pi / 2 * np.clip((t - 1.0) / 2.0, 0.0, None))
+    # The same distance, still accelerating at the end.
+    speeding = np.radians(150.0) * np.clip((t - 1.0) / 2.0, 0.0, None) ** 2
+    runaway, deviation = pair_runaway(np.array([rest, slowing, speeding]))
+    assert np.degrees(deviation[0, 1]) == pytest.approx(150.0, abs=1.0)
+    assert not runaway[0, 1] and runaway[0, 2] and runaway[2, 0]
+    # Without a rest state at the window's start there is no reference to run away from.
+    moving = np.array([rest, np.radians(150.0) * t / t[-1]])
+    assert not pair_runaway(moving)[0].any()
+
+
+def test_as_many_groups_as_slip_apart_and_a_cap_merges_the_closest() -> None:
+    # Five groups each slipping at its own rate: more than the four the former k-medoids search allowed.
+    rng = np.random.default_rng(4)
+    t = np.arange(0.0, WINDOW_S, 1.0 / RATE_FPS)
+    rates = [0.0, 4.0, -4.0, 9.0, -9.0]  # rad/s^2
+    group_of = [0, 0, 0, 0, 1, 1, 2, 3, 4, 4, 0, 0]
+    series = [rng.uniform(-1, 1) + rates[g] * t ** 2 / 2 + 0.05 * np.sin(2 * np.pi * 1.3 * t + rng.uniform(0, 6))
+              for g in group_of]
+    est = DTWCoherency(k_rule='separation').fit(series)
+    assert partition(est.labels_) == partition(group_of)
+    capped = DTWCoherency(k_rule='separation', max_groups=3).fit(series)
+    assert capped.n_groups_ == 3 and capped.rule_.scores_['merged_beyond_max_groups'] == 5
 
 
 @pytest.mark.parametrize('rule', sorted(RULES))

@@ -18,14 +18,16 @@ difference along the optimal warping path, r_pq = sqrt(DTW_pq / max(n_p, n_q)) i
 samples of each series. It is comparable across window lengths and PMU rates.
 
 Choosing k, and whether to split at all: a rule from core/k_rules.py, named by ``k_rule``. The default,
-``separation``, splits generators whose angle difference trends, over the window, towards a pole slip (pi rad
-within one more window at the window's rate); it needs no threshold measured on one system. The former fixed
-1.0 rad RMS threshold, calibrated on IEEE 39 bags, is the ``threshold`` rule. docs/coherency_rules.md compares
-the rules on every scenario bag.
+``separation``, splits generators whose angle difference is heading for a pole slip (pi rad), by its trend
+over the window or by its runaway from a rest state at the window's start; it needs no threshold measured on
+one system, and forms its groups by complete linkage of r with the separating pairs kept apart, so k is what
+the data need (max_groups only caps it). The former fixed 1.0 rad RMS threshold, calibrated on IEEE 39 bags, is
+the ``threshold`` rule. docs/coherency_rules.md compares the rules on every scenario bag.
 
-Grouping: k-medoids (PAM, BUILD initialisation, so deterministic) on the precomputed r matrix. k-means
-needs coordinates and a mean, which a DTW matrix does not have; PAM is the paper's step-9 algorithm too.
-Groups are numbered in order of their first generator.
+Grouping for a fixed k, and for the rules that choose k alone (threshold, eigengap, gap, silhouette): k-medoids
+(PAM, BUILD initialisation, so deterministic) on the precomputed r matrix. k-means needs coordinates and a
+mean, which a DTW matrix does not have; PAM is the paper's step-9 algorithm too. Groups are numbered in order
+of their first generator.
 """
 
 from __future__ import annotations
@@ -82,7 +84,7 @@ class DTWCoherency:
 
     Args:
         n_groups: Fixed number of groups, or None to let ``k_rule`` choose it.
-        max_groups: Largest k a rule may choose.
+        max_groups: Largest k a rule may choose (the default rule finds k itself; this only caps it).
         window: Sakoe-Chiba half-width in samples for DTW, or None for none.
         k_rule: Name of a rule in core.k_rules.RULES, or a rule instance (its settings in its constructor).
         random_state: Passed to k-medoids (BUILD initialisation makes it irrelevant; kept for the API).
@@ -97,7 +99,7 @@ class DTWCoherency:
 
     """
 
-    def __init__(self, n_groups: int | None = None, max_groups: int = 4, window: int | None = None,
+    def __init__(self, n_groups: int | None = None, max_groups: int = 8, window: int | None = None,
                  k_rule=DEFAULT_RULE, random_state: int = 0) -> None:
         self.n_groups = n_groups
         self.max_groups = max_groups

@@ -3,24 +3,29 @@
 Every rule has one shape: ``rule.choose(evidence) -> labels`` (0-based group per generator; one group means
 "no split"), with what it measured left in ``rule.scores_``. `DTWCoherency` (core/coherency.py) builds the
 evidence once and hands it to the rule named by its ``k_rule``, so rules are swapped by name or by instance.
-The groups themselves are always k-medoids (PAM) clusters of the DTW RMS matrix r; rules differ only in k.
+Every rule forms its groups from the DTW RMS matrix r: the default by constrained complete linkage, the others
+by k-medoids (PAM) once they have chosen k.
 
 Rules (docs/coherency_rules.md compares them on every scenario bag; `RULES` maps names to classes):
 
-- ``separation`` (default): rate of separation against the pole-slip scale. For each generator pair the
-  least-squares slope of the angle difference delta_p - delta_q over the window, times the span of the window,
-  is the pair's drift, rad. pi rad is the angle at which one machine slips a pole on another: physics, not a
-  number fitted to a system. A pair separates when
-  - it drifted pi within the window (a pole slip's worth), or
-  - at the window's mean rate it would drift pi within one more window (|drift| >= pi / 2 with the default
-    horizon of one window) and it is not slowing down: over the latest half of the window it moves on, the
-    same way, at least at the window's mean rate. This is the equal-area picture: a swing that will come back
-    decelerates once past its stable equilibrium, a pair past the unstable one accelerates away.
-  Stable swings go back and forth inside a window, so their drift is small whatever their amplitude, as long
-  as the window holds about a swing period; a slow swing seen over less than that looks like a drift, which
-  the slowing-down test is there to catch. No separating pair: one group. Otherwise the k in 2 .. max_groups
-  whose PAM clustering never puts a separating pair in one group and whose groups all drift apart on average
-  by the bar, with the best silhouette; failing that, complete-linkage clusters that keep separating pairs apart.
+- ``separation`` (default): pairs heading for a pole slip, against the pole-slip scale pi rad (the angle at which
+  one machine slips a pole on another: physics, not a number fitted to a system). A pair separates when
+  - trend over the window: the least-squares slope of delta_p - delta_q times the span of the window (the
+    pair's drift) reaches pi, or at that rate the pair would drift pi within one more window (|drift| >= pi / 2
+    with the default horizon of one window) and it is not slowing down: over the latest half of the window it
+    moves on, the same way, at least at the window's mean rate. Stable swings go back and forth inside a
+    window, so their drift is small whatever their amplitude, as long as the window holds about a swing period;
+    or
+  - runaway from rest (pair_runaway): the window starts before the disturbance (the pair at rest over its first
+    quarter), and the pair is now pi from where it rested, or pi / 2 and still moving away without slowing
+    down. This sees a runaway a fraction of a second after the fault is cleared, which the trend over a window
+    that is mostly pre-disturbance data cannot (the trend is diluted by the flat part).
+  Equal-area: after clearing, a swing that will come back decelerates as it moves away from its equilibrium;
+  a pair past its unstable equilibrium accelerates away. No separating pair: one group ("no split").
+  Otherwise the groups are the complete-linkage clusters of r in which no group holds a separating pair and no
+  two groups could merge without one: separating pairs are cannot-links, r (the paper's DTW coherency) decides
+  where every other machine goes. k is what the data need, a single runaway machine is a group of its own, and
+  max_groups is only a cap (beyond it the groups that drift apart least are merged, and scores_ says so).
 - ``threshold``: the former rule, RMS warped distance r against a fixed ``coherence_threshold_rad`` (1.0 rad,
   measured on IEEE 39 bags). Kept for comparison.
 - ``eigengap``: largest gap in the spectrum of the normalised Laplacian of a self-tuning Gaussian affinity of r
@@ -161,15 +166,71 @@ def _best_silhouette(ev: Evidence, ks, scores: dict) -> int | None:
     return best
 
 
+def pair_runaway(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return which pairs run away from a rest state at the window's start, and how far they have moved, rad.
+
+    Each pair is taken over the samples both have. Its reference is the mean of delta_p - delta_q over the
+    first quarter of those samples, and the pair counts as starting at rest when it moves less than an eighth
+    of its deviation at the end within that quarter (a window that begins before the disturbance). A pair at rest
+    to begin with runs away when its deviation from the reference at the end is
+    - at least pi rad: it has slipped a pole against its pre-disturbance angle, the truth's own test, or
+    - at least pi / 2 rad and it is still moving away without slowing down: it covered the latest quarter of that
+      deviation at least as fast as the quarter before it, and never went past its present deviation since the
+      half-way mark (a swing that turned back and returned is not running away).
+    Equal-area: after a disturbance is cleared a pair that will come back decelerates as it moves away from its
+    equilibrium; one past its unstable equilibrium accelerates away. A stable swing moves less than pi / 2 from
+    where it started on its accelerating side. The timing test compares sample counts, so it needs no time unit.
+
+    Args:
+        angles: Rotor angles, rad, shape (n_generators, n_samples), on one time grid; NaN = lost.
+
+    Returns:
+        (runaway, deviation): symmetric (n, n) bool and float matrices; deviation is |delta_pq(end) - reference|,
+        rad, for pairs at rest at the start, else 0.
+
+    """
+    n, m = angles.shape
+    valid = np.isfinite(angles)
+    idx = np.arange(m)
+    rows = np.arange(n)
+    runaway = np.zeros((n, n), dtype=bool)
+    deviation = np.zeros((n, n))
+    for p in range(n):
+        both = valid[p] & valid
+        has = both.sum(axis=1) >= 4
+        diff = np.where(both, angles[p] - np.where(valid, angles, 0.0), 0.0)
+        first = np.argmax(both, axis=1)
+        last = m - 1 - np.argmax(both[:, ::-1], axis=1)
+        quarter = both & (idx[None, :] <= (first + (last - first) // 4)[:, None])
+        count = np.maximum(quarter.sum(axis=1), 1)
+        ref = np.where(quarter, diff, 0.0).sum(axis=1) / count
+        moved = np.where(quarter, diff, -np.inf).max(axis=1) - np.where(quarter, diff, np.inf).min(axis=1)
+        end = diff[rows, last]
+        dev = np.where(has, np.abs(end - ref), 0.0)
+        # Progress from the reference towards the end value, rad.
+        progress = np.sign(end - ref)[:, None] * (diff - ref[:, None])
+        half = np.where(both & (progress <= dev[:, None] / 2), idx, -1).max(axis=1)
+        three_q = np.where(both & (progress <= 0.75 * dev[:, None]), idx, -1).max(axis=1)
+        overshot = np.where(both & (idx[None, :] >= half[:, None]), progress, -np.inf).max(axis=1) > dev
+        at_rest = has & (moved <= dev / 8)
+        keeps_going = (last - three_q <= three_q - half) & ~overshot
+        runaway[p] = at_rest & ((dev >= np.pi) | ((dev >= np.pi / 2) & keeps_going))
+        deviation[p] = np.where(at_rest, dev, 0.0)
+    runaway |= runaway.T
+    np.fill_diagonal(runaway, False)
+    return runaway, deviation
+
+
 class SeparationRule:
-    """Split generators whose angle difference trends towards a pole slip (see the module docstring).
+    """Split generators whose angle difference is heading for a pole slip (see the module docstring).
 
     Args:
         horizon_windows: How far ahead the window's mean rate is projected, in windows. A pair separates when
             |drift| * (1 + horizon_windows) >= pi rad.
 
     Attributes:
-        scores_: 'bar_rad' (the |drift| bar), 'max_drift_rad', 'separating_pairs', 'silhouette' per k tried.
+        scores_: 'bar_rad' (the |drift| bar), 'max_drift_rad', 'max_deviation_rad' (from rest, pair_runaway),
+            'separating_pairs', and 'merged_beyond_max_groups' when the groups needed outnumber max_groups.
 
     """
 
@@ -178,8 +239,8 @@ class SeparationRule:
     def __init__(self, horizon_windows: float = 1.0) -> None:
         self.horizon_windows = horizon_windows
 
-    def choose(self, ev: Evidence) -> np.ndarray:
-        """Return the groups (see the module docstring)."""
+    def separating(self, ev: Evidence) -> np.ndarray:
+        """Return the symmetric (n, n) matrix of separating pairs, recording what was measured in scores_."""
         if not self.horizon_windows >= 0:
             raise KRuleError(f'horizon_windows must be >= 0, got {self.horizon_windows}')
         bar = np.pi / (1.0 + self.horizon_windows)
@@ -188,30 +249,32 @@ class SeparationRule:
         # Not slowing down: over the latest half of the window the pair moves on, the same way, at least at the
         # window's mean rate (a drift over half the window, doubled, is a rate per window).
         steady = (np.sign(latest) == np.sign(ev.drift_rad)) & (2.0 * np.abs(latest) >= drift)
-        separating = (drift >= np.pi) | ((drift >= bar) & steady)
+        runaway, deviation = pair_runaway(ev.angles_rad)
+        separating = (drift >= np.pi) | ((drift >= bar) & steady) | runaway
+        np.fill_diagonal(separating, False)
         self.scores_: dict = {'bar_rad': bar, 'max_drift_rad': float(drift.max()) if drift.size else 0.0,
+                              'max_deviation_rad': float(deviation.max()) if deviation.size else 0.0,
                               'separating_pairs': int(np.triu(separating, 1).sum())}
+        return separating
+
+    def choose(self, ev: Evidence) -> np.ndarray:
+        """Return the groups (see the module docstring)."""
+        separating = self.separating(ev)
         if ev.n < 2 or not separating.any():
             return _one_group(ev.n)
-        admissible = []
-        for k in ev.candidates:
-            labels = ev.cluster(k)
-            same = labels[:, None] == labels[None, :]
-            if (separating & same).any():
-                continue
-            # Every two groups must separate as wholes, or a stable sub-group would be split off as well.
-            means = [drift[np.ix_(labels == g, labels == h)].mean() for g in range(k) for h in range(g + 1, k)]
-            if min(means) >= bar:
-                admissible.append(k)
-        best = _best_silhouette(ev, admissible, self.scores_)
-        if best is not None:
-            return ev.cluster(best)
-        # Separating pairs at distance 2, the rest by drift scaled into [0, 1): complete linkage cut at 1.5 never
-        # puts a separating pair in one group and merges the others by how little they drift apart.
-        scaled = np.where(separating, 2.0, drift / (2.0 * drift.max()))
-        np.fill_diagonal(scaled, 0.0)
-        tree = linkage(squareform(scaled, checks=False), method='complete')
-        return canonical(fcluster(tree, t=1.5, criterion='distance'))
+        r = ev.rms_rad
+        # Complete linkage of r in which a separating pair is farther apart than any other: cut below that
+        # distance, every group is free of separating pairs and no two groups could merge without one.
+        apart = 2.0 * float(r.max()) + 1.0
+        distance = np.where(separating, apart + np.abs(ev.drift_rad), r)
+        np.fill_diagonal(distance, 0.0)
+        tree = linkage(squareform(distance, checks=False), method='complete')
+        labels = fcluster(tree, t=apart, criterion='distance')
+        if labels.max() > ev.max_groups:
+            # More groups than the caller takes: merge the groups that drift apart least first.
+            self.scores_['merged_beyond_max_groups'] = int(labels.max())
+            labels = fcluster(tree, t=ev.max_groups, criterion='maxclust')
+        return canonical(labels)
 
 
 class ThresholdRule:

@@ -52,7 +52,7 @@ class CoherencyNode(Node):
         self.declare_parameter('min_samples', 30)
         self.declare_parameter('request_wait_s', 0.5)
         self.declare_parameter('sample_tolerance_s', 0.02)
-        self.declare_parameter('max_groups', 4)
+        self.declare_parameter('max_groups', 8)
         self.declare_parameter('max_sample_age_s', 10.0)
         self.declare_parameter('dtw_band_samples', 30)
         self.declare_parameter('k_rule', DEFAULT_RULE)
