@@ -77,11 +77,12 @@ STARTUP_S = 90.0
 # The kinds of each topic that are as large as the nodes' caps admit, or one element larger. Decoding one takes
 # tens of MB of small objects and buffers; freed, most of it stays with the allocator (glibc heap, Python's
 # object arenas) for reuse, and how much stays grows with the first few such messages until it covers them:
-# a node given only these messages grew 80.9 -> 93.3 -> 94.7 MB after 1, 10 and 20 of them, then stayed at
-# 94.7 MB to 150. So before the RSS baseline, each node gets every one of these kinds, round after round, until
-# two rounds running add less than WARM_PLATEAU_KB to every node (at most WARM_ROUNDS): the warm baseline is
-# a node that has already held the largest messages its caps admit. The growth over the fuzz is measured from
-# there and judged; the cold growth is printed beside it. docs/nodes.md, "Fuzz soak", has the diagnosis.
+# a node given only these messages grew 79.0 -> 91.1 -> 92.5 MB after 1, 10 and 20 of them, then stayed at
+# 92.5 MB to 150. So before the RSS baseline, each node gets every one of these kinds, round after round, until
+# two rounds running raise no node's RSS above its high so far by WARM_PLATEAU_KB (at most WARM_ROUNDS): the
+# warm baseline is a node that has already held the largest messages its caps admit. The growth over the fuzz is
+# measured from there and judged; the cold growth is printed beside it. docs/nodes.md, "Fuzz soak", has the
+# diagnosis.
 LARGEST_KINDS: dict[str, tuple[str, ...]] = {
     topics.PMU_FRAMES: ('over_cap', 'at_cap_unknown'), topics.NETWORK_SNAPSHOT: ('over_cap', 'at_cap_nan'),
     topics.ROTOR_ANGLES: ('over_cap', 'at_cap_renamed'), topics.COHERENT_GROUPS: ('over_cap',),
@@ -200,6 +201,7 @@ class FuzzReport:
         commands_during_fuzz: Breaker commands seen on /breaker/commands before the replay (0 required).
         replay: The replay afterwards.
         warm_rounds: Rounds of the largest messages sent before the RSS baseline (see LARGEST_KINDS).
+        warm_rss_kb: Pipeline node -> VmRSS after each of those rounds, kB.
         failures: One line per check that did not hold; empty = pass.
         results_dir: Node logs, the breaker audit log and report.json.
         wall_s: Wall time of the whole run, s.
@@ -213,6 +215,7 @@ class FuzzReport:
     commands_during_fuzz: int = 0
     replay: ReplayResult | None = None
     warm_rounds: int = 0
+    warm_rss_kb: list[dict[str, int | None]] = field(default_factory=list)
     failures: list[str] = field(default_factory=list)
     results_dir: str = ''
     wall_s: float = 0.0
@@ -884,14 +887,18 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
                 trusted = signing.fingerprint(
                     signing.load_public_key(signing.key_paths(key_dir, 'partitioning').public))
                 adversary = Adversary(seeds, seed, sim_now_s, trusted)
-                rss_warm, flat = rss_before, 0
+                # RSS also falls now and then (the allocator gives back the top of a heap), so "levelled off" means
+                # no new high by WARM_PLATEAU_KB, not no rise from the round before.
+                high, flat = dict(rss_before), 0
                 while report.warm_rounds < warm_rounds and flat < 2:
                     for topic in topic_names:
                         _warm_up(topic, adversary, pubs[topic], diagnostics, spin, sup)
                     spin(sup, 2.0)
-                    previous, rss_warm = rss_warm, {n: rss_kb(pids[n]) for n in names}
+                    rss_warm = {n: rss_kb(pids[n]) for n in names}
+                    report.warm_rss_kb.append(rss_warm)
                     report.warm_rounds += 1
-                    grew = any((rss_warm[n] or 0) - (previous[n] or 0) >= WARM_PLATEAU_KB for n in names)
+                    grew = any((rss_warm[n] or 0) - (high[n] or 0) >= WARM_PLATEAU_KB for n in names)
+                    high = {n: max(high[n] or 0, rss_warm[n] or 0) for n in names}
                     flat = 0 if grew else flat + 1
                 progress(f'fuzz: breaker_command armed; {per_topic} messages per topic, seed {seed}; RSS (MB) '
                          f'before / after {report.warm_rounds} warm-up rounds: ' + ', '.join(

@@ -62,7 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              '(kill -9 restarts included) and check its audit log against every breaker rule')
     parser.add_argument('--warm-rounds', type=int, default=None, metavar='R',
                         help='most rounds of the largest messages of every kind before the RSS baseline; rounds stop '
-                             'once two in a row add < 1 MB to every node (default 12)')
+                             "once two in a row raise no node's RSS 1 MB above its high so far (default 12)")
     parser.add_argument('--keys', type=Path, default=None,
                         help='signing key directory, made if missing (default build/fuzz/keys)')
 
