@@ -85,9 +85,6 @@ def _marked(entry: dict) -> object:
 
 
 @pytest.mark.skipif(not ENTRIES, reason='no bag of bags/index.yaml is present')
-# One rerun: in 1 of 3 clean-clone runs the fast replay of ieee39_g3_multitrip found the right groups but did not
-# split (not yet diagnosed, see the session note); a second failure in a row still fails.
-@pytest.mark.flaky(reruns=1)
 @pytest.mark.parametrize('entry', [_marked(e) for e in ENTRIES])
 def test_bag_decision_equals_manifest(entry):
     summary = replay(REPO / 'bags' / entry['bag'], results_dir(entry['name']), fast=True, figures=False, quiet=True)
@@ -106,7 +103,9 @@ def test_several_trips_just_before_the_request_fast_decides_as_real_time():
     bag = REPO / 'bags' / MULTITRIP['bag']
     real = replay(bag, results_dir('multitrip-realtime'), fast=False, figures=False, quiet=True, arm=False)
     check_decision(real, MULTITRIP)
-    for run in range(3):
+    # Two here and one in test_bag_decision_equals_manifest; `replay --fast --repeat 30` under load is in
+    # docs/nodes.md.
+    for run in range(2):
         fast = replay(bag, results_dir(f'multitrip-fast-{run}'), fast=True, figures=False, quiet=True)
         assert fast['status'] == real['status'] == 'SPLIT'
         assert sorted(fast['cut_branch_ids']) == sorted(real['cut_branch_ids']), run
