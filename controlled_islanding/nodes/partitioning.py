@@ -255,9 +255,10 @@ class PartitioningNode(Node):
     def _groups_for(self, t_s: float) -> Groups | None:
         """Return the groups whose samples end at t_s (stamped within groups_tolerance_s of it), if any.
 
-        Never groups that end later: one stamped ahead of the honest answer (still within the clock tolerance)
-        could otherwise be served before the honest one arrives. The coherency node computes, on every request,
-        the groups of the window ending at its stamp.
+        The earliest such grouping is taken, and never one ending more than the tolerance after t_s: a grouping
+        stamped further ahead could otherwise be served before the honest one arrives. The tolerance is two-sided
+        because coherency answers a request with groups it already holds when they end within its own
+        sample_tolerance_s of the stamp, which can be just after it.
         """
         return next((g for g in self.groups if abs(g.stamp_s - t_s) <= self.tolerance_s), None)
 
