@@ -12,18 +12,16 @@ reactance rule infers (`core.observability.infer_groups`). Each draw is scored a
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from controlled_islanding.coherency_rules import Scenario, blocks
-from controlled_islanding.core.coherency import DTWCoherency
+from controlled_islanding.coherency_rules import Scenario, blocks, groups_at
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.core.islanding import decide
-from controlled_islanding.core.milp import ExactPartition, MilpError
+from controlled_islanding.core.milp import ExactPartition, MilpError, gap_pct
 from controlled_islanding.core.observability import infer_groups, largest_first, random_placement
 from controlled_islanding.core.spectral import SpectralError
 
@@ -66,9 +64,7 @@ class Draw:
         """Return the decision's disruption above the MILP optimum, % (0 when both are 0)."""
         if self.disrupted_mw is None or self.optimum_mw is None:
             return None
-        if self.optimum_mw <= 1e-9:
-            return 0.0 if self.disrupted_mw <= 1e-9 else math.inf
-        return 100.0 * (self.disrupted_mw - self.optimum_mw) / self.optimum_mw
+        return gap_pct(self.disrupted_mw, self.optimum_mw)
 
 
 @dataclass
@@ -81,22 +77,15 @@ class SweepRow:
     draws: list[Draw] = field(default_factory=list)
 
 
-def _window(scenario: Scenario, window_s: float) -> np.ndarray:
-    end = scenario.request_s
-    cols = (scenario.t_s >= end - window_s - 1e-9) & (scenario.t_s <= end + 1e-9)
-    return scenario.angles_rad[:, cols]
-
-
 def score_draw(scenario: Scenario, grid: Grid, observed: Sequence[str], *, window_s: float, max_groups: int,
                k_rule: str, dtw_band: int | None, time_limit_s: float) -> Draw:
     """Group the observed machines at the request and decide; see the module docstring."""
     row = {n: i for i, n in enumerate(scenario.generator_names)}
     observed = tuple(sorted(observed))
     unobserved = sorted(set(scenario.generator_names) - set(observed))
-    block = _window(scenario, window_s)
-    labels = DTWCoherency(max_groups=max_groups, window=dtw_band, k_rule=k_rule).fit(
-        [block[row[n]] for n in observed]).labels_
-    groups = {n: int(k) for n, k in zip(observed, labels, strict=True)}
+    seen = replace(scenario, generator_names=list(observed), angles_rad=scenario.angles_rad[[row[n] for n in observed]])
+    groups = groups_at(seen, scenario.request_s, rule=k_rule, window_s=window_s, max_groups=max_groups,
+                       dtw_band=dtw_band)
     truth = scenario.truth
     draw = Draw(observed, blocks(groups) == blocks({n: truth[n] for n in observed}), False,
                 len(set(groups.values())))

@@ -118,10 +118,9 @@ class MethodResult:
         """Disruption above the exact optimum under the same groups, % of the optimum (None if unknown)."""
         if self.decision is None or self.optimum_mw is None:
             return None
-        excess_mw = self.decision.disrupted_mw - self.optimum_mw
-        if abs(excess_mw) <= 1e-6:
-            return 0.0
-        return math.inf if self.optimum_mw <= 1e-9 else 100.0 * excess_mw / self.optimum_mw
+        from controlled_islanding.core.milp import gap_pct
+
+        return gap_pct(self.decision.disrupted_mw, self.optimum_mw)
 
 
 @dataclass
