@@ -115,3 +115,25 @@ def graph(name: str, specs_and_overrides: list) -> Iterator[tuple[Supervisor, Pr
                 yield sup, probe
             finally:
                 probe.close()
+
+
+@contextmanager
+def bag_writer(path: Path) -> Iterator[Callable[[str, object, int], bytes]]:
+    """Open a new MCAP bag; yield put(topic, rclpy message, log time ns), which writes it and returns its bytes."""
+    from rclpy.serialization import serialize_message
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from controlled_islanding.interfaces import typestore
+
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = {}
+
+        def put(topic: str, msg: object, t_ns: int) -> bytes:
+            if topic not in conns:
+                name = type(msg).__module__.split('.')[0] + '/msg/' + type(msg).__name__
+                conns[topic] = writer.add_connection(topic, name, typestore=typestore())
+            raw = serialize_message(msg)
+            writer.write(conns[topic], t_ns, raw)
+            return raw
+
+        yield put

@@ -16,13 +16,10 @@ import uuid
 
 import pytest
 from controlled_islanding_msgs.msg import CoherentGroups, IslandingDecision, IslandingRequest, PmuFrame, RotorAngles
-from nodes_harness import BUILD, graph
-from rclpy.serialization import serialize_message
-from rosbags.rosbag2 import StoragePlugin, Writer
+from nodes_harness import BUILD, bag_writer, graph
 from rosgraph_msgs.msg import Clock
 
 from controlled_islanding import topics
-from controlled_islanding.interfaces import typestore
 from controlled_islanding.messages import split_stamp, stamp_s
 from controlled_islanding.node_common import qos_for
 from controlled_islanding.supervisor import PLAYER
@@ -41,15 +38,7 @@ def frame_ns(k: int) -> int:
 
 
 def write_bag(path) -> None:
-    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conns = {}
-
-        def put(topic, msg, t_ns):
-            if topic not in conns:
-                name = type(msg).__module__.split('.')[0] + '/msg/' + type(msg).__name__
-                conns[topic] = writer.add_connection(topic, name, typestore=typestore())
-            writer.write(conns[topic], t_ns, serialize_message(msg))
-
+    with bag_writer(path) as put:
         for k in range(N_FRAMES):
             if k == REQUEST_AT:
                 request = IslandingRequest(request_id='req-1', reason='test')

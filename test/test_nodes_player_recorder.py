@@ -7,10 +7,9 @@ import uuid
 
 import pytest
 from controlled_islanding_msgs.msg import CoherentGroups, IslandingRequest, PmuFrame, PmuMeasurement
-from nodes_harness import BUILD, graph
-from rclpy.serialization import deserialize_message, serialize_message
+from nodes_harness import BUILD, bag_writer, graph
+from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
-from rosbags.rosbag2 import StoragePlugin, Writer
 from rosgraph_msgs.msg import Clock
 
 from controlled_islanding import topics
@@ -26,16 +25,9 @@ SPAN_S = 1.5
 def write_bag(path):
     """Write a small bag: 60 fps frames for SPAN_S, one request, one truth message; return {topic: [raw bytes]}."""
     written: dict[str, list[bytes]] = {}
-    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conns = {}
-
+    with bag_writer(path) as write:
         def put(topic, msg, t_ns):
-            if topic not in conns:
-                name = type(msg).__module__.split('.')[0] + '/msg/' + type(msg).__name__
-                conns[topic] = writer.add_connection(topic, name, typestore=typestore())
-            raw = serialize_message(msg)
-            writer.write(conns[topic], t_ns, raw)
-            written.setdefault(topic, []).append(raw)
+            written.setdefault(topic, []).append(write(topic, msg, t_ns))
 
         for k in range(int(SPAN_S * 60) + 1):
             t_ns = T0_NS + k * 1_000_000_000 // 60
