@@ -54,15 +54,14 @@ PACE_WINDOW = 60
 # without one: it settles where about one message in QUIET_MESSAGES is lost, and every loss is counted. (Shrunk
 # by only 0.8, a gap pushed to MAX_GAP_S by the losses around the messages at the caps never came down, and
 # 10,000 snapshots took 30 min.) A message at or beyond the caps is followed by a wait until every receiver has
-# taken it (BIG_WAIT_S at most): its decode takes long enough for a keep-last-1 reader to lose the next ones,
-# and partitioning and breaker_command count no losses.
+# taken it (BIG_WAIT_S at most): its decode takes long enough for a keep-last-1 reader to lose the next ones.
 LATEST_ONLY = (topics.NETWORK_SNAPSHOT, topics.COHERENT_GROUPS)
 LATEST_ONLY_GAP_S = 0.004
 MAX_GAP_S = 0.25
 QUIET_MESSAGES = 100
 BIG_WAIT_S = 20.0
 # A pacer that neither takes nor counts as lost what was sent for this long (s) has dropped it uncounted (a
-# node without loss counting); those messages are written off so that pacing never waits on them again. After a
+# loss is counted only when the writer's next sample arrives); those messages are written off so that pacing never waits on them again. After a
 # message at the caps the allowance is BIG_STALL_S: decoding one shows no progress until it is done.
 STALL_S = 0.5
 BIG_STALL_S = 5.0
@@ -1037,8 +1036,8 @@ def _fuzz_topic(topic: str, n: int, adversary: Adversary, pub: object, diagnosti
             gap.sent(sum(lost(r) for r in receivers))
         big = latest_only and kind.startswith(('over_cap', 'at_cap'))
         if big:
-            # Taken by every receiver: each has taken or counted as lost everything sent so far, or (partitioning
-            # and breaker_command count no losses) taken one more message since this one was published.
+            # Taken by every receiver: each has taken or counted as lost everything sent so far, or taken one more
+            # message since this one was published (the loss of the last one is counted only at the next).
             at_publish = {r: count(r, 'received') for r in receivers}
             progress_at, seen = time.monotonic(), {r: owed(r) for r in receivers}
 

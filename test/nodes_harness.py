@@ -78,6 +78,28 @@ class Probe:
         self.spin_until(lambda: self.counter(node, key) >= at_least, timeout_s)
         return self.counter(node, key)
 
+    def burst(self, nodes: tuple[str, ...], topic: str, msg, count: int) -> dict[str, int]:
+        """Publish msg count times back to back; return each node's growth of `lost.<topic>`.
+
+        Asserts that every node accounted for each message, as received or as lost.
+        """
+        key = f'lost.{topic}'
+        self.spin_for(1.5)  # the latest diagnostics of every node are in
+
+        def accounted(node: str) -> int:
+            return self.counter(node, 'received') + self.counter(node, key)
+
+        before = {n: accounted(n) for n in nodes}
+        lost_before = {n: self.counter(n, key) for n in nodes}
+        for _ in range(count):
+            self.pubs[topic].publish(msg)
+        # The last message is always taken, and each one it overtook is then counted from the sequence numbers.
+        for n in nodes:
+            assert self.spin_until(lambda n=n: accounted(n) - before[n] >= count, 20.0), (n, accounted(n) - before[n])
+        self.spin_for(1.5)
+        assert {n: accounted(n) - before[n] for n in nodes} == {n: count for n in nodes}
+        return {n: self.counter(n, key) - lost_before[n] for n in nodes}
+
     def call(self, srv_type: type, name: str, request, timeout_s: float = 20.0):
         """Call a service and return its response."""
         client = self.node.create_client(srv_type, name)

@@ -185,6 +185,9 @@ def test_breaker_rules_on_a_real_process(tmp_path):
         assert probe.wait_counter(NODE, 'rejected.not_armed', 2) == 2
         probe.spin_for(0.2)
         assert len(commands) == len(cut)
+        # A burst of snapshots into its keep-last-1 reader: each one taken or counted as lost, never silently.
+        lost = probe.burst((NODE,), topics.NETWORK_SNAPSHOT, snapshot_msg(GRID, now_ns(probe), FIELD_NAMES), 100)
+        assert lost[NODE] > 0, probe.diagnostics
         sup.check_alive()
     records = audit_lines(audit)
     assert [r['event'] for r in records].count('command') == 1

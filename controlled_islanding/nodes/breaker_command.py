@@ -151,12 +151,9 @@ class BreakerCommandNode(Node):
         self.inputs = ClockGate(self, self.diag, self.future_tolerance_s, 200, self._apply_input)
         self.pub = self.create_publisher(BreakerCommand, topics.relative(topics.BREAKER_COMMANDS),
                                          qos_for(topics.BREAKER_COMMANDS))
-        self.create_subscription(IslandingDecision, topics.relative(topics.ISLANDING_DECISION),
-                                 self.diag.guard(self.on_decision), qos_for(topics.ISLANDING_DECISION))
-        self.create_subscription(NetworkSnapshotMsg, topics.relative(topics.NETWORK_SNAPSHOT),
-                                 self.diag.guard(self.on_snapshot), qos_for(topics.NETWORK_SNAPSHOT))
-        self.create_subscription(BranchStatus, topics.relative(topics.BRANCH_STATUS),
-                                 self.diag.guard(self.on_branch_status), qos_for(topics.BRANCH_STATUS))
+        self.diag.subscribe(IslandingDecision, topics.ISLANDING_DECISION, self.on_decision)
+        self.diag.subscribe(NetworkSnapshotMsg, topics.NETWORK_SNAPSHOT, self.on_snapshot)
+        self.diag.subscribe(BranchStatus, topics.BRANCH_STATUS, self.on_branch_status)
         self.create_service(SetArmed, '~/set_armed', self.diag.guard(self.on_set_armed))
         if self.audit is not None:
             state = self.audit.state
@@ -191,7 +188,6 @@ class BreakerCommandNode(Node):
     # --- network ------------------------------------------------------------------------------------------------
     def on_snapshot(self, msg: NetworkSnapshotMsg) -> None:
         """Hold the network the decisions are checked against."""
-        self.diag.arrived()
         try:
             grid = grid_from_snapshot(msg, self.limits)
         except MessageError as exc:
@@ -202,7 +198,6 @@ class BreakerCommandNode(Node):
 
     def on_branch_status(self, msg: BranchStatus) -> None:
         """Follow trips and reclosures."""
-        self.diag.arrived()
         item = ('status', str(msg.branch_id), bool(msg.in_service), stamp_s(msg.header.stamp))
         self.inputs.admit(f'branch {msg.branch_id[:64]} status', item[3], item)
 
@@ -328,7 +323,6 @@ class BreakerCommandNode(Node):
     def on_decision(self, msg: IslandingDecision) -> None:
         """Check a decision against every rule; command its breakers only if all hold."""
         t0 = time.perf_counter()
-        self.diag.arrived()
         ids = {'decision_id': msg.decision_id[:_MAX_ID_CHARS], 'request_id': msg.request_id[:_MAX_ID_CHARS]}
         if self.audit is None:
             self.diag.reject('audit_unavailable', f'decision {ids["decision_id"]!r}: '

@@ -120,15 +120,11 @@ class PartitioningNode(Node):
                                                   qos_for(topics.ISLANDING_DECISION))
         self.request_pub = self.create_publisher(IslandingRequest, topics.relative(topics.ISLANDING_REQUEST),
                                                  qos_for(topics.ISLANDING_REQUEST))
+        self.diag.subscribe(NetworkSnapshotMsg, topics.NETWORK_SNAPSHOT, self.on_snapshot)
+        self.diag.subscribe(BranchStatus, topics.BRANCH_STATUS, self.on_branch_status)
+        self.diag.subscribe(CoherentGroups, topics.COHERENT_GROUPS, self.on_groups)
+        self.diag.subscribe(IslandingRequest, topics.ISLANDING_REQUEST, self.on_request)
         guard = self.diag.guard
-        self.create_subscription(NetworkSnapshotMsg, topics.relative(topics.NETWORK_SNAPSHOT), guard(self.on_snapshot),
-                                 qos_for(topics.NETWORK_SNAPSHOT))
-        self.create_subscription(BranchStatus, topics.relative(topics.BRANCH_STATUS), guard(self.on_branch_status),
-                                 qos_for(topics.BRANCH_STATUS))
-        self.create_subscription(CoherentGroups, topics.relative(topics.COHERENT_GROUPS), guard(self.on_groups),
-                                 qos_for(topics.COHERENT_GROUPS))
-        self.create_subscription(IslandingRequest, topics.relative(topics.ISLANDING_REQUEST), guard(self.on_request),
-                                 qos_for(topics.ISLANDING_REQUEST))
         self.create_service(RequestIslanding, '~/request', guard(self.on_service))
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         # Polls for the wait deadlines only while a request waits (no 100 Hz wake-ups when idle).
@@ -165,7 +161,6 @@ class PartitioningNode(Node):
 
     def on_snapshot(self, msg: NetworkSnapshotMsg) -> None:
         """Take a new network snapshot."""
-        self.diag.arrived()
         try:
             grid = grid_from_snapshot(msg, Limits())
         except MessageError as exc:
@@ -176,14 +171,12 @@ class PartitioningNode(Node):
 
     def on_branch_status(self, msg: BranchStatus) -> None:
         """Record a branch status change."""
-        self.diag.arrived()
         stamp = stamp_s(msg.header.stamp)
         item = ('status', str(msg.branch_id), bool(msg.in_service), stamp)
         self.inputs.admit(f'branch {msg.branch_id[:64]} status', stamp, item)
 
     def on_groups(self, msg: CoherentGroups) -> None:
         """Take new coherent groups; compute their decision ahead of a request."""
-        self.diag.arrived()
         try:
             groups = groups_from_msg(msg)
         except MessageError as exc:
@@ -216,7 +209,6 @@ class PartitioningNode(Node):
 
     def on_request(self, msg: IslandingRequest) -> None:
         """Queue a request until its groups arrive (or the wait ends)."""
-        self.diag.arrived()
         if not 0 < len(msg.request_id) <= 128:
             self.diag.reject('empty_message', 'islanding request without request_id (or longer than 128 characters)')
             return
