@@ -155,6 +155,7 @@ class Groups:
         k: Number of groups.
         stamp_s: Time tag of the newest sample in the window, s.
         method: Coherency method.
+        unobserved: Generators in no group because they had no usable data (partial observability).
 
     """
 
@@ -163,6 +164,7 @@ class Groups:
     k: int
     stamp_s: float
     method: str
+    unobserved: tuple[str, ...] = ()
 
     def as_mapping(self) -> dict[str, int]:
         """Return generator name -> group."""
@@ -177,17 +179,19 @@ def groups_from_msg(msg: object, limits: Limits = Limits()) -> Groups:
         limits: `max_generators` bounds the generators named.
 
     Raises:
-        MessageError: Too large, empty, arrays of unequal length, duplicate names, NaN/inf or negative
-            distances, or k not matching the labels.
+        MessageError: Too large, empty, arrays of unequal length, duplicate names (a generator both grouped and
+            unobserved included), NaN/inf or negative distances, or k not matching the labels.
 
     """
-    _at_most(msg, 'coherent groups', ('generator_names', 'generator_buses', 'group'), limits.max_generators)
+    _at_most(msg, 'coherent groups', ('generator_names', 'generator_buses', 'group', 'unobserved_generator_names'),
+             limits.max_generators)
     n = _parallel(msg, 'coherent groups', ('generator_names', 'generator_buses', 'group'))
     if n == 0:
         raise MessageError('empty_message', 'coherent groups name no generator')
     names = tuple(str(x) for x in msg.generator_names)
-    if len(set(names)) != n:
-        raise MessageError('unknown_id', 'coherent groups name a generator twice')
+    unobserved = tuple(str(x) for x in msg.unobserved_generator_names)
+    if len(set(names) | set(unobserved)) != n + len(unobserved):
+        raise MessageError('unknown_id', 'coherent groups name a generator twice (grouped or unobserved)')
     if len(msg.distance) not in (0, n * n):
         raise MessageError('array_length', f'distance has {len(msg.distance)} values, expected 0 or {n * n}')
     _finite_non_negative(msg.distance, 'coherent groups distance')
@@ -199,4 +203,5 @@ def groups_from_msg(msg: object, limits: Limits = Limits()) -> Groups:
     stamp = stamp_s(msg.header.stamp)
     if stamp <= 0:
         raise MessageError('missing_stamp', 'coherent groups header.stamp is zero')
-    return Groups(names=names, labels=labels, k=len(order), stamp_s=stamp, method=str(msg.method))
+    return Groups(names=names, labels=labels, k=len(order), stamp_s=stamp, method=str(msg.method),
+                  unobserved=tuple(sorted(unobserved)))

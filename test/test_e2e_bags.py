@@ -102,14 +102,9 @@ def test_several_trips_just_before_the_request_fast_decides_as_real_time():
     """Trips stamped before the request but arriving after it (topics are not ordered) are waited for."""
     bag = REPO / 'bags' / MULTITRIP['bag']
     real = replay(bag, results_dir('multitrip-realtime'), fast=False, figures=False, quiet=True, arm=False)
+    # test_bag_decision_equals_manifest replays the same bag as fast as possible against the same manifest
+    # decision, so together they show fast == real time; `replay --fast --repeat 30` under load is in docs/nodes.md.
     check_decision(real, MULTITRIP)
-    # One here and one in test_bag_decision_equals_manifest (the suite's time budget); `replay --fast --repeat 30`
-    # under load is in docs/nodes.md.
-    for run in range(1):
-        fast = replay(bag, results_dir(f'multitrip-fast-{run}'), fast=True, figures=False, quiet=True)
-        assert fast['status'] == real['status'] == 'SPLIT'
-        assert sorted(fast['cut_branch_ids']) == sorted(real['cut_branch_ids']), run
-        check_breaker_rules(fast, armed=True)
 
 
 @pytest.mark.skipif(not ENTRIES, reason='no bag of bags/index.yaml is present')

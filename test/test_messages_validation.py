@@ -44,7 +44,7 @@ def groups(n: int = 3) -> SimpleNamespace:
     """Return a valid CoherentGroups-like object with n generators in two groups."""
     return SimpleNamespace(
         generator_names=[f'G{i}' for i in range(n)], generator_buses=list(range(1, n + 1)),
-        group=[0] + [1] * (n - 1), k=2, method='dtw', distance=[0.5] * (n * n),
+        group=[0] + [1] * (n - 1), k=2, method='dtw', distance=[0.5] * (n * n), unobserved_generator_names=[],
         header=SimpleNamespace(stamp=SimpleNamespace(sec=10, nanosec=0)))
 
 
@@ -163,7 +163,17 @@ def test_groups_distances_must_be_finite_and_non_negative(bad, expected):
     assert reason(groups_from_msg, msg) == expected
 
 
-@pytest.mark.parametrize('field', ('generator_names', 'generator_buses', 'group'))
+def test_unobserved_generators_are_named_once_and_never_also_grouped():
+    msg = groups()
+    msg.unobserved_generator_names = ['G9', 'G8']
+    assert groups_from_msg(msg).unobserved == ('G8', 'G9')
+    msg.unobserved_generator_names = ['G9', 'G9']
+    assert reason(groups_from_msg, msg) == 'unknown_id'
+    msg.unobserved_generator_names = ['G1']
+    assert reason(groups_from_msg, msg) == 'unknown_id'
+
+
+@pytest.mark.parametrize('field', ('generator_names', 'generator_buses', 'group', 'unobserved_generator_names'))
 def test_groups_are_capped_before_any_element_is_read(field):
     msg = groups()
     setattr(msg, field, Huge(10**9))

@@ -317,6 +317,8 @@ def _decision_dict(request_id: str, obs: Observation) -> dict:
         'status': status_name(msg.status), 'status_detail': msg.status_detail,
         'n_islands': len(islands), 'islands': islands, 'cut_branch_ids': list(msg.cut_branch_ids),
         'disrupted_mw': msg.disrupted_mw,
+        'unobserved_generators': dict(zip(msg.unobserved_generator_names,
+                                          (int(i) for i in msg.unobserved_generator_island), strict=False)),
         'breaker_commands': [{'command_id': c.command_id, 'breaker_id': c.breaker_id, 'branch_id': c.branch_id,
                               'action': 'open' if c.action == c.ACTION_OPEN else 'close'} for _, c in commands],
         'latency_request_to_command_ms': latency_cmd,
@@ -351,7 +353,8 @@ def _groups_dict(obs: Observation, request_stamp: object | None) -> dict:
         usable = [m for m in obs.groups if stamp_s(m.header.stamp) <= stamp_s(request_stamp) + 0.05]
         g = usable[-1] if usable else g
     return {'method': g.method, 'k': int(g.k), 'window_s': g.window_s,
-            'groups': [[n for n, k in zip(g.generator_names, g.group, strict=True) if k == i] for i in range(g.k)]}
+            'groups': [[n for n, k in zip(g.generator_names, g.group, strict=True) if k == i] for i in range(g.k)],
+            'unobserved': list(g.unobserved_generator_names)}
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -409,6 +412,8 @@ def render(summary: dict) -> str:
     if groups:
         lines.append(f'coherent groups ({groups["method"]}, k={groups["k"]}, window {groups["window_s"]:.2f} s):')
         lines += [f'  group {i}: {", ".join(names)}' for i, names in enumerate(groups['groups'])]
+        if groups.get('unobserved'):
+            lines.append(f'  unobserved (no PMU data, in no group): {", ".join(groups["unobserved"])}')
     if summary.get('split') is None:
         lines.append('NO DECISION: see the dropped inputs below and the node logs')
         lines += [f'dropped inputs at {name}: ' + ', '.join(f'{k}={v}' for k, v in rejects.items())
@@ -429,6 +434,9 @@ def render(summary: dict) -> str:
         lines.append(f'  island {isl["island"]}: generation {isl["generation_mw"]:.1f} MW, '
                      f'load {isl["load_mw"]:.1f} MW, shed {isl["shed_mw"]:.1f} MW; '
                      f'buses {", ".join(map(str, isl["buses"]))}')
+    if summary.get('unobserved_generators'):
+        lines.append('unconstrained (unobserved) generators, placed like load buses: ' + ', '.join(
+            f'{n} -> island {i}' for n, i in summary['unobserved_generators'].items()))
     lines.append(f'cut lines: {", ".join(summary["cut_branch_ids"]) or "none"}')
     lines.append(f'disrupted power flow: {summary["disrupted_mw"]:.2f} MW')
     cmds = summary['breaker_commands']

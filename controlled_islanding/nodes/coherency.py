@@ -284,16 +284,30 @@ class CoherencyNode(Node):
             return
         t0 = time.perf_counter()
         block = np.vstack(self.angles[lo:hi])
+        assert self.names is not None
+        # A generator whose PMU gave fewer than min_samples usable angles in the window is unobserved: it joins
+        # no group and constrains no island, rather than being grouped on a handful of points.
+        seen = np.flatnonzero(np.isfinite(block).sum(axis=0) >= self.min_samples)
+        observed = set(seen.tolist())
+        unobserved = [name for j, name in enumerate(self.names) if j not in observed]
+        if len(seen) == 0:
+            self.diag.reject('no_data', f'no generator has {self.min_samples} usable samples in the window')
+            return
         try:
-            model = DTWCoherency(max_groups=self.max_groups, window=self.band, k_rule=self.k_rule).fit(list(block.T))
+            if len(seen) == 1:
+                labels, k, distance = [0], 1, [0.0]
+            else:
+                model = DTWCoherency(max_groups=self.max_groups, window=self.band,
+                                     k_rule=self.k_rule).fit(list(block[:, seen].T))
+                labels, k = [int(g) for g in model.labels_], int(model.n_groups_)
+                distance = [float(x) for x in np.asarray(model.distance_matrix_, dtype=float).ravel()]
         except Exception as exc:  # the core names what was wrong; the node keeps running
             self.diag.reject('compute_failed', f'coherency over {hi - lo} samples: {exc}')
             return
-        assert self.names is not None
-        msg = CoherentGroups(generator_names=list(self.names), generator_buses=self.buses,
-                             group=[int(g) for g in model.labels_], k=int(model.n_groups_), method='dtw',
-                             distance=[float(x) for x in np.asarray(model.distance_matrix_, dtype=float).ravel()],
-                             window_s=float(self.t_s[hi - 1] - self.t_s[lo]))
+        msg = CoherentGroups(generator_names=[self.names[j] for j in seen],
+                             generator_buses=[self.buses[j] for j in seen], group=labels, k=k, method='dtw',
+                             distance=distance, window_s=float(self.t_s[hi - 1] - self.t_s[lo]),
+                             unobserved_generator_names=unobserved)
         newest = self.t_s[hi - 1]
         self.computed_end_s, self.late_inserts_before_s = newest, -1.0
         msg.header.stamp.sec, msg.header.stamp.nanosec = split_stamp(newest)
@@ -302,6 +316,7 @@ class CoherencyNode(Node):
         self.diag.computed(time.perf_counter() - t0)
         self.diag.values['k'] = str(msg.k)
         self.diag.values['window_samples'] = str(hi - lo)
+        self.diag.values['unobserved_generators'] = ','.join(unobserved)[:200]
 
 
 def main(args: list[str] | None = None) -> int:

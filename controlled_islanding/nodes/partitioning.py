@@ -63,9 +63,13 @@ class _Pending:
 
 
 def decision_to_msg(decision: Decision, request: IslandingRequest, method: str, compute_time_s: float,
-                    ) -> IslandingDecision:
-    """Encode a core decision as an (unsigned) IslandingDecision message answering a request."""
+                    generator_bus: dict[str, int] | None = None) -> IslandingDecision:
+    """Encode a core decision as an (unsigned) IslandingDecision message answering a request.
+
+    generator_bus (name -> bus) places the decision's unobserved generators; it must name each of them.
+    """
     buses = sorted(decision.bus_island)
+    unobserved = list(decision.unobserved_generators)
     return IslandingDecision(
         decision_id=str(uuid.uuid4()), request_id=request.request_id, request_stamp=request.header.stamp,
         method=method, split=decision.split,
@@ -75,7 +79,9 @@ def decision_to_msg(decision: Decision, request: IslandingRequest, method: str, 
         cut_from_bus=[b.from_bus for b in decision.cut_branches], cut_to_bus=[b.to_bus for b in decision.cut_branches],
         island_generation_mw=list(decision.island_generation_mw), island_load_mw=list(decision.island_load_mw),
         island_imbalance_mw=list(decision.island_imbalance_mw), island_shed_mw=list(decision.island_shed_mw),
-        disrupted_mw=decision.disrupted_mw, compute_time_s=compute_time_s)
+        disrupted_mw=decision.disrupted_mw, compute_time_s=compute_time_s,
+        unobserved_generator_names=unobserved,
+        unobserved_generator_island=[decision.bus_island[(generator_bus or {})[n]] for n in unobserved])
 
 
 class PartitioningNode(Node):
@@ -190,7 +196,7 @@ class PartitioningNode(Node):
     def _take_groups(self, groups: Groups) -> None:
         snapshot = self.topology.snapshot
         if snapshot is not None:
-            unknown = sorted(set(groups.names) ^ {g.name for g in snapshot.generators})
+            unknown = sorted((set(groups.names) | set(groups.unobserved)) ^ {g.name for g in snapshot.generators})
             if unknown:
                 self.diag.reject('unknown_id', f'groups and network disagree on generators {unknown[:10]}')
                 return
@@ -256,10 +262,10 @@ class PartitioningNode(Node):
 
     def _decide(self, groups: Groups, t_s: float) -> tuple[Decision, float]:
         grid, out = self.topology.grid_at(t_s)
-        key = (groups.names, groups.labels, out)
+        key = (groups.names, groups.labels, groups.unobserved, out)
         t0 = time.perf_counter()
         if key not in self.cache:
-            self.cache[key] = decide(grid, groups.as_mapping())
+            self.cache[key] = decide(grid, groups.as_mapping(), unobserved=groups.unobserved)
             while len(self.cache) > _KEEP_CACHED:
                 self.cache.popitem(last=False)
         return self.cache[key], time.perf_counter() - t0
@@ -335,7 +341,9 @@ class PartitioningNode(Node):
         else:
             try:
                 decision, _ = self._decide(groups, req_s)
-                msg = decision_to_msg(decision, request, groups.method, time.perf_counter() - t0)
+                grid = self.topology.snapshot_at(req_s)[1]
+                msg = decision_to_msg(decision, request, groups.method, time.perf_counter() - t0,
+                                      {g.name: g.bus for g in grid.generators})
                 self.diag.fault('last_request', None)
             except Exception as exc:  # the core's errors name the bad input; the node must keep running
                 msg = self._refusal(request, IslandingDecision.STATUS_REFUSED_FAILED, f'split failed: {exc}'[:500])
