@@ -149,14 +149,57 @@ def test_beta_below_the_trivial_bound_is_raised_into_the_feasible_range(ieee39: 
     assert_valid_islands(grid, groups, part.labels_)
 
 
-def test_grouping_with_no_feasible_beta_is_refused_with_both_figures() -> None:
+def test_grouping_with_no_unit_weight_beta_falls_back_to_group_balanced_weights_and_says_so() -> None:
     # case118: 52 generator buses in one group and one in each of two others: 1^T Q 1 = 2 (52^2 + 2) - 54^2.
+    import scipy.linalg
+
     grid = Grid.from_matpower('case118').with_flows()
     buses = sorted({g.bus for g in grid.generators})
     at = {b: 0 for b in buses[:52]} | {buses[52]: 1, buses[53]: 2}
     groups = {g.name: at[g.bus] for g in grid.generators}
     with pytest.raises(SpectralError, match=r'no beta exists .*\[52, 1, 1\].*1\^T Q 1 = 2496 is not below'):
-        ConstrainedSpectralPartition().fit(grid, groups)
+        ConstrainedSpectralPartition(balance='unit').fit(grid, groups)
+    part = ConstrainedSpectralPartition().fit(grid, groups)
+    assert part.constraint_weights_ == 'group-balanced'
+    assert '1^T Q 1 = 2496 is not below' in part.fallback_
+    assert_valid_islands(grid, groups, part.labels_)
+    d = decide(grid, groups)
+    assert d.constraint_fallback == part.fallback_ and d.n_islands == 3
+    # Eq. 8 with the balanced Q written out densely: every link keeps its sign, and it has exactly k-1 = 2
+    # positive eigenvalues, the ones the fit used.
+    lap_n, _, s = dense_eq8(grid, groups, 0.0)
+    count = np.bincount([at[b] for b in buses[:54]])
+    gen = {grid.buses.index(b): at[b] for b in buses[:54]}
+    q = np.zeros_like(lap_n)
+    for i, gi in gen.items():
+        for j, gj in gen.items():
+            q[i, j] = (1.0 if gi == gj else -1.0) / (count[gi] * count[gj])
+    b_mat = s[:, None] * q * s[None, :] - part.beta_ / (1.0 / s ** 2).sum() * np.eye(len(s))
+    lam = scipy.linalg.eigvals(lap_n, b_mat)
+    lam = np.sort(lam.real[np.isfinite(lam) & (np.abs(lam.imag) < 1e-9) & (lam.real > 1e-10)])
+    np.testing.assert_allclose(part.eigenvalues_, lam, rtol=1e-8)
+
+
+@pytest.mark.parametrize(('case', 'falls_back'), [('pjm5bus', False), ('ieee14', False), ('ieee39', False),
+                                                  ('nordic44', True), ('EI_33', True)])
+def test_fallback_only_where_unit_weights_have_no_beta_on_andes_systems(case: str, falls_back: bool) -> None:
+    # One large group and one generator bus from each of two far regions: unit weights have no beta where the
+    # large group holds 16 (Nordic 44) or 80 (EI 33) generator buses; the small systems keep eq. 6 as written.
+    from breaker_cases import andes_grid
+
+    from controlled_islanding.benchmarks import regional_groups
+
+    grid = andes_grid(case)
+    region = regional_groups(grid, 3)
+    first: dict[int, int] = {}
+    for g in sorted(grid.generators, key=lambda g: g.bus):
+        first.setdefault(region[g.name], g.bus)
+    groups = {g.name: region[g.name] if region[g.name] and g.bus == first[region[g.name]] else 0
+              for g in grid.generators}
+    part = ConstrainedSpectralPartition().fit(grid, groups)
+    assert part.constraint_weights_ == ('group-balanced' if falls_back else 'unit')
+    assert bool(part.fallback_) is falls_back
+    assert_valid_islands(grid, groups, part.labels_)
 
 
 def dense_eq8(grid: Grid, groups: Mapping[str, int], beta_abs: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -39,6 +39,8 @@ class IslandingDecision:
         island_shed_mw: Load to shed per island so generation covers load, MW.
         disrupted_mw: Eq. 9, the sum over cut branches of (|P_from| + |P_to|) / 2, MW.
         unobserved_generators: Generators decided without a group (no PMU); their island is their bus's.
+        constraint_fallback: Empty when the partitioner used eq. 6 as written; else why it departed from it (the
+            spectral partitioner's group-balanced constraint weights when no beta exists, core/spectral.py).
 
     """
 
@@ -51,6 +53,7 @@ class IslandingDecision:
     island_shed_mw: tuple[float, ...]
     disrupted_mw: float
     unobserved_generators: tuple[str, ...] = ()
+    constraint_fallback: str = ''
 
     @property
     def n_islands(self) -> int:
@@ -189,6 +192,7 @@ def decide(grid: Grid, generator_groups: Mapping[str, int],
     groups = check_generator_groups(grid, generator_groups, unobserved)
     if not grid.has_flows:
         grid = grid.with_flows()
+    fallback = ''
     if len(set(groups.values())) <= 1:
         decision = evaluate_partition(grid, dict.fromkeys(grid.buses, 0))
     else:
@@ -197,5 +201,6 @@ def decide(grid: Grid, generator_groups: Mapping[str, int],
 
             partitioner = ConstrainedSpectralPartition()
         labels = partitioner.fit(grid, groups).labels_
+        fallback = str(getattr(partitioner, 'fallback_', ''))
         decision = evaluate_partition(grid, {b: int(i) for b, i in zip(grid.buses, labels, strict=True)})
-    return replace(decision, unobserved_generators=tuple(sorted(unobserved)))
+    return replace(decision, unobserved_generators=tuple(sorted(unobserved)), constraint_fallback=fallback)

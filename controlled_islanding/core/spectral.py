@@ -19,8 +19,18 @@ It must also exceed 1^T Q 1 (must-link pairs minus cannot-link pairs). The trivi
 L_N v0 = 0 and v0^T B v0 = 1^T Q 1 - beta; the eigenvectors of positive lambda are B-orthogonal to v0, so if
 v0^T B v0 >= 0 it takes one of the k-1 B-positive directions and only k-2 remain. With very unequal groups
 (one group holding most generators) beta_fraction * mu_{k-1} * vol can fall below 1^T Q 1; beta is then
-raised to the same fraction of the way from 1^T Q 1 to mu_{k-1} * vol. When 1^T Q 1 >= mu_{k-1} * vol no
-beta exists: the grouping is refused with both figures. On case39 the lower end of beta_fraction lies
+raised to the same fraction of the way from 1^T Q 1 to mu_{k-1} * vol.
+
+When 1^T Q 1 >= mu_{k-1} * vol no beta exists for eq. 6's unit weights: 1^T Q 1 = 2 sum c_g^2 - (sum c_g)^2 for
+c_g generator buses per group grows with the square of the largest group, mu_{k-1} * vol only with the smaller
+groups (Nordic 44's final groups of 15, 2 and 1 generator buses: 136 against 80). The paper allows soft
+constraints (Q real, the sign saying must-link or cannot-link), so the fallback (`balance='fallback'`, the
+default) weighs each group once: Q_ij = +1 / c_g^2 within group g, -1 / (c_g c_h) between groups g and h, i.e.
+Q = Z C^-1 (2 I - 1 1^T) C^-1 Z^T. Every must-link and cannot-link keeps its sign; 1^T Q 1 = 2k - k^2 <= 0
+for k >= 2, and Q_N keeps k-1 positive eigenvalues (same inertia as 2 I - 1 1^T), so a beta always exists and
+the trivial v0 never takes a constraint direction. The fit says so (`constraint_weights_`, `fallback_`) and
+`core.islanding.decide` carries it into the decision; `balance='unit'` refuses instead, with both figures.
+On case39 the lower end of beta_fraction lies
 between 0.025 and 0.05; the default 0.2 is the middle of the range (0.125 to 0.3) that reproduces the
 paper's Tables I and V on MATPOWER case39 with either pre-outage flows (outaged branches removed) or
 post-outage AC flows, without any repair.
@@ -148,6 +158,8 @@ class ConstrainedSpectralPartition:
         repair: Apply `repair_partition` (on by default; off only to study the raw relaxation).
         refine: After the repair, move single boundary buses while that lowers eq. 9 (`refine_partition`).
             Off by default: the paper's method stops at the repaired relaxation.
+        balance: 'fallback' (default): eq. 6's unit weights, or group-balanced weights when no beta exists for
+            them (module docstring), said in `fallback_`; 'unit': eq. 6's unit weights or a refusal.
 
     Attributes:
         labels_: Island (= coherent group, 0-based) of each bus, aligned with `grid.buses`.
@@ -157,14 +169,18 @@ class ConstrainedSpectralPartition:
         eigenvalues_: The k-1 eigenvalues of eq. 8 used.
         embedding_: Rows of u = D^-1/2 V* (buses by k-1) that k-medoids clustered.
         beta_: The absolute beta used.
+        constraint_weights_: 'unit' (eq. 6 as written) or 'group-balanced' (the fallback).
+        fallback_: Why the fallback was used ('' when it was not): the unit-weight figures that left no beta.
 
     """
 
-    def __init__(self, beta: float = 0.2, random_state: int = 0, repair: bool = True, refine: bool = False) -> None:
+    def __init__(self, beta: float = 0.2, random_state: int = 0, repair: bool = True, refine: bool = False,
+                 balance: str = 'fallback') -> None:
         self.beta = beta
         self.random_state = random_state
         self.repair = repair
         self.refine = refine
+        self.balance = balance
 
     def fit(self, grid: Grid, generator_groups: Mapping[str, int]) -> ConstrainedSpectralPartition:
         """Partition the buses.
@@ -184,6 +200,8 @@ class ConstrainedSpectralPartition:
         """
         if not 0.0 < self.beta < 1.0:
             raise SpectralError(f'beta must be a fraction in (0, 1) of its feasibility bound, got {self.beta}')
+        if self.balance not in ('fallback', 'unit'):
+            raise SpectralError(f"balance must be 'fallback' or 'unit', got {self.balance!r}")
         bus_group = _bus_groups(grid, generator_groups)
         groups = sorted(set(bus_group.values()))
         k = len(groups)
@@ -193,29 +211,25 @@ class ConstrainedSpectralPartition:
         _check_connected(grid, w)
         buses = list(grid.buses)
         idx = {b: i for i, b in enumerate(buses)}
-        n = len(buses)
         d = np.asarray(w.sum(axis=1)).ravel()
         vol = float(d.sum())
         d_isqrt = 1.0 / np.sqrt(d)
         gen_idx = np.array([idx[b] for b in bus_group])
         gen_grp = np.array(list(bus_group.values()))
-        # Q_N = U (2 I - 1 1^T) U^T with U = D^-1/2 Z (n x k, one column per group).
-        u_mat = np.zeros((n, k))
-        u_mat[gen_idx, np.searchsorted(groups, gen_grp)] = d_isqrt[gen_idx]
+        column = np.searchsorted(groups, gen_grp)
+        counts = np.bincount(column, minlength=k).astype(float)
         core = 2.0 * np.eye(k) - 1.0
-        # U^T U is diagonal, so Q_N's nonzero eigenvalues are those of G^1/2 core G^1/2; the rest are 0.
-        g_half = np.sqrt((u_mat ** 2).sum(axis=0))
-        mu = np.sort(np.concatenate([np.linalg.eigvalsh(g_half[:, None] * core * g_half[None, :]),
-                                     np.zeros(max(n - k, 0))]))[::-1]
-        bound = float(mu[k - 2] * vol)
-        counts = np.bincount(np.searchsorted(groups, gen_grp), minlength=k).astype(float)
-        trivial = float(2.0 * (counts ** 2).sum() - counts.sum() ** 2)  # 1^T Q 1; v0 = D^1/2 1 gives v0^T Q_N v0
+        self.constraint_weights_, self.fallback_ = 'unit', ''
+        u_mat, trivial, bound = _constraints(d_isqrt, gen_idx, column, np.ones(k), core, vol)
         if trivial >= bound:
-            raise SpectralError(
-                f'no beta exists for these {k} groups (generator buses per group: {counts.astype(int).tolist()}): '
-                f'1^T Q 1 = {trivial:.4g} is not below mu_{{k-1}} vol = {bound:.4g}, so the trivial v = D^1/2 1 '
-                f'meets every constraint eq. 8 can still satisfy in {k - 1} directions; one group holds too large '
-                f'a share of the generators for a {k}-way constrained split')
+            why = (f'no beta exists for these {k} groups with unit constraint weights (generator buses per group: '
+                   f'{counts.astype(int).tolist()}): 1^T Q 1 = {trivial:.4g} is not below mu_{{k-1}} vol = '
+                   f'{bound:.4g}, so the trivial v = D^1/2 1 meets every constraint eq. 8 can still satisfy in '
+                   f'{k - 1} directions; one group holds too large a share of the generators for a {k}-way split')
+            if self.balance == 'unit':
+                raise SpectralError(why)
+            self.constraint_weights_, self.fallback_ = 'group-balanced', why
+            u_mat, trivial, bound = _constraints(d_isqrt, gen_idx, column, 1.0 / counts, core, vol)
         self.beta_ = float(self.beta * bound)
         if self.beta_ <= trivial:
             self.beta_ = float(trivial + self.beta * (bound - trivial))
@@ -244,6 +258,24 @@ class ConstrainedSpectralPartition:
             self.labels_ = refine_partition(grid, generator_groups, repaired, w)
             self.refined_buses_ = [b for b, a, c in zip(buses, repaired, self.labels_, strict=True) if a != c]
         return self
+
+
+def _constraints(d_isqrt: np.ndarray, gen_idx: np.ndarray, column: np.ndarray, weight: np.ndarray, core: np.ndarray,
+                 vol: float) -> tuple[np.ndarray, float, float]:
+    """Return U (Q_N = U core U^T), 1^T Q 1 and the feasibility bound mu_{k-1}(Q_N) * vol for per-group weights.
+
+    Q = Z W core W Z^T with Z the bus-by-group indicator and W = diag(weight): unit weights are eq. 6.
+    """
+    n, k = len(d_isqrt), len(core)
+    u_mat = np.zeros((n, k))
+    u_mat[gen_idx, column] = d_isqrt[gen_idx] * weight[column]
+    # U^T U is diagonal, so Q_N's nonzero eigenvalues are those of G^1/2 core G^1/2; the rest are 0.
+    g_half = np.sqrt((u_mat ** 2).sum(axis=0))
+    mu = np.sort(np.concatenate([np.linalg.eigvalsh(g_half[:, None] * core * g_half[None, :]),
+                                 np.zeros(max(n - k, 0))]))[::-1]
+    per_group = weight * np.bincount(column, minlength=k)
+    trivial = float(per_group @ core @ per_group)  # 1^T Q 1; v0 = D^1/2 1 gives v0^T Q_N v0
+    return u_mat, trivial, float(mu[k - 2] * vol)
 
 
 def _positive_eigenpairs(w: sparse.csr_array, d_isqrt: np.ndarray, u_mat: np.ndarray, core: np.ndarray, sigma: float,

@@ -113,6 +113,8 @@ def _entry(yaml_path: Path, progress: bool) -> dict[str, Any]:
             'disrupted_mw': round(float(decision.disrupted_mw), _DIGITS),
             'island_imbalance_mw': [round(float(x), _DIGITS) for x in decision.island_imbalance_mw],
             'island_shed_mw': [round(float(x), _DIGITS) for x in decision.island_shed_mw],
+            # Only where eq. 6's unit weights had no beta, so every other entry reads as before.
+            **({'constraint_fallback': decision.constraint_fallback} if decision.constraint_fallback else {}),
         },
     }
 
