@@ -22,8 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from controlled_islanding import topics
-from controlled_islanding.core.grid import Branch, Generator, Grid, Load
+from controlled_islanding.core.grid import DYNAMIC_FIELDS, Branch, Generator, Grid, Load
 from controlled_islanding.interfaces import typestore
+from controlled_islanding.messages import MessageError, decode_dynamic_data
 
 # STAT bits 15-14 set to 10 or 11 mean "do not use" (PmuMeasurement.msg).
 _STAT_UNUSABLE_MASK = 0x8000
@@ -186,10 +187,15 @@ def _grid_from_snapshot(msg: object) -> Grid:
         Branch(branch_id=str(bid), from_bus=int(f), to_bus=int(t), in_service=bool(s))
         for bid, f, t, s in zip(msg.branch_ids, msg.branch_from_bus, msg.branch_to_bus, msg.branch_in_service,
                                 strict=True))
+    try:
+        models, dynamic = decode_dynamic_data(msg, n_gen)
+    except MessageError as exc:
+        raise BagDataError(f'snapshot machine data: {exc}') from exc
     generators = tuple(
-        Generator(name=str(name), bus=int(bus), p_mw=float(p), p_max_mw=float(pmax), xq_pu=float(x), ra_pu=float(r))
-        for name, bus, p, pmax, x, r in zip(msg.generator_names, msg.generator_bus, msg.generator_p_mw,
-                                            msg.generator_p_max_mw, xq, ra, strict=True))
+        Generator(name=str(name), bus=int(bus), p_mw=float(p), p_max_mw=float(pmax), xq_pu=float(x), ra_pu=float(r),
+                  model=models[k], **{f: float(dynamic[f][k]) for f in DYNAMIC_FIELDS})
+        for k, (name, bus, p, pmax, x, r) in enumerate(zip(msg.generator_names, msg.generator_bus, msg.generator_p_mw,
+                                                           msg.generator_p_max_mw, xq, ra, strict=True)))
     loads = tuple(Load(bus=int(b), p_mw=float(p), q_mvar=float(q))
                   for b, p, q in zip(msg.load_bus, msg.load_p_mw, msg.load_q_mvar, strict=True))
     return Grid(name=str(msg.case_name), base_mva=base, buses=tuple(int(b) for b in msg.bus_numbers),

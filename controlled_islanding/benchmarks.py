@@ -116,41 +116,6 @@ def regional_swings(grid, groups: dict[str, int], samples: int, fps: float = 60.
 
 
 # ---------------------------------------------------------------------------------------------------- rotor angle DSE
-# Machine data as ANDES holds it after setup (per unit on the system base, M = 2H on the system base), by the
-# core.dse.MachineData column each fills. Classical machines (GENCLS) have only M, D, ra and x'd.
-_ANDES_MACHINE_COLUMNS = {'m_s': 'M', 'd_pu': 'D', 'ra_pu': 'ra', 'xd1_pu': 'xd1', 'xd_pu': 'xd', 'xq_pu': 'xq',
-                          'xq1_pu': 'xq1', 'td10_s': 'Td10', 'tq10_s': 'Tq10', 'xd2_pu': 'xd2', 'xq2_pu': 'xq2',
-                          'xl_pu': 'xl', 'td20_s': 'Td20', 'tq20_s': 'Tq20', 's10': 'S10', 's12': 'S12'}
-
-
-def andes_machine_data(ss, names):
-    """Return core.dse.MachineData of the named synchronous machines of a set-up ANDES System, in that order.
-
-    A classical machine's xq is x'd (what its stator presents; ANDES copies it only at TDS initialisation).
-    """
-    from andes.core.param import NumParam
-
-    from controlled_islanding.core.dse import MachineData
-
-    rows: dict[str, dict[str, float]] = {}
-    for model in (m for m in ss.groups['SynGen'].models.values() if m.n > 0):
-        for k, name in enumerate(model.name.v):
-            row = {}
-            for col, attr in _ANDES_MACHINE_COLUMNS.items():
-                param = getattr(model, attr, None)
-                row[col] = float(param.v[k]) if isinstance(param, NumParam) else float('nan')
-            if model.class_name == 'GENCLS':
-                row['xq_pu'] = row['xd1_pu']
-                row['s10'] = row['s12'] = float('nan')  # no saturation in the model; keep it out of the data
-            row['model'] = model.class_name
-            rows[str(name)] = row
-    missing = [n for n in names if n not in rows]
-    if missing:
-        raise ValueError(f'ANDES case has no synchronous machine named {missing[:3]}')
-    columns = {col: np.array([rows[n][col] for n in names]) for col in _ANDES_MACHINE_COLUMNS}
-    return MachineData(names=tuple(names), model=tuple(rows[n]['model'] for n in names), **columns)
-
-
 def dse_cache_dir() -> Path:
     """Where simulations for the DSE benchmark are cached (build/dse_cache in the checkout)."""
     from controlled_islanding.sim.andes_sim import pycode_dir
@@ -172,7 +137,7 @@ def simulate_cached(scenario_path: Path, end_s: float | None = None):
 
     import andes
 
-    from controlled_islanding.sim.andes_sim import load_power_flow, simulate
+    from controlled_islanding.sim.andes_sim import andes_machine_data, load_power_flow, simulate
     from controlled_islanding.sim.scenario import load_scenario
 
     scenario = load_scenario(scenario_path)

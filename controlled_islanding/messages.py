@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controlled_islanding.core.grid import Branch, Generator, Grid, GridError, Load
+from controlled_islanding.core.grid import DYNAMIC_FIELDS, Branch, Generator, Grid, GridError, Load
 
 
 class MessageError(ValueError):
@@ -84,8 +84,58 @@ def _finite_non_negative(values: object, what: str) -> np.ndarray:
 
 _BRANCH_FIELDS = ('branch_ids', 'branch_breaker_ids', 'branch_from_bus', 'branch_to_bus', 'branch_in_service',
                   'branch_p_from_mw', 'branch_p_to_mw')
+_DYNAMIC_MSG_FIELDS = tuple(f'generator_{name}' for name in DYNAMIC_FIELDS)
 _GENERATOR_FIELDS = ('generator_names', 'generator_bus', 'generator_p_mw', 'generator_p_max_mw', 'generator_xq_pu',
-                     'generator_ra_pu')
+                     'generator_ra_pu', 'generator_model') + _DYNAMIC_MSG_FIELDS
+# Longest model name accepted; real ones (GENROU, GENCLS, REGCA1) are a few characters.
+MAX_MODEL_NAME = 64
+
+
+def dynamic_data_fields(generators: tuple[Generator, ...]) -> dict[str, object]:
+    """Return the NetworkSnapshot machine-data fields of generators, by message field name.
+
+    generator_model is a list of str; each DYNAMIC_FIELDS entry a float64 numpy array, NaN where unknown (rclpy
+    needs these as lists: .tolist()).
+    """
+    out: dict[str, object] = {'generator_model': [str(g.model) for g in generators]}
+    for name, field in zip(DYNAMIC_FIELDS, _DYNAMIC_MSG_FIELDS, strict=True):
+        out[field] = np.array([getattr(g, name) for g in generators], dtype=np.float64)
+    return out
+
+
+def decode_dynamic_data(msg: object, n_gen: int) -> tuple[list[str], dict[str, np.ndarray]]:
+    """Return (model name per generator, DYNAMIC_FIELDS name -> values) of a NetworkSnapshot, NaN / '' = unknown.
+
+    Each array is optional: empty, or absent from a message type older than the fields (an old bag), means
+    unknown for every generator.
+
+    Raises:
+        MessageError: An array of another length than the generators, an inf or negative value, or a model name
+            longer than MAX_MODEL_NAME.
+
+    """
+    models = [str(x) for x in getattr(msg, 'generator_model', ())]
+    if len(models) not in (0, n_gen):
+        raise MessageError('array_length', f'generator_model has {len(models)} entries for {n_gen} generators; '
+                                           'give one per generator or none')
+    if any(len(m) > MAX_MODEL_NAME for m in models):
+        raise MessageError('bad_value', f'generator_model holds a name longer than {MAX_MODEL_NAME} characters')
+    values = {}
+    for name, field in zip(DYNAMIC_FIELDS, _DYNAMIC_MSG_FIELDS, strict=True):
+        arr = np.asarray(getattr(msg, field, ()), dtype=float).reshape(-1)
+        if arr.size == 0:
+            arr = np.full(n_gen, np.nan)
+        elif arr.size != n_gen:
+            raise MessageError('array_length', f'{field} has {arr.size} entries for {n_gen} generators; give one '
+                                               'per generator or none')
+        # NaN is 'unknown'; inf or a negative value is no machine's data (core.dse decides what it can use).
+        if np.isinf(arr).any():
+            raise MessageError('nan_value', f'{field} holds inf')
+        if (arr < 0).any():
+            raise MessageError('bad_value', f'{field} holds a negative value ({float(np.nanmin(arr))}); it must '
+                                            'be >= 0 or NaN')
+        values[name] = arr
+    return models or [''] * n_gen, values
 _LOAD_FIELDS = ('load_bus', 'load_p_mw', 'load_q_mvar')
 
 
@@ -99,6 +149,8 @@ def grid_from_snapshot(msg: object, limits: Limits = Limits()) -> Grid:
     Raises:
         MessageError: Too large ('too_large'), empty, arrays of unequal length, NaN/inf values, negative
             reactance or resistance ('bad_value'), a base that is not positive, or an inconsistent network.
+            Machine dynamic data are optional (empty or NaN = unknown) but never inf, negative, or of another
+            length than the generators.
 
     """
     _at_most(msg, 'network snapshot', ('bus_numbers',), limits.max_buses)
@@ -123,6 +175,7 @@ def grid_from_snapshot(msg: object, limits: Limits = Limits()) -> Grid:
     # A NaN or negative reactance reaches core.rotor_angle, which refuses it on every frame.
     xq = _finite_non_negative(msg.generator_xq_pu, 'generator_xq_pu')
     ra = _finite_non_negative(msg.generator_ra_pu, 'generator_ra_pu')
+    models, dynamic = decode_dynamic_data(msg, len(msg.generator_names))
     load_p = _finite(msg.load_p_mw, 'load_p_mw')
     load_q = _finite(msg.load_q_mvar, 'load_q_mvar')
     base = float(msg.base_mva)
@@ -135,8 +188,11 @@ def grid_from_snapshot(msg: object, limits: Limits = Limits()) -> Grid:
             name=str(msg.case_name), base_mva=base, buses=tuple(int(b) for b in msg.bus_numbers),
             branches=tuple(Branch(str(i), int(f), int(t), bool(s), breaker_id=c) for i, f, t, s, c in zip(
                 msg.branch_ids, msg.branch_from_bus, msg.branch_to_bus, msg.branch_in_service, breakers, strict=True)),
-            generators=tuple(Generator(str(n), int(b), float(p), float(pm), float(x), float(r)) for n, b, p, pm, x, r in
-                             zip(msg.generator_names, msg.generator_bus, gen_p, gen_p_max, xq, ra, strict=True)),
+            generators=tuple(
+                Generator(str(n), int(b), float(p), float(pm), float(x), float(r), model=models[k],
+                          **{name: float(dynamic[name][k]) for name in DYNAMIC_FIELDS})
+                for k, (n, b, p, pm, x, r) in enumerate(zip(msg.generator_names, msg.generator_bus, gen_p, gen_p_max,
+                                                            xq, ra, strict=True))),
             loads=tuple(Load(int(b), float(p), float(q))
                         for b, p, q in zip(msg.load_bus, load_p, load_q, strict=True)),
             p_from_mw=p_from, p_to_mw=p_to)

@@ -46,8 +46,7 @@ class Run:
     """One short ANDES run as the estimator sees it: times, per-machine phasors, truth and machine data."""
 
     def __init__(self, tmp: Path, text: str) -> None:
-        from controlled_islanding.benchmarks import andes_machine_data
-        from controlled_islanding.sim.andes_sim import load_power_flow, simulate
+        from controlled_islanding.sim.andes_sim import andes_machine_data, load_power_flow, simulate
         from controlled_islanding.sim.pmu import measure
         from controlled_islanding.sim.scenario import load_scenario
 

@@ -13,7 +13,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from controlled_islanding.messages import Limits, MessageError, grid_from_snapshot, groups_from_msg
+from controlled_islanding.core.dse import MachineData
+from controlled_islanding.core.grid import DYNAMIC_FIELDS
+from controlled_islanding.messages import MAX_MODEL_NAME, Limits, MessageError, grid_from_snapshot, groups_from_msg
 
 try:
     from hypothesis import given, settings
@@ -121,12 +123,58 @@ def test_a_nan_reactance_snapshot_cannot_reach_the_rotor_angle_estimator():
     assert reason(grid_from_snapshot, msg) == 'nan_value'
 
 
+# A two-axis machine (GENROU's data without the sub-transient part) and a machine without dynamic data.
+MACHINE = {'m_s': 8.0, 'd_pu': 0.0, 'xd_pu': 1.8, 'xd1_pu': 0.6, 'xq1_pu': 0.8, 'xd2_pu': math.nan,
+           'xq2_pu': math.nan, 'xl_pu': 0.15, 'td10_s': 6.5, 'tq10_s': 0.2, 'td20_s': math.nan, 'tq20_s': math.nan,
+           's10': 0.09, 's12': 0.38}
+
+
+def with_machine_data(msg: SimpleNamespace) -> SimpleNamespace:
+    msg.generator_model = ['GENROU', '']
+    for name, value in MACHINE.items():
+        setattr(msg, f'generator_{name}', [value, math.nan])
+    return msg
+
+
+def test_machine_data_is_optional_and_nan_or_empty_means_unknown():
+    old = grid_from_snapshot(snapshot())  # a message type older than the fields, as in an old bag
+    assert all(np.isnan(getattr(g, f)) for g in old.generators for f in DYNAMIC_FIELDS)
+    assert MachineData.of_generators(old.generators).richest_model().tolist() == ['steady_state'] * 2
+    grid = grid_from_snapshot(with_machine_data(snapshot()))
+    assert [g.model for g in grid.generators] == ['GENROU', '']
+    assert grid.generators[0].xd1_pu == 0.6 and np.isnan(grid.generators[1].m_s)
+    assert MachineData.of_generators(grid.generators).richest_model().tolist() == ['two_axis', 'steady_state']
+    msg = with_machine_data(snapshot())
+    msg.generator_model, msg.generator_s12 = [], []
+    assert [g.model for g in grid_from_snapshot(msg).generators] == ['', '']
+
+
+@pytest.mark.parametrize('field', DYNAMIC_FIELDS)
+def test_machine_data_is_never_inf_negative_or_of_another_length(field):
+    for bad, expected in ((math.inf, 'nan_value'), (-math.inf, 'nan_value'), (-1e-9, 'bad_value')):
+        msg = with_machine_data(snapshot())
+        getattr(msg, f'generator_{field}')[1] = bad
+        assert reason(grid_from_snapshot, msg) == expected, bad
+    msg = with_machine_data(snapshot())
+    getattr(msg, f'generator_{field}').append(1.0)
+    assert reason(grid_from_snapshot, msg) == 'array_length'
+
+
+def test_machine_model_names_are_one_per_generator_and_short():
+    msg = with_machine_data(snapshot())
+    msg.generator_model = ['GENROU']
+    assert reason(grid_from_snapshot, msg) == 'array_length'
+    msg.generator_model = ['GENROU', 'X' * (MAX_MODEL_NAME + 1)]
+    assert reason(grid_from_snapshot, msg) == 'bad_value'
+
+
 SNAPSHOT_CAPS = {
     'max_buses': ('bus_numbers',),
     'max_branches': ('branch_ids', 'branch_breaker_ids', 'branch_from_bus', 'branch_to_bus', 'branch_in_service',
                      'branch_p_from_mw', 'branch_p_to_mw'),
     'max_generators': ('generator_names', 'generator_bus', 'generator_p_mw', 'generator_p_max_mw',
-                       'generator_xq_pu', 'generator_ra_pu'),
+                       'generator_xq_pu', 'generator_ra_pu', 'generator_model')
+                      + tuple(f'generator_{f}' for f in DYNAMIC_FIELDS),
     'max_loads': ('load_bus', 'load_p_mw', 'load_q_mvar'),
 }
 

@@ -206,3 +206,24 @@ def test_a_sample_of_bags_regenerates_with_the_same_messages(tmp_path: Path) -> 
     for scenario in sample:
         out = run_scenario(scenario, tmp_path / scenario.name, progress=False).bag
         assert message_difference(out, BAGS / scenario.name) is None, scenario.name
+
+
+@pytest.mark.parametrize('case,richest', [('ieee14/ieee14_full.xlsx', 'genrou'), ('5bus/pjm5bus.xlsx', 'classical')])
+def test_the_snapshot_carries_each_machines_dynamic_data_from_andes_through_the_bag_format(case, richest) -> None:
+    from controlled_islanding.bagdata import _grid_from_snapshot
+    from controlled_islanding.core.dse import MachineData
+    from controlled_islanding.interfaces import typestore
+    from controlled_islanding.messages import grid_from_snapshot
+    from controlled_islanding.sim.andes_sim import power_flow_grid
+    from controlled_islanding.sim.bag import _Messages, _snapshot_msg
+
+    grid = power_flow_grid(case)
+    sent = MachineData.of_generators(grid.generators)
+    assert sent.richest_model().tolist() == [richest] * len(grid.generators)
+    store, name = typestore(), msg_type_name('NetworkSnapshot')
+    msg = store.deserialize_cdr(store.serialize_cdr(_snapshot_msg(_Messages(), grid, 10**9), name), name)
+    for decoded in (grid_from_snapshot(msg), _grid_from_snapshot(msg)):
+        got = MachineData.of_generators(decoded.generators)
+        assert got.model == sent.model
+        for column in ('m_s', 'd_pu', 'xd1_pu', 'xd2_pu', 'td20_s', 's10', 's12', 'xq_pu'):
+            assert np.array_equal(getattr(got, column), getattr(sent, column), equal_nan=True), column

@@ -150,6 +150,12 @@ class MachineData:
         if self.model and len(self.model) != n:
             raise DSEError(f'MachineData.model: one name per machine ({n}) needed, got {len(self.model)}')
 
+    @classmethod
+    def of_generators(cls, generators) -> MachineData:
+        """Return the data core.grid.Generator objects carry (their xq, ra and dynamic data), in their order."""
+        return cls(names=tuple(g.name for g in generators), model=tuple(str(g.model) for g in generators),
+                   **{name: np.array([getattr(g, name) for g in generators], dtype=float) for name in _COLUMNS})
+
     def richest_model(self) -> np.ndarray:
         """Return, per machine, the richest model of MODELS its data allows ('' when not even steady_state)."""
         out = np.full(len(self.names), '', dtype=object)

@@ -73,6 +73,9 @@ class Generator:
         p_max_mw: Active power capacity, MW.
         xq_pu: q-axis synchronous reactance, pu on the system base (NaN if unknown).
         ra_pu: Armature resistance, pu on the system base.
+        model: Dynamic model name in the source data (for example GENROU, GENCLS); '' if unknown.
+        m_s ... s12: Dynamic data for rotor angle estimation by core.dse (see DYNAMIC_FIELDS and
+            core.dse.MachineData for meanings); reactances pu and M = 2H in s on the system base; NaN if unknown.
 
     """
 
@@ -82,6 +85,26 @@ class Generator:
     p_max_mw: float
     xq_pu: float = float('nan')
     ra_pu: float = 0.0
+    model: str = ''
+    m_s: float = float('nan')
+    d_pu: float = float('nan')
+    xd_pu: float = float('nan')
+    xd1_pu: float = float('nan')
+    xq1_pu: float = float('nan')
+    xd2_pu: float = float('nan')
+    xq2_pu: float = float('nan')
+    xl_pu: float = float('nan')
+    td10_s: float = float('nan')
+    tq10_s: float = float('nan')
+    td20_s: float = float('nan')
+    tq20_s: float = float('nan')
+    s10: float = float('nan')
+    s12: float = float('nan')
+
+
+# Generator's numeric dynamic data beyond xq and ra, optional; NetworkSnapshot carries each as generator_<name>.
+DYNAMIC_FIELDS = ('m_s', 'd_pu', 'xd_pu', 'xd1_pu', 'xq1_pu', 'xd2_pu', 'xq2_pu', 'xl_pu', 'td10_s', 'tq10_s',
+                  'td20_s', 'tq20_s', 's10', 's12')
 
 
 @dataclass(frozen=True)

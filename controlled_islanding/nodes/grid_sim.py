@@ -50,6 +50,7 @@ from rosgraph_msgs.msg import Clock
 
 from controlled_islanding import topics
 from controlled_islanding.core.grid import Grid
+from controlled_islanding.messages import dynamic_data_fields
 from controlled_islanding.node_common import Diagnostics, NodeSetupError, qos_for, spin_node
 from controlled_islanding.sim.bag import PDC_FRAME_ID, START_TIME_UNIX_S
 from controlled_islanding.sim.closed_loop import (
@@ -89,6 +90,8 @@ def snapshot_msg(grid: Grid) -> NetworkSnapshot:
         generator_p_max_mw=[float(g.p_max_mw) for g in grid.generators],
         generator_xq_pu=[float(g.xq_pu) for g in grid.generators],
         generator_ra_pu=[float(g.ra_pu) for g in grid.generators],
+        **{f: list(v) if f == 'generator_model' else v.tolist()
+           for f, v in dynamic_data_fields(grid.generators).items()},
         load_bus=[ld.bus for ld in grid.loads], load_p_mw=[float(ld.p_mw) for ld in grid.loads],
         load_q_mvar=[float(ld.q_mvar) for ld in grid.loads])
     msg.header.stamp = _stamp(0.0)

@@ -12,7 +12,8 @@ What is returned, on ANDES' own non-uniform time grid:
 The case is anything ANDES reads (xlsx, json, MATPOWER .m, PSS/E .raw with a .dyr `addfile`). Devices the
 scenario disables get u = 0 before setup; disabled synchronous machines are left out of the generators.
 Each generator's reactance for the rotor angle estimate is its xq, or x'd for a classical machine (GENCLS),
-whose xq ANDES only copies from xd1 when the time-domain run initialises.
+whose xq ANDES only copies from xd1 when the time-domain run initialises. Each generator also carries its
+machine's dynamic data (`machine_rows`), for rotor angle estimation by a Kalman filter (core/dse.py).
 
 PSS/E branch records: their R, X and B are per unit on the case's system base SBASE, but ANDES 2.0.0's PSS/E
 parser gives the lines it makes from them no Sn, so ANDES takes them as per unit on 100 MVA and rescales them
@@ -33,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from controlled_islanding.core.grid import Branch, Generator, Grid, Load
+from controlled_islanding.core.grid import DYNAMIC_FIELDS, Branch, Generator, Grid, Load
 from controlled_islanding.sim.scenario import Disable, Scenario, ScenarioError
 
 # Synchronous machine models whose devices are the generators (ANDES group SynGen).
@@ -461,10 +462,51 @@ def power_flow_grid(case: str | Path, addfile: str | Path | None = None) -> Grid
     return _snapshot(ss, path.name, bus_numbers, branch_ids(pairs), pairs, [])
 
 
-def _snapshot(ss: Any, case_name: str, bus_numbers: list[int], ids: list[str], pairs: list[tuple[int, int]],
-              midline_off: list[int]) -> Grid:
+# Machine data as ANDES holds it after setup (per unit on the system base, M = 2H on the system base), by the
+# core.dse.MachineData column (and Generator field) each fills. Classical machines (GENCLS) have only M, D, ra
+# and x'd.
+ANDES_MACHINE_COLUMNS = {'m_s': 'M', 'd_pu': 'D', 'ra_pu': 'ra', 'xd1_pu': 'xd1', 'xd_pu': 'xd', 'xq_pu': 'xq',
+                         'xq1_pu': 'xq1', 'td10_s': 'Td10', 'tq10_s': 'Tq10', 'xd2_pu': 'xd2', 'xq2_pu': 'xq2',
+                         'xl_pu': 'xl', 'td20_s': 'Td20', 'tq20_s': 'Tq20', 's10': 'S10', 's12': 'S12'}
+
+
+def machine_rows(ss: Any) -> dict[str, dict[str, Any]]:
+    """Return machine name -> {ANDES_MACHINE_COLUMNS column: value, 'model': ANDES model name} of a set-up System.
+
+    A classical machine's xq is x'd (what its stator presents; ANDES copies it only at TDS initialisation);
+    its saturation is NaN, since the model has none.
+    """
     from andes.core.param import NumParam
 
+    rows: dict[str, dict[str, Any]] = {}
+    for model in (m for m in ss.groups[_SYNGEN_GROUP].models.values() if m.n > 0):
+        for k, name in enumerate(model.name.v):
+            row: dict[str, Any] = {}
+            for col, attr in ANDES_MACHINE_COLUMNS.items():
+                param = getattr(model, attr, None)
+                row[col] = float(param.v[k]) if isinstance(param, NumParam) else float('nan')
+            if model.class_name == 'GENCLS':
+                row['xq_pu'] = row['xd1_pu']
+                row['s10'] = row['s12'] = float('nan')
+            row['model'] = model.class_name
+            rows[str(name)] = row
+    return rows
+
+
+def andes_machine_data(ss: Any, names: list[str]):
+    """Return core.dse.MachineData of the named synchronous machines of a set-up ANDES System, in that order."""
+    from controlled_islanding.core.dse import MachineData
+
+    rows = machine_rows(ss)
+    missing = [n for n in names if n not in rows]
+    if missing:
+        raise ValueError(f'ANDES case has no synchronous machine named {missing[:3]}')
+    columns = {col: np.array([rows[n][col] for n in names]) for col in ANDES_MACHINE_COLUMNS}
+    return MachineData(names=tuple(names), model=tuple(rows[n]['model'] for n in names), **columns)
+
+
+def _snapshot(ss: Any, case_name: str, bus_numbers: list[int], ids: list[str], pairs: list[tuple[int, int]],
+              midline_off: list[int]) -> Grid:
     mva = float(ss.config.mva)
     line = ss.Line
     v = dict(zip(ss.Bus.idx.v, ss.Bus.v.v, strict=True))
@@ -506,16 +548,16 @@ def _snapshot(ss: Any, case_name: str, bus_numbers: list[int], ids: list[str], p
             static_p[idx] = float(p) * mva
             static_pmax[idx] = float(pmax) * mva
     generators = []
+    machines = machine_rows(ss)
     for model in (m for m in ss.groups[_SYNGEN_GROUP].models.values() if m.n > 0):
-        # A classical machine's xq is a service copied from xd1 only when the time-domain run initialises.
-        xq = model.xq.v if isinstance(model.xq, NumParam) else model.xd1.v
-        for name, bus, gen, x, r, u in zip(model.name.v, model.bus.v, model.gen.v, xq, model.ra.v, model.u.v,
-                                           strict=True):
+        for name, bus, gen, u in zip(model.name.v, model.bus.v, model.gen.v, model.u.v, strict=True):
             if not u:
                 continue
+            row = machines[str(name)]
             generators.append(Generator(name=str(name), bus=int(bus), p_mw=static_p.get(gen, float('nan')),
-                                        p_max_mw=static_pmax.get(gen, float('nan')), xq_pu=float(x),
-                                        ra_pu=float(r)))
+                                        p_max_mw=static_pmax.get(gen, float('nan')), xq_pu=row['xq_pu'],
+                                        ra_pu=row['ra_pu'], model=row['model'],
+                                        **{f: row[f] for f in DYNAMIC_FIELDS}))
     loads = tuple(Load(bus=int(b), p_mw=float(p) * mva, q_mvar=float(q) * mva)
                   for b, p, q, u in zip(ss.PQ.bus.v, ss.PQ.p0.v, ss.PQ.q0.v, ss.PQ.u.v, strict=True) if u)
     name = case_name

@@ -35,6 +35,7 @@ from controlled_islanding import topics
 from controlled_islanding.bagmeta import qos_profile, set_ros_distro
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.interfaces import msg_type_name, typestore
+from controlled_islanding.messages import dynamic_data_fields
 from controlled_islanding.node_common import qos_for
 from controlled_islanding.sim.andes_sim import Simulation, simulate
 from controlled_islanding.sim.pmu import PmuData, measure
@@ -108,7 +109,7 @@ def _snapshot_msg(m: _Messages, grid: Grid, stamp_ns: int) -> Any:
         generator_p_mw=np.array([g.p_mw for g in gens], dtype=np.float64),
         generator_p_max_mw=np.array([g.p_max_mw for g in gens], dtype=np.float64),
         generator_xq_pu=np.array([g.xq_pu for g in gens], dtype=np.float64),
-        generator_ra_pu=np.array([g.ra_pu for g in gens], dtype=np.float64),
+        generator_ra_pu=np.array([g.ra_pu for g in gens], dtype=np.float64), **dynamic_data_fields(gens),
         load_bus=np.array([ld.bus for ld in loads], dtype=np.uint32),
         load_p_mw=np.array([ld.p_mw for ld in loads], dtype=np.float64),
         load_q_mvar=np.array([ld.q_mvar for ld in loads], dtype=np.float64))
