@@ -52,11 +52,12 @@ Each model class runs one batched filter for all its machines: one set of numpy 
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ['DSEError', 'MODELS', 'MachineData', 'RotorAngleDSE', 'saturation_coefficients']
+__all__ = ['DSEError', 'MODELS', 'MachineData', 'RotorAngleDSE', 'StreamingDSE', 'saturation_coefficients']
 
 MODELS = ('steady_state', 'classical', 'two_axis', 'genrou')
 _HALF_PI = 0.5 * np.pi
@@ -155,6 +156,11 @@ class MachineData:
         """Return the data core.grid.Generator objects carry (their xq, ra and dynamic data), in their order."""
         return cls(names=tuple(g.name for g in generators), model=tuple(str(g.model) for g in generators),
                    **{name: np.array([getattr(g, name) for g in generators], dtype=float) for name in _COLUMNS})
+
+    def same_as(self, other: MachineData) -> bool:
+        """Whether two data sets name the same machines, in the same order, with the same data (NaN equal NaN)."""
+        return self.names == other.names and tuple(self.model) == tuple(other.model) and all(
+            np.array_equal(getattr(self, c), getattr(other, c), equal_nan=True) for c in _COLUMNS)
 
     def richest_model(self) -> np.ndarray:
         """Return, per machine, the richest model of MODELS its data allows ('' when not even steady_state)."""
@@ -703,3 +709,113 @@ class RotorAngleDSE:
         bank.x[r] = x + (gain @ innovation[:, :, None])[:, :, 0]
         new_cov = cov - gain @ s @ np.swapaxes(gain, -1, -2)
         bank.cov[r] = 0.5 * (new_cov + np.swapaxes(new_cov, -1, -2))
+
+
+class StreamingDSE:
+    """RotorAngleDSE fed from frames as a PDC delivers them: on a uniform time-tag grid, some late, some never.
+
+    Why: the filter needs its frames in time order, but frames are published on arrival and may overtake each
+    other. A time tag still missing once a frame more than ``reorder_s`` newer has arrived is lost to the filter
+    (a prediction-only step at its tag, as RotorAngleDSE takes a NaN frame); frames waiting behind it are held
+    until then, so ``reorder_s`` is the latency traded for using late frames (0: never wait). A frame arriving
+    after its tag was passed gives the filter's estimate interpolated at its tag (its data no longer count).
+    Gaps longer than the filter's ``max_gap_s`` are not stepped through: the filter re-initialises after them.
+
+    Args:
+        machines: The machines' data, in the column order of the frames.
+        rate_fps: Reporting rate, frames per second (the time-tag grid).
+        reorder_s: Longest wait for a missing time tag before it counts as lost, s.
+        history_s: How far back a late frame still gets an interpolated estimate, s.
+        **settings: RotorAngleDSE settings (model, freq_hz, max_gap_s, ...).
+
+    Attributes:
+        dse: The filter (its ``models_`` says which machines fall back to the steady-state estimate).
+        lost_frames: Time tags stepped as lost.
+        late_frames: Frames that arrived after their tag was passed.
+
+    """
+
+    def __init__(self, machines: MachineData, rate_fps: float, reorder_s: float = 0.0, history_s: float = 1.0,
+                 **settings) -> None:
+        if not rate_fps > 0 or not reorder_s >= 0 or not history_s >= 0:
+            raise DSEError(f'rate_fps > 0, reorder_s >= 0 and history_s >= 0 needed, got {rate_fps}, {reorder_s}, '
+                           f'{history_s}')
+        self.dse = RotorAngleDSE(**settings).fit(machines)
+        self.rate_fps, self.reorder_s, self.history_s = float(rate_fps), float(reorder_s), float(history_s)
+        self._done: int | None = None  # newest time tag (in frame periods) the filter has taken
+        self._pending: dict[int, tuple] = {}
+        self._history: deque[tuple[float, np.ndarray]] = deque()
+        self.lost_frames = 0
+        self.late_frames = 0
+
+    def fallback_names(self) -> tuple[str, ...]:
+        """Machines estimated by the steady-state relation (no usable dynamic data), or not at all ('')."""
+        return tuple(n for n, m in zip(self.dse.machines_.names, self.dse.models_, strict=True)
+                     if m in ('steady_state', ''))
+
+    def offer(self, t_s: float, v_mag_pu: np.ndarray, v_angle_rad: np.ndarray, i_mag_pu: np.ndarray,
+              i_angle_rad: np.ndarray, valid: np.ndarray, payload: object = None) -> list[tuple[object, np.ndarray]]:
+        """Take one frame; return (payload, rotor angle per machine, rad) of every frame whose estimate is now known.
+
+        Args:
+            t_s: Time tag, s.
+            v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, valid: As RotorAngleDSE.update (NaN or valid False:
+                that machine's data are missing from this frame).
+            payload: Returned with the frame's estimate (for example its header).
+
+        Returns:
+            In time-tag order, the frames the filter took because of this one, or this frame alone if it came
+            late (interpolated; NaN where the history does not reach). A lost tag returns nothing. A repeated
+            pending tag replaces the pending frame.
+
+        """
+        key = int(round(t_s * self.rate_fps))
+        if self._done is not None and key <= self._done:
+            self.late_frames += 1
+            return [(payload, self._interpolate(t_s))]
+        self._pending[key] = (t_s, v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, valid, payload)
+        if self._done is None:
+            self._done = key - 1
+        newest = max(self._pending)
+        out = []
+        period = 1.0 / self.rate_fps
+        while self._pending:
+            nxt = self._done + 1
+            if nxt in self._pending:
+                t, *frame, tag = self._pending.pop(nxt)
+                out.append((tag, self._take(t, *frame)))
+            elif (newest - nxt) * period > self.reorder_s + 1e-9:
+                first = min(self._pending)
+                if (first - nxt) * period > self.dse.max_gap_s:
+                    self.lost_frames += first - nxt
+                    nxt = first - 1  # the filter re-initialises after so long; no need to step through it
+                else:
+                    nan = np.full(len(self.dse.models_), np.nan)
+                    self._take(self._t_of(nxt, t_s, key), nan, nan, nan, nan, np.zeros(len(nan), dtype=bool))
+                    self.lost_frames += 1
+            else:
+                break
+            self._done = nxt
+        return out
+
+    def _t_of(self, key: int, ref_t: float, ref_key: int) -> float:
+        # Time tags are absolute (large); stepping from a known tag keeps their sub-microsecond part.
+        return ref_t + (key - ref_key) / self.rate_fps
+
+    def _take(self, t: float, v_mag, v_ang, i_mag, i_ang, valid) -> np.ndarray:
+        angles = self.dse.update(t, v_mag, v_ang, i_mag, i_ang, valid)
+        self._history.append((t, angles))
+        while self._history and self._history[0][0] < t - self.history_s:
+            self._history.popleft()
+        return angles
+
+    def _interpolate(self, t: float) -> np.ndarray:
+        times = [h[0] for h in self._history]
+        k = int(np.searchsorted(times, t))
+        if k == 0 or k == len(times):
+            if k and abs(times[-1] - t) < 1e-9:
+                return self._history[-1][1].copy()
+            return np.full(len(self.dse.models_), np.nan)
+        (t0, a0), (t1, a1) = self._history[k - 1], self._history[k]
+        w = (t - t0) / (t1 - t0)
+        return a0 + w * (a1 - a0)
