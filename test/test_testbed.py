@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controlled_islanding.sim.closed_loop import LoopConfig, assess
+from controlled_islanding.sim.closed_loop import LoopConfig, assess, generation_to_reject
 
 REPO = Path(__file__).resolve().parents[1]
 BUILD = REPO / 'build'
@@ -52,6 +52,51 @@ def test_assess_separates_a_pole_slip_from_a_swing_and_judges_each_island_alone(
     swing = assess(t, delta, omega, volts, names, gen_buses, buses, None, 1.0, config, 60.0, {0: 100.0}, {})
     assert swing[0].coherent and not swing[0].survived
     assert any('voltage' in w for w in swing[0].why_not)
+
+
+def test_generation_rejection_trips_the_largest_machines_that_fit_in_the_surplus_on_several_grids():
+    """Pre-fault dispatches of the bundled ANDES cases, islands as our decisions cut them."""
+    # IEEE 39, G6 and G7 cut off with buses 22 to 24: 1267 MW for 556 MW; G6 alone leaves 24 MW (< 5 %).
+    assert generation_to_reject({'GENROU_6': 687.0, 'GENROU_7': 580.0}, 556.1) == ('GENROU_6',)
+    # A deficit island, or a surplus within the governors' margin, trips nothing.
+    ieee39_rest = {'GENROU_1': 436.1, 'GENROU_2': 646.0, 'GENROU_3': 725.0, 'GENROU_4': 652.0}
+    assert generation_to_reject(ieee39_rest, 5300.3, 673.8) == ()
+    assert generation_to_reject({'G1': 100.0, 'G2': 100.0}, 195.0) == ()
+    # IEEE 14, G1 alone on bus 1, which has no load: nothing to serve, every machine goes.
+    assert generation_to_reject({'GENROU_1': 232.4}, 0.0) == ('GENROU_1',)
+    # Kundur two-area, area 1 (700 + 700 MW for 967 MW): no machine fits in the 433 MW surplus, and tripping
+    # one would leave a 267 MW deficit nobody sheds; the governors are left with it.
+    assert generation_to_reject({'G1': 700.0, 'G2': 700.0}, 967.0) == ()
+    # PJM 5-bus with its load shed in part: largest first, skipping the one that no longer fits.
+    pjm = {'Sundance': 466.5, 'Solitude': 323.5, 'Park City': 170.0, 'Alta': 40.0}
+    # 500 MW surplus: Sundance leaves 33.5 MW, above the 25 MW margin, but no other machine fits in it.
+    assert generation_to_reject(pjm, 1000.0, 500.0) == ('Sundance',)
+    trip = generation_to_reject(pjm, 600.0, 200.0)  # 600 MW surplus on 400 MW served
+    assert trip == ('Sundance', 'Alta') and sum(pjm[n] for n in trip) <= 600.0
+    # Never more than the surplus, and within the margin whenever a fitting set exists.
+    for load, shed in ((300.0, 0.0), (150.0, 20.0), (810.0, 0.0)):
+        trip = generation_to_reject(pjm, load, shed)
+        left = sum(pjm.values()) - sum(pjm[n] for n in trip) - (load - shed)
+        assert left >= -1e-9, (load, shed, trip)
+
+
+def test_assess_leaves_a_rejected_machine_out_after_its_trip():
+    """A machine rejected at 2 s keeps running away in the data (ANDES freezes it; here it drifts): not judged."""
+    t, delta, omega, volts = _run(4.0, 0.0)
+    late = t > 2.0
+    delta[late, 2] = 20.0 * (t[late] - 2.0)
+    omega[late, 2] = 1.1
+    names, gen_buses, buses = ('G1', 'G2', 'G3'), (1, 2, 3), (1, 2, 3, 4)
+    args = (t, delta, omega, volts, names, gen_buses, buses, None, 1.0, LoopConfig(), 60.0, {0: 100.0}, {})
+    (with_it,) = assess(*args)
+    assert not with_it.survived and with_it.f_peak_hz > 65.0
+    (without,) = assess(*args, (), {'G3': (2.0, 80.0)})
+    assert without.survived and without.rejected == ('G3',) and without.rejected_mw == 80.0
+    assert without.machines_tripped == () and without.f_peak_hz == pytest.approx(60.0)
+    # Every machine of an island rejected: an island with nothing left running is not one that survived.
+    (alone,) = assess(t, delta, omega, volts, names, gen_buses, buses, {1: 1, 2: 1, 3: 0, 4: 1}, 1.0,
+                      LoopConfig(), 60.0, {0: 0.0, 1: 100.0}, {}, (), {'G3': (2.0, 80.0)})[:1]
+    assert not alone.survived and 'every machine rejected' in alone.why_not
 
 
 @pytest.mark.ros

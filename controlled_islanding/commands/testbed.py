@@ -20,7 +20,8 @@ DESCRIPTION = """\
 Start pmu_ingestion, coherency, partitioning and breaker_command (armed with a signed operator request, as
 replay does) and grid_sim, which runs the scenario's ANDES simulation as the grid: it publishes the snapshot,
 PMU frames, trips and the scenario's islanding request, executes the breaker commands in the running
-simulation (breaker operating time, then the decision's load shed in islands short of generation), keeps
+simulation (breaker operating time, then the decision's load shed in islands short of generation and
+generation rejection in islands with a surplus), keeps
 simulating, and judges every island (docs/testbed.md and controlled_islanding/sim/closed_loop.py give the
 rules: machines within pi rad of each other, frequency 57.8..61.8 Hz, voltage 0.8..1.2 pu, no machine
 tripped).
@@ -344,13 +345,14 @@ def table_rows(results: list[dict]) -> list[list[str]]:
             rows.append([r['scenario'], label, ', '.join(run['cut_branch_ids']) or 'none',
                          f'{ok}/{len(isl)}' + ('' if ok == len(isl) else ' (' + '; '.join(
                              w for i in isl for w in i['why_not'])[:80] + ')'),
-                         f'{run["load_lost_mw"]:.0f} ({run["shed_mw"]:.0f} shed)',
+                         f'{run["load_lost_mw"]:.0f} ({run["shed_mw"]:.0f} shed)', f'{run.get("rejected_mw", 0.0):.0f}',
                          f'{run["f_nadir_hz"]:.2f} / {run["f_peak_hz"]:.2f}', f'{run["v_min_pu"]:.3f}',
                          _fmt(run['request_to_opening_s'], '.3f')])
     return rows
 
 
-HEADER = ['scenario', 'run', 'cut', 'islands survived', 'load lost MW', 'f nadir / peak Hz', 'V min pu',
+HEADER = ['scenario', 'run', 'cut', 'islands survived', 'load lost MW', 'generation tripped MW', 'f nadir / peak Hz',
+          'V min pu',
           'request -> opening s']
 
 
@@ -394,15 +396,19 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
            'the same time. Rules (controlled_islanding/sim/closed_loop.py): an island survives when its machines '
            'stay within pi rad of each other (relative to the cut), its frequency within 57.8..61.8 Hz, its bus '
            'voltages within 0.8..1.2 pu from 0.5 s after the cut, and no machine trips. Load lost = load shed + '
-           'the load of every island that did not survive. `no action` is judged as one island over the same '
+           'the load of every island that did not survive. Generation tripped: in every island whose dispatched '
+           'generation exceeds its load after the shed by more than 5 % of that load, machines are tripped at '
+           'the time of the shed, largest output first, each only if it fits in the remaining surplus '
+           '(closed_loop.generation_to_reject; a rejected machine is not judged after its trip); the `milp` row '
+           'gets the same rule. `no action` is judged as one island over the same '
            f'window. Breaker operating time {args.breaker_operating_s} s, load shed {args.shed_delay_s} s after '
            f'the opening, simulated at least {args.run_after_s} s past the request.', '',
            '| ' + ' | '.join(HEADER) + ' |', '|' + '---|' * len(HEADER)]
     out += ['| ' + ' | '.join(row) + ' |' for row in table_rows(results)]
     out += ['', 'Reading the table:',
-            "- The shed rule only covers islands short of generation (the paper's load to shed). An island with a "
-            'surplus gets no action in the testbed (no generator tripping, no overspeed protection is modelled), so '
-            'its machines speed up past 61.8 Hz and it counts as lost.',
+            '- An island with a surplus no machine fits in (each is larger than the surplus) keeps it: tripping one '
+            'would leave a deficit nobody sheds. No overspeed protection is modelled, so such an island can speed '
+            'up past 61.8 Hz and count as lost.',
             '- "V min" is ANDES\' voltage variable: ANDES zeroes the voltage of a bus left with no in-service '
             "branch, and a collapsing island can show 0 or a negative value (the solver's sign, not a magnitude). "
             "Per-island figures are in each scenario's result.json in the results folder.",

@@ -4,10 +4,11 @@ It publishes what the field would: the pre-fault network snapshot, PMU frames at
 noise and impairments, sim/closed_loop.PmuStream), branch status changes (the scenario's trips, and every branch
 it opens on command), the scenario's islanding request, and /clock. It executes /breaker/commands: an OPEN
 command opens its branch in the running simulation `breaker_operating_s` after the command, then
-`shed_delay_s` later sheds the load the decision named in each island short of generation (sim/closed_loop.py
-says how). After `run_after_s` past the request it publishes a post-islanding assessment per island on
-/grid/assessment (diagnostic_msgs/DiagnosticArray, one status per island), writes it to `report_file` (JSON)
-and the trajectories to `<report_file>.npz`, and exits.
+`shed_delay_s` later sheds the load the decision named in each island short of generation and trips machines
+in each island with a surplus (generation rejection; sim/closed_loop.py says how). After `run_after_s` past
+the request it publishes a post-islanding assessment per island on /grid/assessment
+(diagnostic_msgs/DiagnosticArray, one status per island), writes it to `report_file` (JSON) and the
+trajectories to `<report_file>.npz`, and exits.
 
 Time. Stamps are sim time plus sim/bag.START_TIME_UNIX_S, as in the bags, and /clock carries it.
 - `rate: 0` (default), lockstep: the simulation runs as fast as it can, but before it publishes the request it
@@ -377,7 +378,8 @@ class GridSimNode(Node):
                 ('f_nadir_hz', f'{isl.f_nadir_hz:.4f}'), ('f_peak_hz', f'{isl.f_peak_hz:.4f}'),
                 ('v_min_pu', f'{isl.v_min_pu:.4f}'), ('v_max_pu', f'{isl.v_max_pu:.4f}'),
                 ('shed_mw', f'{isl.shed_mw:.2f}'), ('load_mw', f'{isl.load_mw:.2f}'),
-                ('machines_tripped', ','.join(isl.machines_tripped)), ('generators', ','.join(isl.generators)))]
+                ('machines_tripped', ','.join(isl.machines_tripped)), ('generators', ','.join(isl.generators)),
+                ('rejected', ','.join(isl.rejected)), ('rejected_mw', f'{isl.rejected_mw:.2f}'))]
             array.status.append(status)
         self.assessment_pub.publish(array)
         self.get_logger().info(f'assessment: {"every island survived" if outcome.all_survived else "NOT every island"}'

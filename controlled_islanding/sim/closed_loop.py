@@ -20,6 +20,14 @@ load in the simulation, P and Q alike (each load keeps its power factor): propor
 of the island, the rule export.py uses for MATPOWER. ANDES converts PQ loads to constant impedance for the
 time-domain run, so all six of its equivalent constants (Ppf, Qpf, Req, Xeq, Ipeq, Iqeq) are scaled together.
 
+Generation rejection, the companion of load shedding in islanding schemes: at the same time, in every island
+whose dispatched generation exceeds its load after the shed by more than `rejection_margin` (5 % of that load by
+default, left to the governors: with the usual 5 % droop it settles a fully loaded island about 0.15 Hz high),
+machines are tripped, largest output first, each only if it fits in the remaining surplus
+(`generation_to_reject`). Tripping is `set_status(idx, 0)` on the SynGen, which ANDES propagates to its
+governor, exciter and stabiliser. The numbers are the pre-fault power flow's, as the decision's shed is.
+A rejected machine is judged with its island until its trip and left out afterwards (its state is frozen).
+
 Post-islanding assessment, per island, over the window from the cut (for a run without a cut: from the time
 the cut would have been made) to the end of the run:
 - coherent: every pair of the island's machines stays within `coherence_bound_rad` (default pi rad) of where
@@ -30,13 +38,15 @@ the cut would have been made) to the end of the run:
   off-frequency protection trips at once in North American practice, NERC PRC-024) counts as held.
 - voltage: the lowest and highest bus voltage magnitude of the island, pu; judged from `voltage_settle_s`
   after the cut (the cut itself is a switching transient), within [v_min_pu, v_max_pu] (default 0.8 .. 1.2 pu).
-- machines tripped: synchronous machines whose status went to 0 during the run (by a protection model the
-  case has; ANDES' IEEE 39 has none, so this is 0 there unless something else switches a machine).
+- machines tripped: synchronous machines whose status went to 0 during the run other than by rejection (by a
+  protection model the case has; ANDES' IEEE 39 has none, so this is 0 there unless something else switches
+  a machine).
 An island survives when all four hold. If ANDES stops converging after an action (it zeroes the voltage of a bus
 left with no in-service branch, so an island of one bus is numerically fragile), the run ends there and every
 island is reported as not survived, with the time: the simulation cannot say which one failed.
 Load lost = load shed + the whole load of every island that did not survive (it would be lost to protection);
-an island with no machine is lost by definition.
+an island with no machine, or whose every machine was rejected (an island with no load left), is lost by
+definition.
 """
 
 from __future__ import annotations
@@ -73,6 +83,8 @@ class LoopConfig:
         f_min_hz, f_max_hz: Frequency band an island must stay in, Hz.
         v_min_pu, v_max_pu: Voltage band every bus must stay in once settled, pu.
         voltage_settle_s: Voltage is judged from this long after the cut, s.
+        rejection_margin: Generation surplus an island keeps without tripping machines, as a fraction of its
+            load after the shed (generation_to_reject).
 
     """
 
@@ -85,6 +97,7 @@ class LoopConfig:
     v_min_pu: float = 0.8
     v_max_pu: float = 1.2
     voltage_settle_s: float = 0.5
+    rejection_margin: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -130,11 +143,13 @@ class IslandOutcome:
         generators: Machine names.
         load_mw: Island load before any shed, MW.
         shed_mw: Load shed in the island, MW.
+        rejected: Machines tripped by generation rejection (not judged after their trip).
+        rejected_mw: Their dispatched output, MW.
         max_pair_swing_rad: Largest change of a machine pair's angle difference after the cut, rad.
         coherent: max_pair_swing_rad <= the bound.
         f_nadir_hz, f_peak_hz: Lowest and highest machine frequency after the cut, Hz.
         v_min_pu, v_max_pu: Lowest and highest bus voltage once settled, pu.
-        machines_tripped: Machines switched off during the run.
+        machines_tripped: Machines switched off during the run, other than by generation rejection.
         survived: All of the above within bounds.
         why_not: What failed, empty when it survived.
 
@@ -154,6 +169,8 @@ class IslandOutcome:
     machines_tripped: tuple[str, ...]
     survived: bool
     why_not: tuple[str, ...] = ()
+    rejected: tuple[str, ...] = ()
+    rejected_mw: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -213,12 +230,18 @@ class Outcome:
         """Load shed over all islands, MW."""
         return sum(i.shed_mw for i in self.islands)
 
+    @property
+    def rejected_mw(self) -> float:
+        """Generation tripped by rejection over all islands, MW."""
+        return sum(i.rejected_mw for i in self.islands)
+
     def summary(self) -> dict[str, Any]:
         """Return the outcome without trajectories, as JSON-ready data."""
         return {'label': self.label, 'cut_branch_ids': list(self.cut_branch_ids), 'request_s': self.request_s,
                 'opened_s': self.opened_s, 'judged_from_s': self.judged_from_s,
                 'request_to_opening_s': None if self.opened_s is None else self.opened_s - self.request_s,
                 'all_survived': self.all_survived, 'load_lost_mw': self.load_lost_mw, 'shed_mw': self.shed_mw,
+                'rejected_mw': self.rejected_mw,
                 'f_nadir_hz': min(i.f_nadir_hz for i in self.islands),
                 'f_peak_hz': max(i.f_peak_hz for i in self.islands),
                 'v_min_pu': min(i.v_min_pu for i in self.islands),
@@ -305,6 +328,31 @@ class GridRun:
         self._pending.append((float(at_s), action, do))
         return action
 
+    def reject_generation(self, names: Sequence[str], at_s: float, output_mw: Mapping[str, float],
+                          why: str = 'reject') -> Applied:
+        """Schedule tripping these machines (generation rejection) at at_s, s; output_mw is each one's MW."""
+        rows = []
+        for name in names:
+            model = next((m for m in self._syn if name in list(m.name.v)), None)
+            if model is None:
+                raise ClosedLoopError(f'machine {name!r}: no synchronous machine of {self.scenario.case.name}')
+            rows.append((model, model.idx.v[list(model.name.v).index(name)]))
+        action = Applied(what=why, scheduled_s=float(at_s),
+                         detail={'machines': list(names), 'output_mw': {n: float(output_mw[n]) for n in names}})
+
+        def do() -> None:
+            for model, idx in rows:
+                model.set_status(idx, 0)  # ANDES takes its governor, exciter and stabiliser off with it
+            self.ss.TDS.custom_event = True
+
+        self._pending.append((float(at_s), action, do))
+        return action
+
+    def rejected(self) -> dict[str, tuple[float, float]]:
+        """Return each machine tripped by generation rejection so far: (when, s; its output, MW)."""
+        return {n: (a.applied_s, a.detail['output_mw'][n]) for a in self.actions
+                if a.what.startswith('reject') and a.applied_s is not None for n in a.detail['machines']}
+
     def _line(self, ref: str) -> Any:
         if ref in self.line_of:
             return self.line_of[ref]
@@ -379,11 +427,13 @@ class GridRun:
             self.stopped_s = reached
 
     def machines_tripped(self) -> tuple[str, ...]:
-        """Return machines that were in service at the start and are out of service now."""
+        """Return machines that were in service at the start and are out of service now, but not rejected."""
+        rejected = self.rejected()
         out = []
         for model, on in zip(self._syn, self._on, strict=True):
             now = np.asarray(model.u.v, dtype=bool)
-            out += [str(n) for n, was, u in zip(model.name.v, on, now, strict=True) if was and not u]
+            out += [str(n) for n, was, u in zip(model.name.v, on, now, strict=True)
+                    if was and not u and str(n) not in rejected]
         return tuple(out)
 
     def island_load_mw(self, buses: Iterable[int]) -> float:
@@ -424,7 +474,7 @@ class GridRun:
         islands = assess(t, delta, omega, volts, self.generator_names, self.generator_buses, self.bus_numbers,
                          bus_island, judged_from_s, self.config, float(self.ss.config.freq),
                          {k: self.island_load_mw(b) for k, b in _island_buses(self.bus_numbers, bus_island).items()},
-                         shed_by_island or {}, self.machines_tripped())
+                         shed_by_island or {}, self.machines_tripped(), self.rejected())
         if self.stopped_s is not None:
             why = f'simulation stopped at {self.stopped_s:.3f} s (ANDES did not converge)'
             islands = [replace(i, survived=False, why_not=(*i.why_not, why)) for i in islands]
@@ -447,7 +497,8 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
            generator_names: Sequence[str], generator_buses: Sequence[int], bus_numbers: Sequence[int],
            bus_island: Mapping[int, int] | None, from_s: float, config: LoopConfig, f0_hz: float,
            island_load_mw: Mapping[int, float], shed_by_island: Mapping[int, float],
-           tripped: Sequence[str] = ()) -> list[IslandOutcome]:
+           tripped: Sequence[str] = (), rejected: Mapping[str, tuple[float, float]] | None = None,
+           ) -> list[IslandOutcome]:
     """Judge every island over [from_s, end] (see the module docstring); pure numpy.
 
     Args:
@@ -463,7 +514,9 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
         f0_hz: Nominal frequency, Hz.
         island_load_mw: Load per island before any shed, MW.
         shed_by_island: Load shed per island, MW.
-        tripped: Machines switched off during the run.
+        tripped: Machines switched off during the run (by protection).
+        rejected: Machines tripped by generation rejection: (when, s; output, MW). Each is judged with its
+            island only until then.
 
     Returns:
         One outcome per island, in island order.
@@ -476,6 +529,14 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
     settled = t_s >= from_s + config.voltage_settle_s - 1e-9
     if not settled.any():
         settled = window
+    rejected = rejected or {}
+    delta_rad = np.array(delta_rad, dtype=float)
+    omega_pu = np.array(omega_pu, dtype=float)
+    for j, name in enumerate(generator_names):
+        if name in rejected:  # off the grid from then on: its frozen state says nothing about the island
+            gone_from = t_s > rejected[name][0] + 1e-9
+            delta_rad[gone_from, j] = np.nan
+            omega_pu[gone_from, j] = np.nan
     out = []
     for island, buses in _island_buses(bus_numbers, bus_island).items():
         bset = set(buses)
@@ -483,11 +544,16 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
         names = tuple(generator_names[j] for j in cols)
         vcols = [j for j, b in enumerate(bus_numbers) if b in bset]
         why = []
+        kept = [j for j in cols if generator_names[j] not in rejected]
+        if cols and not kept:
+            why.append('every machine rejected')
         if cols:
             dev = delta_rad[window][:, cols] - delta_rad[first, cols]
-            swing = float(np.max(dev.max(axis=1) - dev.min(axis=1)))
+            dev = dev[~np.isnan(dev).all(axis=1)]  # after every machine of the island was rejected
+            swing = float(np.nanmax(np.nanmax(dev, axis=1) - np.nanmin(dev, axis=1))) if len(dev) else 0.0
             speed = omega_pu[window][:, cols] * f0_hz
-            f_lo, f_hi = float(speed.min()), float(speed.max())
+            speed = speed[~np.isnan(speed)]
+            f_lo, f_hi = (float(speed.min()), float(speed.max())) if speed.size else (f0_hz, f0_hz)
         else:
             swing, f_lo, f_hi = 0.0, float('nan'), float('nan')
             why.append('no machine')
@@ -507,13 +573,49 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
             island=island, buses=len(buses), generators=names, load_mw=float(island_load_mw.get(island, 0.0)),
             shed_mw=float(shed_by_island.get(island, 0.0)), max_pair_swing_rad=swing, coherent=coherent,
             f_nadir_hz=f_lo, f_peak_hz=f_hi, v_min_pu=v_lo, v_max_pu=v_hi, machines_tripped=gone,
-            survived=not why, why_not=tuple(why)))
+            survived=not why, why_not=tuple(why), rejected=tuple(n for n in names if n in rejected),
+            rejected_mw=float(sum(rejected[n][1] for n in names if n in rejected))))
     return out
+
+
+def generation_to_reject(machine_mw: Mapping[str, float], load_mw: float, shed_mw: float = 0.0,
+                         margin: float = 0.05) -> tuple[str, ...]:
+    """Return the machines an island with a generation surplus trips (see the module docstring).
+
+    The rule: surplus = generation - (load - shed). Nothing is tripped while surplus <= margin x (load - shed).
+    Otherwise machines are taken largest output first, each only if its output fits in what is left of the
+    surplus (so rejection never turns the surplus into a deficit, which would need a shed nobody planned),
+    until the rest is within the margin or no machine fits. Largest first keeps the number of machines
+    tripped small. An island with no load left trips every machine: there is nothing for them to serve.
+
+    Args:
+        machine_mw: Dispatched output of each machine of the island, MW.
+        load_mw: Island load, MW.
+        shed_mw: Load the decision sheds in the island, MW.
+        margin: Surplus left to the governors, as a fraction of the island load after the shed.
+
+    Returns:
+        Names of the machines to trip, largest output first.
+
+    """
+    served = max(0.0, load_mw - shed_mw)
+    left = sum(machine_mw.values()) - served
+    out: list[str] = []
+    for name, mw in sorted(machine_mw.items(), key=lambda item: (-item[1], item[0])):
+        if left <= margin * served + 1e-9:
+            break
+        if 0.0 < mw <= left + 1e-9:
+            out.append(name)
+            left -= mw
+    return tuple(out)
 
 
 def apply_decision(run: GridRun, cut_branch_ids: Sequence[str], bus_island: Mapping[int, int],
                    island_shed_mw: Sequence[float], opened_s: float) -> dict[int, float]:
-    """Schedule a cut at opened_s and the shed of each island short of generation shed_delay_s later.
+    """Schedule a cut at opened_s, then shed_delay_s later each island's shed or generation rejection.
+
+    Islands short of generation shed the decision's load; islands with a surplus trip machines by
+    generation_to_reject.
 
     Returns:
         The load to shed per island, MW, as the decision gave it.
@@ -522,11 +624,19 @@ def apply_decision(run: GridRun, cut_branch_ids: Sequence[str], bus_island: Mapp
     if cut_branch_ids:
         run.open_branches(cut_branch_ids, opened_s, why='open cut')
     shed = {}
+    at = opened_s + run.config.shed_delay_s
+    dispatch = {g.name: g.p_mw for g in run.grid.generators}
     for island, buses in _island_buses(run.bus_numbers, bus_island).items():
         mw = float(island_shed_mw[island]) if island < len(island_shed_mw) else 0.0
         if mw > 0:
-            action = run.shed_load(buses, mw, opened_s + run.config.shed_delay_s, why=f'shed island {island}')
+            action = run.shed_load(buses, mw, at, why=f'shed island {island}')
             shed[island] = action.detail['shed_mw']
+        bset = set(buses)
+        machines = {n: float(dispatch.get(n, 0.0)) for n, b in zip(run.generator_names, run.generator_buses,
+                                                                     strict=True) if b in bset}
+        trip = generation_to_reject(machines, run.island_load_mw(buses), mw, run.config.rejection_margin)
+        if trip:
+            run.reject_generation(trip, at, {n: machines[n] for n in trip}, why=f'reject island {island}')
     return shed
 
 
