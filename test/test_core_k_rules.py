@@ -111,6 +111,65 @@ def test_a_swing_from_rest_that_slows_down_is_not_a_runaway_however_far_it_goes(
     assert not pair_runaway(moving)[0].any()
 
 
+def numpy_pair_runaway(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return pair_runaway by its former numpy formulation (a pass over every pair per generator): the reference."""
+    n, m = angles.shape
+    valid = np.isfinite(angles)
+    idx, rows = np.arange(m), np.arange(n)
+    runaway, deviation = np.zeros((n, n), dtype=bool), np.zeros((n, n))
+    for p in range(n):
+        both = valid[p] & valid
+        has = both.sum(axis=1) >= 4
+        diff = np.where(both, angles[p] - np.where(valid, angles, 0.0), 0.0)
+        first = np.argmax(both, axis=1)
+        last = m - 1 - np.argmax(both[:, ::-1], axis=1)
+        quarter = both & (idx[None, :] <= (first + (last - first) // 4)[:, None])
+        ref = np.where(quarter, diff, 0.0).sum(axis=1) / np.maximum(quarter.sum(axis=1), 1)
+        moved = np.where(quarter, diff, -np.inf).max(axis=1) - np.where(quarter, diff, np.inf).min(axis=1)
+        end = diff[rows, last]
+        dev = np.where(has, np.abs(end - ref), 0.0)
+        progress = np.sign(end - ref)[:, None] * (diff - ref[:, None])
+        half = np.where(both & (progress <= dev[:, None] / 2), idx, -1).max(axis=1)
+        three_q = np.where(both & (progress <= 0.75 * dev[:, None]), idx, -1).max(axis=1)
+        overshot = np.where(both & (idx[None, :] >= half[:, None]), progress, -np.inf).max(axis=1) > dev
+        at_rest = has & (moved <= dev / 8)
+        keeps_going = (last - three_q <= three_q - half) & ~overshot
+        runaway[p] = at_rest & ((dev >= np.pi) | ((dev >= np.pi / 2) & keeps_going))
+        deviation[p] = np.where(at_rest, dev, 0.0)
+    runaway |= runaway.T
+    np.fill_diagonal(runaway, False)
+    return runaway, deviation
+
+
+def test_compiled_runaway_is_the_numpy_formulation_bit_for_bit_on_bags_of_three_systems(monkeypatch) -> None:
+    from pathlib import Path
+
+    from controlled_islanding.bagdata import load_bag
+    from controlled_islanding.commands.evaluate import generator_series
+    from controlled_islanding.core import k_rules
+
+    bags = Path(__file__).resolve().parents[1] / 'bags'
+    rng = np.random.default_rng(3)
+    windows = []
+    for name in ('pjm5bus_three_groups', 'nordic44_bus6000_three_groups', 'ei33_bus101048_pair_unstable'):
+        if not (bags / name).exists():
+            continue
+        bag = load_bag(bags / name)
+        t_s, _, angles_rad = generator_series(bag, float(bag.frame_t_s[0]), float(bag.frame_t_s[-1]))
+        for end in t_s[-1] - np.arange(4) * 0.5:
+            window = np.array([a[(t_s >= end - WINDOW_S - 1e-9) & (t_s <= end + 1e-9)] for a in angles_rad])
+            lost = np.where(rng.random(window.shape) < 0.2, np.nan, window)
+            lost[0, -20:] = lost[-1, :15] = np.nan  # spans that differ
+            windows += [window, lost]
+    expected = [numpy_pair_runaway(angles) for angles in windows]
+    assert sum(e[0].any() for e in expected) >= 4, 'too few runaways among the windows compared'
+    for threshold in (k_rules._PARALLEL_FROM_SAMPLES, 0):  # as called, then every window on the threads
+        monkeypatch.setattr(k_rules, '_PARALLEL_FROM_SAMPLES', threshold)
+        for angles, (runaway, deviation) in zip(windows, expected, strict=True):
+            got = pair_runaway(angles)
+            assert np.array_equal(got[0], runaway) and np.array_equal(got[1], deviation)
+
+
 def test_as_many_groups_as_slip_apart_and_a_cap_merges_the_closest() -> None:
     # Five groups each slipping at its own rate: more than the four the former k-medoids search allowed.
     rng = np.random.default_rng(4)
