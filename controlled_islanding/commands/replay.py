@@ -75,6 +75,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--timeout', type=float, default=120.0, help='give up after this many wall seconds')
     parser.add_argument('--namespace', default='', metavar='NS',
                         help='run the whole graph in this ROS namespace, e.g. /area1 (default: the root one)')
+    parser.add_argument('--estimator', choices=('steady_state', 'dse'), default=None,
+                        help="pmu_ingestion's rotor angle estimator: steady_state, or dse (a Kalman filter on each "
+                             "machine's model from the snapshot's machine data); default: config/pmu_ingestion.yaml")
 
 
 @dataclass
@@ -127,10 +130,11 @@ def namespace_name(namespace: str) -> str:
 
 def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: float, timeout_s: float,
               quiet: bool, arm: bool = True, record: bool = True, isolate: bool = True, namespace: str = '',
-              ) -> tuple[Observation, dict]:
+              estimator: str | None = None) -> tuple[Observation, dict]:
     """Run the node graph on a bag; return what the observer saw and the player's speed report.
 
     The graph runs in `namespace` ('' = the root one), with its own /clock there (`<namespace>/clock`).
+    `estimator` overrides pmu_ingestion's (None: its parameter file's).
 
     Raises:
         CliError: The bag is unreadable, a node died, or no decision came in time.
@@ -213,6 +217,8 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 sim = {'use_sim_time': True}
                 extra = {'breaker_command': {'audit_log': results / 'breaker_audit.jsonl', 'key_dir': key_dir},
                          'partitioning': {'key_dir': key_dir}}
+                if estimator is not None:
+                    extra['pmu_ingestion'] = {'estimator': estimator}
                 for spec in GRAPH:
                     sup.start(spec, {**sim, **extra.get(spec.executable, {})})
                 if record:
@@ -509,8 +515,10 @@ def write_figures(bag: Path, results: Path, summary: dict) -> list[Path]:
 
 def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float = 1.0, probe_hz: float = 0.0,
            timeout_s: float = 120.0, figures: bool = True, quiet: bool = False, arm: bool = True,
-           record: bool = True, isolate: bool = True, namespace: str = '') -> dict:
+           record: bool = True, isolate: bool = True, namespace: str = '', estimator: str | None = None) -> dict:
     """Replay a bag through the graph; write the results folder; return the summary.
+
+    `estimator` is pmu_ingestion's rotor angle estimator, 'steady_state' or 'dse' (None: its parameter file's).
 
     Raises:
         CliError: Bad arguments, an unreadable bag, a failed node or a missing decision.
@@ -529,9 +537,12 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
         raise CliError(f'results folder {results} exists; name a new one')
     results.mkdir(parents=True)
     obs, report = run_graph(bag, results, fast=fast, rate=rate, probe_hz=probe_hz, timeout_s=timeout_s,
-                            quiet=quiet, arm=arm, record=record, isolate=isolate, namespace=namespace)
+                            quiet=quiet, arm=arm, record=record, isolate=isolate, namespace=namespace,
+                            estimator=estimator)
     summary = summarize(bag, results, obs, report)
     summary['namespace'] = namespace
+    summary['estimator'] = next((d['estimator'] for name, d in obs.diagnostics.items()
+                                 if name.endswith('pmu_ingestion') and 'estimator' in d), estimator)
     if figures and record:
         try:
             summary['figures'] = [str(p) for p in write_figures(bag, results, summary)]
@@ -552,7 +563,8 @@ def run(args: argparse.Namespace) -> int:
         return _run_repeated(args)
     summary = replay(args.bag, args.results, fast=args.fast, rate=args.rate, probe_hz=args.probe_hz,
                      timeout_s=args.timeout, figures=not args.no_figures, quiet=args.json, arm=not args.disarmed,
-                     record=not args.no_record, isolate=args.isolate, namespace=args.namespace)
+                     record=not args.no_record, isolate=args.isolate, namespace=args.namespace,
+                     estimator=args.estimator)
     if args.json:
         print(json.dumps(summary, default=str))
     else:
@@ -571,7 +583,8 @@ def _run_repeated(args: argparse.Namespace) -> int:
     for i in range(args.repeat):
         summary = replay(args.bag, base / f'run-{i}', fast=args.fast, rate=args.rate, probe_hz=args.probe_hz,
                          timeout_s=args.timeout, figures=False, quiet=True, arm=not args.disarmed,
-                         record=not args.no_record, isolate=args.isolate, namespace=args.namespace)
+                         record=not args.no_record, isolate=args.isolate, namespace=args.namespace,
+                         estimator=args.estimator)
         outcomes.add((summary['split'], tuple(sorted(summary.get('cut_branch_ids', [])))))
         failures.append(graph_failure(summary))
         latencies += summary['latency_ms']['samples']  # the bag's requests and any --probe-hz ones

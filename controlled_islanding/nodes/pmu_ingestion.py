@@ -8,6 +8,13 @@ core estimator with the generator reactances of the latest /network/snapshot. A 
 whose station id ends in '/<generator name>' (where machines share a bus, each has its own current), else the
 one at its bus.
 
+`estimator` chooses how: 'steady_state' (default), the angle of V + (ra + j xq) I; or 'dse', core.dse's Kalman
+filter on each machine's model from the snapshot's machine data (core.dse.StreamingDSE: frames in time-tag
+order, a tag missing `dse_reorder_s` after a newer frame stepped as lost, a late frame interpolated). Machines
+without dynamic data fall back to the steady-state estimate; /diagnostics names them (`dse_fallback`). With
+'dse', `valid` still means "this frame had usable data for the generator": where it is false the angle is the
+filter's prediction.
+
 Time tags are bounded by the node's own clock (sim time in replay): a frame or snapshot stamped more than
 `future_tolerance_s` ahead of it is refused, so it never becomes "the newest" that every honest frame would
 then be judged too old against. Until that clock starts (sim time before the first /clock), inputs are held,
@@ -28,6 +35,7 @@ from controlled_islanding_msgs.msg import NetworkSnapshot, PmuFrame, PmuMeasurem
 from rclpy.node import Node
 
 from controlled_islanding import topics
+from controlled_islanding.core.dse import DSEError, MachineData, StreamingDSE
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.core.rotor_angle import RotorAngleError, estimate_rotor_angle_rad
 from controlled_islanding.messages import MessageError, grid_from_snapshot, stamp_s
@@ -46,13 +54,14 @@ _FIELDS = ('voltage_magnitude_pu', 'voltage_angle_rad', 'current_magnitude_pu', 
 _MAX_STATION_ID_CHARS = 256  # a remembered key longer than any real PMU name only costs memory
 _MAX_STALE_NAMED = 50  # stale station ids listed in /diagnostics
 _RELEASE_PERIOD_S = 0.05  # wall time between looks at held inputs while any wait for the node clock
+_ESTIMATORS = ('steady_state', 'dse')
 
 
 class PmuIngestionNode(Node):
     """Turns PMU frames into rotor angles."""
 
-    def __init__(self) -> None:
-        super().__init__('pmu_ingestion')
+    def __init__(self, **node_options) -> None:
+        super().__init__('pmu_ingestion', **node_options)
         self.declare_parameter('rate_fps', 60.0)
         self.declare_parameter('max_delay_s', 1.0)
         self.declare_parameter('stale_pmu_s', 0.5)
@@ -75,6 +84,22 @@ class PmuIngestionNode(Node):
             self, 'max_stations_remembered', 10_000, 1, 1_000_000,
             'PMU stations remembered for staleness; beyond it the least recently heard is forgotten'))
         self.limits = declare_limits(self)
+        self.declare_parameter('estimator', 'steady_state')
+        self.estimator = str(self.get_parameter('estimator').value)
+        if self.estimator not in _ESTIMATORS:
+            raise NodeSetupError(f'estimator={self.estimator!r} must be one of {_ESTIMATORS}')
+        self.declare_parameter('dse_model', 'auto')
+        self.dse_model = str(self.get_parameter('dse_model').value)
+        self.dse_max_gap_s = float(declare_bounded(
+            self, 'dse_max_gap_s', 0.5, 1e-3, 60.0,
+            'longest run of missing frames the filter bridges by prediction; after a longer one it re-initialises'))
+        self.dse_reorder_s = float(declare_bounded(
+            self, 'dse_reorder_s', 0.1, 0.0, 10.0,
+            'how long, s, the filter waits for a missing time tag once a newer frame has come (latency traded '
+            'for using late frames; a tag later than that counts as lost)'))
+        self.stream: StreamingDSE | None = None
+        self.diag = Diagnostics(self)
+        self.diag.values['estimator'] = self.estimator
         self.grid: Grid | None = None
         self.grid_stamp_s = -math.inf
         self.buses: frozenset[int] = frozenset()
@@ -90,7 +115,6 @@ class PmuIngestionNode(Node):
         self.stations: OrderedDict[str, tuple[int, float]] = OrderedDict()
         self.stations_forgotten = 0
         self.last_angle_rad: dict[str, float] = {}
-        self.diag = Diagnostics(self)
         self.inputs = ClockGate(self, self.diag, future_tolerance_s, max_held, self._use, _RELEASE_PERIOD_S)
         self.pub = self.create_publisher(RotorAngles, topics.relative(topics.ROTOR_ANGLES),
                                          qos_for(topics.ROTOR_ANGLES))
@@ -120,6 +144,8 @@ class PmuIngestionNode(Node):
             self.diag.reject('time_backwards', f'network snapshot stamped {t:.3f} s, older than the one held '
                                                f'({self.grid_stamp_s:.3f} s)')
             return
+        if self.estimator == 'dse' and not self._start_dse(grid):
+            return
         self.grid, self.grid_stamp_s, self.buses = grid, t, frozenset(grid.buses)
         # Memory follows the network: nothing is kept for a generator or a bus the snapshot no longer has.
         names = {g.name for g in grid.generators}
@@ -128,6 +154,28 @@ class PmuIngestionNode(Node):
             del self.stations[station]
         while self.early:
             self._take_frame(self.early.popleft())
+
+    def _start_dse(self, grid: Grid) -> bool:
+        """Fit the filter to a snapshot's machines (kept as is when their data did not change)."""
+        machines = MachineData.of_generators(grid.generators)
+        if self.stream is not None and self.stream.dse.machines_.same_as(machines):
+            return True
+        try:
+            self.stream = StreamingDSE(machines, self.rate_fps, self.dse_reorder_s, history_s=self.max_delay_s,
+                                       model=self.dse_model, max_gap_s=self.dse_max_gap_s)
+        except DSEError as exc:
+            self.diag.reject('bad_value', f'network snapshot: no rotor angle filter from its machine data: {exc}')
+            return False
+        models = self.stream.dse.models_
+        self.diag.values['dse_models'] = ','.join(f'{m or "none"}:{models.count(m)}' for m in sorted(set(models)))
+        fallback = self.stream.fallback_names()
+        more = ',...' if len(fallback) > _MAX_STALE_NAMED else ''
+        self.diag.values['dse_fallback'] = ','.join(fallback[:_MAX_STALE_NAMED]) + more
+        self.diag.values['dse_fallback_count'] = str(len(fallback))
+        self.diag.warn('dse_fallback', f'{len(fallback)} generator(s) without dynamic data in the snapshot use the '
+                                       f'steady-state estimate: {self.diag.values["dse_fallback"]}'
+                       if fallback else None)
+        return True
 
     def _judge(self, m: PmuMeasurement, stations: set[str]) -> str:
         """Return 'use', 'unusable' (a known PMU without usable data) or 'rejected' (not remembered)."""
@@ -202,8 +250,9 @@ class PmuIngestionNode(Node):
             if verdict != 'rejected':
                 self._remember(m.station_id, int(m.bus), t if verdict == 'use' else -math.inf)
         try:
-            angles = self._angles(frame, by_bus, by_generator)
-        except RotorAngleError as exc:  # the snapshot validator should make this impossible; never fatal
+            out = (self._dse_angles(frame, t, by_bus, by_generator) if self.stream is not None
+                   else [self._angles(frame, by_bus, by_generator)])
+        except (RotorAngleError, DSEError) as exc:  # the snapshot validator should make this impossible
             self.diag.reject('compute_failed', f'rotor angles of the frame at {t:.3f} s: {exc}')
             return
         if len(self.seen) == self.seen.maxlen:
@@ -212,7 +261,8 @@ class PmuIngestionNode(Node):
         self.seen_set.add(key)
         self.unique_frames += 1
         self.first_s, self.newest_s = min(self.first_s, t), max(self.newest_s, t)
-        self.pub.publish(angles)
+        for angles in out:
+            self.pub.publish(angles)
         self._account(t0)
 
     def _angles(self, frame: PmuFrame, by_bus: dict[int, PmuMeasurement],
@@ -241,6 +291,27 @@ class PmuIngestionNode(Node):
         return RotorAngles(header=frame.header, generator_names=[g.name for g in gens],
                            generator_buses=[g.bus for g in gens], angle_rad=np.where(valid, angles, 0.0).tolist(),
                            valid=valid.tolist())
+
+    def _dse_angles(self, frame: PmuFrame, t: float, by_bus: dict[int, PmuMeasurement],
+                    by_generator: dict[str, PmuMeasurement]) -> list[RotorAngles]:
+        """Feed the frame to the filter; return the RotorAngles of every frame whose estimate that settles."""
+        assert self.grid is not None and self.stream is not None
+        gens = self.grid.generators
+        source = [by_generator.get(g.name) or by_bus.get(g.bus) for g in gens]
+        valid = np.array([m is not None for m in source])
+        cols = np.full((len(gens), len(_FIELDS)), np.nan)
+        for i in np.flatnonzero(valid):
+            cols[i] = [getattr(source[i], f) for f in _FIELDS]
+        settled = self.stream.offer(t, *cols.T, valid, payload=(frame.header, valid))
+        self.diag.values['dse_lost_frames'] = str(self.stream.lost_frames)
+        self.diag.values['dse_late_frames'] = str(self.stream.late_frames)
+        out = []
+        for (header, had_data), angles in settled:
+            ok = had_data & np.isfinite(angles)
+            out.append(RotorAngles(header=header, generator_names=[g.name for g in gens],
+                                   generator_buses=[g.bus for g in gens],
+                                   angle_rad=np.where(np.isfinite(angles), angles, 0.0).tolist(), valid=ok.tolist()))
+        return out
 
     def _account(self, t0: float) -> None:
         self.diag.computed(time.perf_counter() - t0)
