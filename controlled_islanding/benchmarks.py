@@ -233,3 +233,75 @@ def dse_cost_per_frame(n_machines: int, model: str, frames: int = 120) -> tuple[
     for k in range(1, frames + 1):
         dse.update(k / 60.0, full(1.0), v_ang + 1e-3 * k, full(0.8), v_ang - 0.2 + 1e-3 * k)
     return 1e3 * (time.process_time() - cpu0) / frames, 1e3 * (time.perf_counter() - wall0) / frames
+
+
+def streamed_dse_angles(bag, reorder_s: float = 0.1, history_s: float = 1.0) -> np.ndarray:
+    """Rotor angles, rad, (n_frames, n_generators), as pmu_ingestion with estimator=dse publishes them.
+
+    Frames go in delivery order through core.dse.StreamingDSE fitted to the bag snapshot's machine data; NaN
+    where the frame never came or the machine's data in it were missing (the node's valid = false).
+    """
+    from controlled_islanding.core.dse import MachineData, StreamingDSE
+
+    gens = bag.grid.generators
+    cols = [bag.pmu_column(g.name, g.bus) for g in gens]
+    v, va, i, ia = (x[:, cols] for x in (bag.v_mag_pu, bag.v_angle_rad, bag.i_mag_pu, bag.i_angle_rad))
+    stream = StreamingDSE(MachineData.of_generators(gens), bag.rate_fps, reorder_s, history_s=history_s)
+    out = np.full(v.shape, np.nan)
+    rows = np.flatnonzero(bag.frame_present)
+    for k in rows[np.argsort(bag.frame_delivery_s[rows], kind='stable')]:
+        for row, angles in stream.offer(bag.t0_s + bag.frame_t_s[k], v[k], va[k], i[k], ia[k], np.isfinite(v[k]), k):
+            out[row] = angles
+    return np.where(np.isfinite(v), out, np.nan)
+
+
+def estimator_decisions(bag_path: Path, entry: dict | None, *, window_s: float, max_groups: int, rule: str,
+                        dtw_band: int | None, min_samples: int, lead_step_s: float = 0.05) -> dict:
+    """Coherent groups and islanding decision at a bag's request on steady-state and on DSE angles.
+
+    As the graph decides: DTW coherency over the window of window_s ending at the request, on the generators with
+    at least min_samples angles in it (the rest unobserved), then core.islanding.decide on the grid at the request.
+
+    Returns:
+        {'bag', 'truth': manifest groups, 'machines': model per machine, estimator label -> {'groups', 'right'
+         (groups equal the truth's), 'split', 'cut': sorted cut branch ids, 'disrupted_mw', 'unobserved',
+         'detection': coherency_rules.Detection or None, 'seconds'}}.
+
+    """
+    import dataclasses
+
+    from controlled_islanding import coherency_rules as study
+    from controlled_islanding.bagdata import load_bag
+    from controlled_islanding.core.coherency import DTWCoherency
+    from controlled_islanding.core.dse import MachineData
+    from controlled_islanding.core.islanding import decide
+
+    bag = load_bag(bag_path)
+    steady = study.scenario_from_bag(bag, entry)
+    t0 = time.perf_counter()
+    dse_angles = streamed_dse_angles(bag)
+    dse_s = time.perf_counter() - t0
+    rows = (bag.frame_t_s >= steady.t_s[0] - 1e-9) & (bag.frame_t_s <= steady.t_s[-1] + 1e-9)
+    dse = dataclasses.replace(steady, angles_rad=dse_angles[rows].T)
+    out = {'bag': bag.path.name, 'truth': steady.truth,
+           'machines': tuple(MachineData.of_generators(bag.grid.generators).richest_model())}
+    grid = bag.grid_at(steady.request_s + 1e-9)
+    for label, scenario, seconds in (('steady_state', steady, None), ('dse', dse, dse_s)):
+        window = (scenario.t_s >= scenario.request_s - window_s - 1e-9) & (scenario.t_s <= scenario.request_s + 1e-9)
+        counts = np.isfinite(scenario.angles_rad[:, window]).sum(axis=1)
+        seen = [j for j in range(len(scenario.generator_names)) if counts[j] >= min_samples]
+        unobserved = [n for j, n in enumerate(scenario.generator_names) if j not in seen]
+        labels = DTWCoherency(max_groups=max_groups, window=dtw_band, k_rule=rule).fit(
+            [scenario.angles_rad[j, window] for j in seen]).labels_
+        groups = {scenario.generator_names[j]: int(k) for j, k in zip(seen, labels, strict=True)}
+        decision = decide(grid, groups, unobserved=unobserved)
+        detection = None
+        if scenario.truth_k > 1:
+            detection = study.detect(scenario, rule=rule, window_s=window_s, max_groups=max_groups, dtw_band=dtw_band,
+                                     step_s=lead_step_s)
+        out[label] = {'groups': groups, 'right': study.blocks(groups) == study.blocks(
+                          {n: k for n, k in scenario.truth.items() if n in groups}),
+                      'split': decision.split, 'cut': sorted(b.branch_id for b in decision.cut_branches),
+                      'disrupted_mw': decision.disrupted_mw, 'unobserved': unobserved, 'detection': detection,
+                      'seconds': seconds}
+    return out

