@@ -46,7 +46,7 @@ class Run:
     """One short ANDES run as the estimator sees it: times, per-machine phasors, truth and machine data."""
 
     def __init__(self, tmp: Path, text: str) -> None:
-        from controlled_islanding.sim.andes_sim import andes_machine_data, load_power_flow, simulate
+        from controlled_islanding.sim.andes_sim import simulate
         from controlled_islanding.sim.pmu import measure
         from controlled_islanding.sim.scenario import load_scenario
 
@@ -59,7 +59,9 @@ class Run:
         self.t_s = pmu.tag_s
         self.phasors = [pmu.v_mag_pu, pmu.v_angle_rad, pmu.i_mag_pu, pmu.i_angle_rad]
         self.truth_rad = pmu.truth_delta_rad
-        self.machines = andes_machine_data(load_power_flow(scenario.case), list(sim.generator_names))
+        # The machine data the run's snapshot carries (sim/andes_sim.py), as pmu_ingestion gets them.
+        generators = {g.name: g for g in sim.grid.generators}
+        self.machines = MachineData.of_generators([generators[n] for n in sim.generator_names])
         self.event_s = min([f.start_s for f in scenario.faults] + [t.t_s for t in scenario.trips])
 
     def error_deg(self, angle_rad: np.ndarray) -> np.ndarray:
