@@ -11,7 +11,9 @@ difference array several times that). And SWAP evaluates a candidate against all
 the same swaps unless two candidates' gains tie to the last bits (in one dimension exact ties are common,
 and either choice is then a PAM result of equal loss). The tests compare with kmedoids.pam.
 
-Cost: n^2 distances per BUILD step and per SWAP iteration, spread over the cores from _PARALLEL_FROM points.
+Cost: n^2 distances per BUILD step and per SWAP iteration, _LANES candidates at a time through the points (each
+lane doing one candidate's scalar sums in their order, so the gains are those of one candidate at a time), spread
+over the cores from _PARALLEL_FROM points.
 """
 
 from __future__ import annotations
@@ -23,6 +25,10 @@ _NONE = -1  # no second-nearest medoid yet
 # Below this many points a SWAP pass takes under a few ms on one core, less than waking a thread pool costs on
 # a loaded machine (measured: 33 ms per pass at 39 points with load 7 on 2 cores).
 _PARALLEL_FROM = 1000
+# Candidates per pass over the points. One candidate's loop is bound by the latency of its sums; _LANES of them
+# side by side fill the vector units. The lane loops run to an array's length, not to this constant, since LLVM
+# unrolls a short constant loop completely and then leaves it unvectorised.
+_LANES = 32
 
 
 @numba.njit(cache=True, inline='always')
@@ -36,18 +42,46 @@ def _dist(x: np.ndarray, i: int, j: int) -> float:
 
 
 @numba.njit(cache=True)
+def _load_lanes(x, first, count, xl):
+    """Copy points first .. first+count-1 into xl lane-interleaved (xl[c * _LANES + l]); spare lanes repeat the last."""
+    for c in range(x.shape[1]):
+        for lane in range(_LANES):
+            xl[c * _LANES + lane] = x[first + min(lane, count - 1), c]
+
+
+@numba.njit(cache=True)
+def _lane_distances(x, o, xl, d):
+    """d[l] = _dist between lane l's point and point o, with _dist's operations in _dist's order."""
+    ul = np.uint64(d.shape[0])
+    for lane in range(ul):
+        d[lane] = 0.0
+    for c in range(x.shape[1]):
+        xo, at = x[o, c], np.uint64(c * _LANES)
+        for lane in range(ul):
+            diff = xl[at + lane] - xo
+            d[lane] += diff * diff
+    for lane in range(ul):
+        d[lane] = np.sqrt(d[lane])
+
+
+@numba.njit(cache=True)
 def _build_gains(x, near_d, gain, lo, hi, first):
     """Store in gain[i] the loss change of making point i (lo .. hi-1) a medoid; first: its total distance."""
     n = x.shape[0]
-    for i in range(lo, hi):
-        total = 0.0
+    xl, d, total = np.empty(x.shape[1] * _LANES), np.empty(_LANES), np.empty(_LANES)
+    ul = np.uint64(d.shape[0])
+    for block in range(lo, hi, _LANES):
+        count = min(_LANES, hi - block)
+        _load_lanes(x, block, count, xl)
+        total[:] = 0.0
         for j in range(n):  # j == i counts too: a new medoid saves its own distance
-            d = _dist(x, i, j)
-            if first:
-                total += d
-            elif d < near_d[j]:
-                total += d - near_d[j]
-        gain[i] = total
+            _lane_distances(x, j, xl, d)
+            nj = near_d[j]
+            for lane in range(ul):
+                dl = d[lane]
+                total[lane] += dl if first else (dl - nj if dl < nj else 0.0)
+        for lane in range(count):
+            gain[block + lane] = total[lane]
 
 
 @numba.njit(cache=True, parallel=True)
@@ -80,26 +114,39 @@ def _swap_gains(x, meds, near_i, near_d, seco_d, change, medoid, lo, hi):
 
     PAM's change for removing medoid m is the sum over points o of min(d_jo - near_o, 0) when o's nearest
     medoid is not m, else min(d_jo, second_o) - near_o. One pass gives it for every m at once (FastPAM1's
-    shared sum plus a correction per medoid): n distances per candidate instead of k n.
+    shared sum plus a correction per medoid): n distances per candidate instead of k n. _LANES candidates go
+    through the points together, each summing in the scalar order; o == j adds 0.0 instead of nothing, which
+    leaves every comparison as it was (the sums only differ, if ever, in the sign of a zero).
     """
     n, k = x.shape[0], meds.shape[0]
-    own = np.empty(k)
-    for j in range(lo, hi):
-        change[j], medoid[j] = 0.0, k
-        if j == meds[near_i[j]]:
-            continue
+    xl, d = np.empty(x.shape[1] * _LANES), np.empty(_LANES)
+    ul = np.uint64(d.shape[0])
+    shared, own, cand = np.empty(_LANES), np.empty(k * _LANES), np.empty(_LANES, dtype=np.int64)
+    for block in range(lo, hi, _LANES):
+        count = min(_LANES, hi - block)
+        _load_lanes(x, block, count, xl)
+        for lane in range(_LANES):
+            cand[lane] = block + min(lane, count - 1)
+            shared[lane] = -near_d[cand[lane]]  # j itself stops paying its distance
         own[:] = 0.0
-        shared = -near_d[j]  # j itself stops paying its distance
         for o in range(n):
-            if o == j:
+            _lane_distances(x, o, xl, d)
+            no, so, at = near_d[o], seco_d[o], np.uint64(near_i[o] * _LANES)
+            for lane in range(ul):
+                djo = d[lane]
+                gain = djo - no if djo < no else 0.0
+                term = (djo if djo < so else so) - no - gain
+                other = cand[lane] != o
+                shared[lane] += gain if other else 0.0
+                own[at + lane] += term if other else 0.0
+        for lane in range(count):
+            j = block + lane
+            change[j], medoid[j] = 0.0, k
+            if j == meds[near_i[j]]:
                 continue
-            djo = _dist(x, j, o)
-            gain = djo - near_d[o] if djo < near_d[o] else 0.0
-            shared += gain
-            own[near_i[o]] += (djo if djo < seco_d[o] else seco_d[o]) - near_d[o] - gain
-        for m in range(k):
-            if shared + own[m] < change[j]:
-                change[j], medoid[j] = shared + own[m], m
+            for m in range(k):
+                if shared[lane] + own[m * _LANES + lane] < change[j]:
+                    change[j], medoid[j] = shared[lane] + own[m * _LANES + lane], m
 
 
 @numba.njit(cache=True, parallel=True)
