@@ -314,10 +314,22 @@ Limits, measured above and not hidden:
 - pjm5bus_three_groups holds no rotor-angle information after its fault: every bus voltage stays at 0.0 to 0.11
   pu once the fault is cleared (the machines then run free), and the terminal phasors of a machine at a dead
   bus do not show its rotor angle (the estimate departs from ANDES by up to 3 rad). No rule can be right on it;
-  on ANDES' own angles this rule finds its three groups.
+  on ANDES' own angles this rule finds its three groups. Other PJM 5-bus separations (issue 11 search, 30 runs
+  of 3 to 4 s): every multi-group one tried (faults of 50 to 300 ms at buses 0 to 4, some cleared by
+  tripping 0-1, 1-2, 2-3 or 3-4) stopped ANDES' solver or ended with bus voltages at 0.00 to 0.06 pu. The clean
+  ones leave the bus-3 machine (the slack, least inertia) alone at 0.4 to 0.8 pu: a 100 ms fault at bus 3 (90 deg
+  at 1.18 s, slip at 1.33 s; the rule finds it at 1.30 s, the pair decelerating after clearing until 1.25 s as a
+  stable swing would), and 150 ms cleared by tripping 0-3 (90 deg at 1.167 s, slip at 1.233 s; found at 1.183 s,
+  one frame later, lost again at 1.217 s; 50 ms with the same trip stays synchronous).
 - nordic44_bus6000_three_groups asks at the clearing instant, when the machines of buses 5300 and 6100 are 20
   to 30 deg from their pre-fault angles: they are pulled out of step later, at their own slower rate. The rule
-  finds all three groups at 1.60 s (0.3 s after the request), and keeps them from 3.60 s.
+  finds all three groups at 1.60 s (0.3 s after the request), and keeps them from 3.60 s. No rule can find them
+  at the request: the same fault cleared 30 ms earlier (1.27 s) stays synchronous, and up to 1.30 s the two runs'
+  rotor angles (ANDES') agree within 2 deg (bus 6000 against GENROU_1: 86 and 88 deg; bus 6100: 25 and 25 deg);
+  they are 8 deg apart at 1.33 s and 21 at 1.40 s. In that stable run bus 6100 swings 118 deg out and back, so
+  90 deg does not mark a separation on this system. The frame at the request is also a fault-on frame (bus 6000
+  at 0.002 pu: the clearing tag holds the pre-clearing state), which puts the estimated bus-6000 angles 17 deg
+  behind ANDES' (71 against 88 deg).
 - Between its first right answer and "kept from" the rule sometimes answers otherwise for a few tenths of a
   second: right after a fault a machine that swings hard with the runaway one (IEEE 39 G2 beside G3) is kept
   apart from both until it visibly turns back.
