@@ -409,8 +409,12 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
             '- An island with a surplus no machine fits in (each is larger than the surplus) keeps it: tripping one '
             'would leave a deficit nobody sheds. No overspeed protection is modelled, so such an island can speed '
             'up past 61.8 Hz and count as lost.',
-            '- "V min" is ANDES\' voltage variable: ANDES zeroes the voltage of a bus left with no in-service '
-            "branch, and a collapsing island can show 0 or a negative value (the solver's sign, not a magnitude). "
+            '- "V min" is ANDES\' voltage variable. Zero or negative voltages in islands right after an opening '
+            'were a solver artefact, not a collapse: ANDES solves the network in polar power-balance form, where '
+            'V = 0 (or V < 0 with the angle off by pi) satisfies a bus trivially, and Newton started from the '
+            'voltages of a large swing landed there. The solver now starts each new island from the pre-fault '
+            "voltages turned with its machines' mean rotor-angle advance (GridRun._warm_start); only the starting "
+            'point changes. ANDES still zeroes a bus left with no in-service branch (an island of one bus). '
             "Per-island figures are in each scenario's result.json in the results folder.",
             "- The lockstep opening time is request + the graph's wall latency + the breaker time, so it varies "
             'by tens of ms between runs; outcomes that change across the g6g7 variants with the same physics show '

@@ -25,7 +25,8 @@ whose dispatched generation exceeds its load after the shed by more than `reject
 default, left to the governors: with the usual 5 % droop it settles a fully loaded island about 0.15 Hz high),
 machines are tripped, largest output first, each only if it fits in the remaining surplus
 (`generation_to_reject`). Tripping is `set_status(idx, 0)` on the SynGen, which ANDES propagates to its
-governor, exciter and stabiliser. The numbers are the pre-fault power flow's, as the decision's shed is.
+governor, exciter and stabiliser. The numbers are the simulation's at t = 0 (machine outputs, island load),
+not the snapshot's: a case whose static generators feed several machines can list more generation than runs.
 A rejected machine is judged with its island until its trip and left out afterwards (its state is frozen).
 
 Post-islanding assessment, per island, over the window from the cut (for a run without a cut: from the time
@@ -287,6 +288,7 @@ class GridRun:
         self._pending: list[tuple[float, Applied, Callable[[], None]]] = []
         self.wall_s = 0.0
         self.stopped_s: float | None = None  # where ANDES gave up after an action, if it did
+        self._flat: tuple[np.ndarray, np.ndarray, list[tuple[Any, int, int, float]]] | None = None
 
     # --- actions ---------------------------------------------------------------------------------------------
     def open_branches(self, branch_ids: Sequence[str], at_s: float, why: str = 'open') -> Applied:
@@ -300,9 +302,11 @@ class GridRun:
         action = Applied(what=why, scheduled_s=float(at_s), detail={'branches': list(branch_ids)})
 
         def do() -> None:
+            before = self._components()
             for idx in rows:
                 self.ss.Line.set_status(idx, 0)
             self.ss.TDS.custom_event = True  # rebuild connectivity and the Jacobian after this step
+            self._warm_start(before)
 
         self._pending.append((float(at_s), action, do))
         return action
@@ -328,22 +332,35 @@ class GridRun:
         self._pending.append((float(at_s), action, do))
         return action
 
-    def reject_generation(self, names: Sequence[str], at_s: float, output_mw: Mapping[str, float],
-                          why: str = 'reject') -> Applied:
-        """Schedule tripping these machines (generation rejection) at at_s, s; output_mw is each one's MW."""
-        rows = []
-        for name in names:
-            model = next((m for m in self._syn if name in list(m.name.v)), None)
-            if model is None:
-                raise ClosedLoopError(f'machine {name!r}: no synchronous machine of {self.scenario.case.name}')
-            rows.append((model, model.idx.v[list(model.name.v).index(name)]))
-        action = Applied(what=why, scheduled_s=float(at_s),
-                         detail={'machines': list(names), 'output_mw': {n: float(output_mw[n]) for n in names}})
+    def reject_surplus(self, buses: Iterable[int], shed_mw: float, at_s: float, why: str = 'reject') -> Applied:
+        """Schedule generation rejection (generation_to_reject) in the island of these buses at at_s, s.
+
+        The numbers are the simulation's own at t = 0 (the pre-fault power flow): each machine's electrical
+        output and the island's load, less shed_mw (MW) shed at the same time. A machine on a bus ANDES has left
+        with no in-service branch is already off the network; its rejection (the turbine trip) is recorded but
+        not switched in ANDES, whose solver does not converge when a machine on such a bus is switched off.
+        """
+        bus_set = {int(b) for b in buses}
+        action = Applied(what=why, scheduled_s=float(at_s), detail={'machines': [], 'output_mw': {}})
 
         def do() -> None:
-            for model, idx in rows:
-                model.set_status(idx, 0)  # ANDES takes its governor, exciter and stabiliser off with it
-            self.ss.TDS.custom_event = True
+            ss = self.ss
+            mva = float(ss.config.mva)
+            first = self.samples[0]
+            machine_mw = {n: float(p) * mva for n, b, p in zip(self.generator_names, self.generator_buses,
+                                                              first.p_pu, strict=True) if b in bus_set}
+            load_mw = float(sum(ss.PQ.p0.v[i] for i in range(ss.PQ.n)
+                                if ss.PQ.u.v[i] and int(ss.PQ.bus.v[i]) in bus_set)) * mva
+            trip = generation_to_reject(machine_mw, load_mw, shed_mw, self.config.rejection_margin)
+            action.detail.update(machines=list(trip), output_mw={n: machine_mw[n] for n in trip},
+                                 island_generation_mw=sum(machine_mw.values()), island_load_mw=load_mw)
+            isolated = {int(ss.Bus.idx.v[i]) for i in ss.Bus.islanded_buses}
+            for model in self._syn:
+                names = [str(n) for n in model.name.v]
+                for name in trip:
+                    if name in names and int(model.bus.v[names.index(name)]) not in isolated:
+                        model.set_status(model.idx.v[names.index(name)], 0)  # its governor, exciter, PSS go too
+                        ss.TDS.custom_event = True
 
         self._pending.append((float(at_s), action, do))
         return action
@@ -352,6 +369,49 @@ class GridRun:
         """Return each machine tripped by generation rejection so far: (when, s; its output, MW)."""
         return {n: (a.applied_s, a.detail['output_mw'][n]) for a in self.actions
                 if a.what.startswith('reject') and a.applied_s is not None for n in a.detail['machines']}
+
+    def _components(self) -> set[frozenset[int]]:
+        """Return the connected sets of ANDES bus uids over the in-service lines, now."""
+        line = self.ss.Line
+        parent = list(range(self.ss.Bus.n))
+
+        def root(i: int) -> int:
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        for a, b, u in zip(line.a1.a, line.a2.a, line.ue.v, strict=True):
+            if u:
+                parent[root(int(a))] = root(int(b))
+        out: dict[int, set[int]] = {}
+        for i in range(len(parent)):
+            out.setdefault(root(i), set()).add(i)
+        return {frozenset(c) for c in out.values()}
+
+    def _warm_start(self, before: set[frozenset[int]]) -> None:
+        """Give the solver the pre-fault voltages, turned with each new island's machines, to start from.
+
+        Why: ANDES solves the network in polar power-balance form, where every power term carries a factor V,
+        so V = 0 (or V < 0 with the angle off by pi) satisfies a bus trivially. Started from the voltages just
+        before an opening made during a large swing (the island's buses pulled towards the rest of the grid),
+        Newton lands on those roots: buses of a healthy island show 0 or negative voltage and their machines
+        lose their electrical load (measured on IEEE 39: cuts at 5.4 s and 7.1 s of the G6-G7 scenario gave
+        V = -0.26 and 0 at G6's terminal; the same cut at 3.0 s, with no swing, gave 1.0). Started from the
+        pre-fault profile with each island's angles advanced by the mean advance of its machines' rotor angles,
+        it converges to the physical root. Only the starting point changes, not the equations.
+        """
+        if self._flat is None:
+            return
+        v0, a0, machines = self._flat
+        dae, bus = self.ss.dae, self.ss.Bus
+        for comp in self._components() - before:
+            advance = [float(dae.x[m.delta.a[k]]) - d0 for m, k, uid, d0 in machines if uid in comp and m.ue.v[k]]
+            if not advance:
+                continue
+            uids = np.array(sorted(comp))
+            dae.y[bus.a.a[uids]] = a0[uids] + float(np.mean(advance))
+            dae.y[bus.v.a[uids]] = v0[uids]
 
     def _line(self, ref: str) -> Any:
         if ref in self.line_of:
@@ -387,6 +447,10 @@ class GridRun:
         def pert(t: Any, system: Any) -> None:
             t_s = float(t)  # ANDES advances dae.t in place: keep a copy, not the array
             dae = system.dae
+            if self._flat is None:
+                self._flat = (_var(dae, ss.Bus.v).copy(), _var(dae, ss.Bus.a).copy(),
+                              [(m, k, int(ss.Bus.idx2uid(m.bus.v[k])), float(dae.x[m.delta.a[k]]))
+                               for m, on in syn for k in range(m.n) if on[k]])
             sample = Sample(
                 t_s=t_s, bus_v_pu=_var(dae, ss.Bus.v)[:len(self.bus_numbers)].copy(),
                 bus_angle_rad=_var(dae, ss.Bus.a)[:len(self.bus_numbers)].copy(),
@@ -625,18 +689,12 @@ def apply_decision(run: GridRun, cut_branch_ids: Sequence[str], bus_island: Mapp
         run.open_branches(cut_branch_ids, opened_s, why='open cut')
     shed = {}
     at = opened_s + run.config.shed_delay_s
-    dispatch = {g.name: g.p_mw for g in run.grid.generators}
     for island, buses in _island_buses(run.bus_numbers, bus_island).items():
         mw = float(island_shed_mw[island]) if island < len(island_shed_mw) else 0.0
         if mw > 0:
             action = run.shed_load(buses, mw, at, why=f'shed island {island}')
             shed[island] = action.detail['shed_mw']
-        bset = set(buses)
-        machines = {n: float(dispatch.get(n, 0.0)) for n, b in zip(run.generator_names, run.generator_buses,
-                                                                     strict=True) if b in bset}
-        trip = generation_to_reject(machines, run.island_load_mw(buses), mw, run.config.rejection_margin)
-        if trip:
-            run.reject_generation(trip, at, {n: machines[n] for n in trip}, why=f'reject island {island}')
+        run.reject_surplus(buses, shed.get(island, 0.0), at, why=f'reject island {island}')
     return shed
 
 
