@@ -94,6 +94,9 @@ def pair_drift_rad(angles: np.ndarray) -> np.ndarray:
     Each pair is fitted over the samples both have. The span is computed from the spread of those sample times
     (the first-to-last distance for evenly spaced samples), so it stays fair when some are lost.
 
+    The sums run in a compiled loop per pair (_drift_rows), not as BLAS products: on 2 cores shared with other work,
+    OpenBLAS's threads made the six 394 x 240 x 394 products of GBnetwork take 0.25 s instead of 0.05 s.
+
     Args:
         angles: Rotor angles, rad, shape (n_generators, n_samples), on one time grid; NaN = lost.
 
@@ -101,20 +104,39 @@ def pair_drift_rad(angles: np.ndarray) -> np.ndarray:
         Antisymmetric (n, n) matrix: drift of delta_p - delta_q, rad (0 where a pair shares < 2 samples).
 
     """
-    valid = np.isfinite(angles).astype(float)
-    x = np.arange(angles.shape[1], dtype=float)
-    values = np.where(valid > 0, angles, 0.0)
-    n_common = valid @ valid.T
-    sx = (valid * x) @ valid.T
-    sxx = (valid * x * x) @ valid.T
-    sd = values @ valid.T - valid @ values.T
-    sxd = (values * x) @ valid.T - valid @ (values * x).T
-    with np.errstate(invalid='ignore', divide='ignore'):
-        var_x = sxx - sx * sx / n_common
-        slope = (sxd - sx * sd / n_common) / var_x
-        # First-to-last distance of n evenly spaced samples, from their spread, so lost samples leave it fair.
-        drift = slope * np.sqrt(12.0 * var_x / n_common * (n_common - 1) / (n_common + 1))
-    return np.where(np.isfinite(drift), drift, 0.0)
+    angles = np.ascontiguousarray(angles, dtype=np.float64)
+    drift = np.zeros((angles.shape[0], angles.shape[0]))
+    _drift_rows(angles, drift)
+    return drift - drift.T
+
+
+@numba.njit(cache=True)
+def _drift_rows(angles, drift):
+    """pair_drift_rad of every pair p < q into drift[p, q] (time in samples, the slope's unit cancels)."""
+    n, m = angles.shape
+    finite = np.empty((n, m), dtype=np.bool_)
+    for p in range(n):
+        for t in range(m):
+            finite[p, t] = np.isfinite(angles[p, t])
+    for p in range(n):
+        for q in range(p + 1, n):
+            count, sx, sxx, sd, sxd = 0.0, 0.0, 0.0, 0.0, 0.0
+            for t in range(m):
+                if finite[p, t] and finite[q, t]:
+                    d = angles[p, t] - angles[q, t]
+                    count += 1.0
+                    sx += t
+                    sxx += t * t
+                    sd += d
+                    sxd += t * d
+            if count < 2.0:
+                continue
+            var_x = sxx - sx * sx / count
+            if not var_x > 0.0:
+                continue
+            slope = (sxd - sx * sd / count) / var_x
+            # First-to-last distance of count evenly spaced samples, from their spread, so lost samples leave it fair.
+            drift[p, q] = slope * np.sqrt(12.0 * var_x / count * (count - 1.0) / (count + 1.0))
 
 
 @dataclass
