@@ -341,6 +341,9 @@ class PartitioningNode(Node):
         else:
             try:
                 decision, _ = self._decide(groups, req_s)
+                if decision.constraint_fallback:  # IslandingDecision has no field for it yet: said in the log
+                    self.get_logger().warning(f'request {request.request_id}: {decision.constraint_fallback}; '
+                                              'split with group-balanced constraint weights')
                 grid = self.topology.snapshot_at(req_s)[1]
                 msg = decision_to_msg(decision, request, groups.method, time.perf_counter() - t0,
                                       {g.name: g.bus for g in grid.generators})
