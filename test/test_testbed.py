@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controlled_islanding.sim.closed_loop import LoopConfig, assess, generation_to_reject
+from controlled_islanding.sim.closed_loop import LoopConfig, assess, generation_to_reject, out_of_step
 
 REPO = Path(__file__).resolve().parents[1]
 BUILD = REPO / 'build'
@@ -78,6 +78,19 @@ def test_generation_rejection_trips_the_largest_machines_that_fit_in_the_surplus
         trip = generation_to_reject(pjm, load, shed)
         left = sum(pjm.values()) - sum(pjm[n] for n in trip) - (load - shed)
         assert left >= -1e-9, (load, shed, trip)
+
+
+def test_out_of_step_trigger_needs_90_deg_of_separation_and_no_fault_on_voltage():
+    """Deviations from the first angles: a common drift is not a separation; a fault-on frame blocks."""
+    ref = [0.3, -0.2, 1.1]
+    healthy = [1.0, 1.0, 0.97]
+    assert not out_of_step([5.3, 4.8, 6.1], ref, healthy)  # all 5 rad ahead together: one system drifting
+    assert not out_of_step([0.3 + 1.5, -0.2, 1.1 + 1.4], ref, healthy)  # 86 deg apart
+    assert out_of_step([0.3 + 1.6, -0.2, 1.1 + 1.4], ref, healthy)  # 92 deg apart
+    assert not out_of_step([0.3 + 1.6, -0.2, 1.1 + 1.4], ref, [1.0, 0.3, 0.97])  # a fault on: blocked
+    assert out_of_step([0.3 + 1.6, -0.2, 1.1 + 1.4], ref, [1.0, 0.6, 0.97])  # a swing's dip does not block
+    assert out_of_step([0.3 + 1.6, -0.2, math.nan], ref, [1.0, math.nan, 0.97])  # lost data is ignored
+    assert not out_of_step([0.3 + 1.6, math.nan, math.nan], ref, healthy)  # one machine cannot separate
 
 
 def test_assess_leaves_a_rejected_machine_out_after_its_trip():

@@ -7,7 +7,7 @@ import json
 import os
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -71,6 +71,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='run nothing: rebuild the table, --markdown and --figures-dir from a results folder of an '
                              'earlier (or still running) testbed run; scenarios not finished yet are listed as missing')
     parser.add_argument('--no-baselines', action='store_true', help='skip the no-action and MILP runs')
+    parser.add_argument('--trigger', choices=('scenario', 'out-of-step'), default='scenario',
+                        help="where the islanding request comes from: the scenario's time (default), or grid_sim's "
+                             'out-of-step trigger on the measured rotor angles (sim/closed_loop.out_of_step)')
     parser.add_argument('--timeout', type=float, default=900.0, help='give up on one closed-loop run after this, s')
 
 
@@ -265,11 +268,15 @@ def run_scenario(path: Path, results: Path, args: argparse.Namespace, quiet: boo
     config = LoopConfig(breaker_operating_s=args.breaker_operating_s, shed_delay_s=args.shed_delay_s,
                         run_after_s=args.run_after_s)
     params = {'breaker_operating_s': args.breaker_operating_s, 'shed_delay_s': args.shed_delay_s,
-              'run_after_s': args.run_after_s}
+              'run_after_s': args.run_after_s, 'trigger': args.trigger.replace('-', '_')}
     _say(quiet, f'testbed {scenario.name}: closed loop')
     obs, report = run_closed_loop(path, out, rate=args.rate, params=params, timeout_s=args.timeout, quiet=quiet)
     decision = _decision(obs, report['request_id'])
     loop = report['outcome']
+    if args.trigger != 'scenario':
+        # The baselines and the figure answer the request grid_sim's trigger made, not the scenario's.
+        scenario = replace(scenario, request_s=loop['request_s'],
+                           end_s=max(scenario.end_s, loop['request_s'] + args.run_after_s))
     result: dict[str, Any] = {'scenario': scenario.name, 'path': str(path), 'decision': decision,
                               'closed_loop': loop, 'events': report['events'],
                               'restarts': [r.__dict__ for r in obs.restarts], 'runs': {'dtw': loop}}
@@ -402,7 +409,12 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
            '(closed_loop.generation_to_reject; a rejected machine is not judged after its trip); the `milp` row '
            'gets the same rule. `no action` is judged as one island over the same '
            f'window. Breaker operating time {args.breaker_operating_s} s, load shed {args.shed_delay_s} s after '
-           f'the opening, simulated at least {args.run_after_s} s past the request.', '',
+           f'the opening, simulated at least {args.run_after_s} s past the request.'
+           + ('' if getattr(args, 'trigger', 'scenario') == 'scenario' else
+              " The request is not the scenario's: grid_sim's out-of-step trigger made it, at the first step where "
+              "the measured rotor angles (the graph's /rotor_angles, against the first received) showed two machines "
+              'more than 90 deg apart with no PMU voltage below 0.5 pu (closed_loop.out_of_step); the baselines '
+              'answer the same request.'), '',
            '| ' + ' | '.join(HEADER) + ' |', '|' + '---|' * len(HEADER)]
     out += ['| ' + ' | '.join(row) + ' |' for row in table_rows(results)]
     out += ['', 'Reading the table:',

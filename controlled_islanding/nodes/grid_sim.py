@@ -19,6 +19,10 @@ Time. Stamps are sim time plus sim/bag.START_TIME_UNIX_S, as in the bags, and /c
   while it waits. Sim time is frozen while the graph works, so the wall time from publishing the request to
   receiving the command is charged to sim time: the branch opens at request + that latency +
   breaker_operating_s.
+- `trigger: out_of_step` (default `scenario`): the request is not the scenario's but published at the first step
+  where the measured rotor angles (/rotor_angles, against the first ones received) show two machines more than
+  90 deg apart while no delivered PMU voltage is below 0.5 pu (sim/closed_loop.out_of_step); the run is then
+  extended to run_after_s past it.
 - `rate: R > 0`: paced at R times real time, nothing waits; a command opens its branch at max(its stamp, the sim
   time it arrived) + breaker_operating_s. If ANDES is slower than R x real time, the pace is ANDES'.
 """
@@ -26,9 +30,11 @@ Time. Stamps are sim time plus sim/bag.START_TIME_UNIX_S, as in the bags, and /c
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +68,7 @@ from controlled_islanding.sim.closed_loop import (
     PmuStream,
     Sample,
     apply_decision,
+    out_of_step,
 )
 from controlled_islanding.sim.scenario import ScenarioError, load_scenario
 
@@ -131,6 +138,7 @@ class GridSimNode(Node):
         self.declare_parameter('min_subscribers', [''])
         self.declare_parameter('report_file', '')
         self.declare_parameter('progress', False)
+        self.declare_parameter('trigger', 'scenario')
         path = self.get_parameter('scenario').value
         if not path:
             raise NodeSetupError('parameter scenario is empty; it must name a scenario YAML (see bags/*.yaml)')
@@ -150,6 +158,14 @@ class GridSimNode(Node):
         self.pmu = PmuStream(self.scenario, self.grid_run.generator_names, self.grid_run.generator_buses,
                              self.grid_run.bus_numbers, float(self.grid_run.ss.config.freq))
         self.report_file = self.get_parameter('report_file').value
+        self.trigger = str(self.get_parameter('trigger').value)
+        if self.trigger not in ('scenario', 'out_of_step'):
+            raise NodeSetupError(f'parameter trigger={self.trigger!r} must be scenario or out_of_step')
+        if self.trigger == 'out_of_step':  # the request comes when the angles say so, not at the scenario's time
+            self.scenario = replace(self.scenario, request_s=math.inf)
+        self.angle_ref: dict[str, float] = {}
+        self.angle_now: dict[str, float] = {}
+        self.frame_v_pu = np.zeros(0)
         pub = {t: self.create_publisher(cls, topics.relative(t), qos_for(t)) for t, cls in (
             (topics.NETWORK_SNAPSHOT, NetworkSnapshot), (topics.PMU_FRAMES, PmuFrame),
             (topics.BRANCH_STATUS, BranchStatus), (topics.ISLANDING_REQUEST, IslandingRequest))}
@@ -194,6 +210,10 @@ class GridSimNode(Node):
 
     def _on_angles(self, msg: RotorAngles) -> None:
         self.newest_angle_s = max(self.newest_angle_s, _sim_s(msg.header.stamp))
+        for name, angle, ok in zip(msg.generator_names, msg.angle_rad, msg.valid, strict=True):
+            if ok and math.isfinite(angle):
+                self.angle_ref.setdefault(name, float(angle))
+                self.angle_now[name] = float(angle)
 
     # --- helpers ---------------------------------------------------------------------------------------------
     def _spin(self, seconds: float = 0.0, done=lambda: False) -> bool:
@@ -221,6 +241,7 @@ class GridSimNode(Node):
             if frame.delivery_s <= up_to_s + 1e-9 or (tags_up_to_s is not None and frame.tag_s <= tags_up_to_s + 1e-9):
                 self.pubs[topics.PMU_FRAMES].publish(frame_msg(frame))
                 self.newest_frame_s = max(self.newest_frame_s, frame.tag_s)
+                self.frame_v_pu = frame.v_mag_pu
             else:
                 keep.append(frame)
         self.queue = keep
@@ -270,6 +291,14 @@ class GridSimNode(Node):
         self.queue += frames
         if frames:
             self._publish_clock(min(t, frames[-1].tag_s) if not self.request_sent else t)
+        if self.trigger == 'out_of_step' and not self.request_sent and self._separated():
+            self.scenario = replace(self.scenario, request_s=t)
+            run.scenario = self.scenario  # its outcome reports the request it answered
+            run.run_until_s = max(run.run_until_s, t + run.config.run_after_s)
+            run.ss.TDS.config.tf = run.run_until_s
+            self.events.append({'what': 'out-of-step trigger', 'at_s': t,
+                                'separation_rad': max(self.angle_now[n] - self.angle_ref[n] for n in self.angle_now)
+                                - min(self.angle_now[n] - self.angle_ref[n] for n in self.angle_now)})
         request_s = self.scenario.request_s
         if not self.request_sent and t >= request_s - 1e-9:
             self._deliver(request_s)
@@ -286,6 +315,10 @@ class GridSimNode(Node):
                     self._status(action.applied_s, bid, False)
                     self.events.append({'what': 'opened', 'branch_id': bid, 'at_s': action.applied_s})
         self.diag.arrived()
+
+    def _separated(self) -> bool:
+        names = list(self.angle_now)
+        return out_of_step([self.angle_now[n] for n in names], [self.angle_ref[n] for n in names], self.frame_v_pu)
 
     def _request(self, run: GridRun, t: float) -> None:
         request_s = self.scenario.request_s
