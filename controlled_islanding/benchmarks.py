@@ -250,8 +250,7 @@ def streamed_dse_angles(bag, reorder_s: float = 0.1, history_s: float = 1.0) -> 
     out = np.full(v.shape, np.nan)
     rows = np.flatnonzero(bag.frame_present)
     for k in rows[np.argsort(bag.frame_delivery_s[rows], kind='stable')]:
-        for row, angles in stream.offer(bag.t0_s + bag.frame_t_s[k], v[k], va[k], i[k], ia[k], np.isfinite(v[k]), k):
-            out[row] = angles
+        out[k] = stream.offer(bag.t0_s + bag.frame_t_s[k], v[k], va[k], i[k], ia[k], np.isfinite(v[k]))
     return np.where(np.isfinite(v), out, np.nan)
 
 

@@ -52,6 +52,7 @@ Each model class runs one batched filter for all its machines: one set of numpy 
 
 from __future__ import annotations
 
+import copy
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -462,6 +463,17 @@ class RotorAngleDSE:
         self.reset()
         return self
 
+    def fork(self) -> RotorAngleDSE:
+        """Return a copy of the filter whose frames leave this one as it is (data and settings shared)."""
+        twin = copy.copy(self)
+        twin._banks = [copy.copy(bank) for bank in self._banks]
+        for bank in twin._banks:
+            for name in ('x', 'cov', 'aux', 'q_rate', 'live', 'last_t', 'v_last', 'i_last'):
+                setattr(bank, name, getattr(bank, name).copy())
+        for name in ('delta_rad_', 'omega_pu_', '_steady_last_t', 'n_initialisations_'):
+            setattr(twin, name, getattr(self, name).copy())
+        return twin
+
     def reset(self) -> RotorAngleDSE:
         """Forget every filter's state (the next valid frame initialises each machine)."""
         n = len(self.machines_.names)
@@ -715,23 +727,28 @@ class StreamingDSE:
     """RotorAngleDSE fed from frames as a PDC delivers them: on a uniform time-tag grid, some late, some never.
 
     Why: the filter needs its frames in time order, but frames are published on arrival and may overtake each
-    other. A time tag still missing once a frame more than ``reorder_s`` newer has arrived is lost to the filter
-    (a prediction-only step at its tag, as RotorAngleDSE takes a NaN frame); frames waiting behind it are held
-    until then, so ``reorder_s`` is the latency traded for using late frames (0: never wait). A frame arriving
-    after its tag was passed gives the filter's estimate interpolated at its tag (its data no longer count).
-    Gaps longer than the filter's ``max_gap_s`` are not stepped through: the filter re-initialises after them.
+    other. Every frame is answered when it arrives, and never again:
+    - in order (every earlier tag taken or given up): the filter takes it, and its estimate is the answer;
+    - ahead of a missing tag: the filter waits for that tag, and the answer comes from a copy of the filter
+      taken through the held frames up to this one (the missing tags skipped: inputs linear across them);
+    - after its tag was passed: the answer is the filter's estimate interpolated at its tag.
+    A tag still missing once a frame more than ``reorder_s`` newer has arrived is lost to the filter (a
+    prediction-only step at its tag, as RotorAngleDSE takes a NaN frame): the longer the wait, the more late
+    frames the filter uses, at the cost of the copies' work while it waits (never of latency). Gaps longer
+    than the filter's ``max_gap_s`` are not stepped through: the filter re-initialises after them.
 
     Args:
         machines: The machines' data, in the column order of the frames.
         rate_fps: Reporting rate, frames per second (the time-tag grid).
-        reorder_s: Longest wait for a missing time tag before it counts as lost, s.
+        reorder_s: Longest wait for a missing time tag before the filter counts it as lost, s.
         history_s: How far back a late frame still gets an interpolated estimate, s.
         **settings: RotorAngleDSE settings (model, freq_hz, max_gap_s, ...).
 
     Attributes:
         dse: The filter (its ``models_`` says which machines fall back to the steady-state estimate).
-        lost_frames: Time tags stepped as lost.
+        lost_frames: Time tags the filter stepped as lost.
         late_frames: Frames that arrived after their tag was passed.
+        ahead_frames: Frames answered by a copy of the filter, ahead of a missing tag.
 
     """
 
@@ -743,10 +760,11 @@ class StreamingDSE:
         self.dse = RotorAngleDSE(**settings).fit(machines)
         self.rate_fps, self.reorder_s, self.history_s = float(rate_fps), float(reorder_s), float(history_s)
         self._done: int | None = None  # newest time tag (in frame periods) the filter has taken
-        self._pending: dict[int, tuple] = {}
+        self._pending: dict[int, tuple] = {}  # key -> (t, v_mag, v_ang, i_mag, i_ang, valid)
         self._history: deque[tuple[float, np.ndarray]] = deque()
         self.lost_frames = 0
         self.late_frames = 0
+        self.ahead_frames = 0
 
     def fallback_names(self) -> tuple[str, ...]:
         """Machines estimated by the steady-state relation (no usable dynamic data), or not at all ('')."""
@@ -754,53 +772,67 @@ class StreamingDSE:
                      if m in ('steady_state', ''))
 
     def offer(self, t_s: float, v_mag_pu: np.ndarray, v_angle_rad: np.ndarray, i_mag_pu: np.ndarray,
-              i_angle_rad: np.ndarray, valid: np.ndarray, payload: object = None) -> list[tuple[object, np.ndarray]]:
-        """Take one frame; return (payload, rotor angle per machine, rad) of every frame whose estimate is now known.
+              i_angle_rad: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        """Take one frame and return its rotor angles, rad, one per machine.
 
         Args:
             t_s: Time tag, s.
             v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, valid: As RotorAngleDSE.update (NaN or valid False:
                 that machine's data are missing from this frame).
-            payload: Returned with the frame's estimate (for example its header).
 
         Returns:
-            In time-tag order, the frames the filter took because of this one, or this frame alone if it came
-            late (interpolated; NaN where the history does not reach). A lost tag returns nothing. A repeated
-            pending tag replaces the pending frame.
+            The estimate at this frame's tag (see the class docstring); NaN where there is none (a late frame
+            beyond the history, a machine not yet initialised). A repeated tag gets the same kind of answer as
+            a late frame.
 
         """
         key = int(round(t_s * self.rate_fps))
-        if self._done is not None and key <= self._done:
+        if (self._done is not None and key <= self._done) or key in self._pending:
             self.late_frames += 1
-            return [(payload, self._interpolate(t_s))]
-        self._pending[key] = (t_s, v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, valid, payload)
+            return self._interpolate(t_s)
+        frame = (t_s, v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, valid)
+        self._pending[key] = frame
         if self._done is None:
             self._done = key - 1
+        answer = None
         newest = max(self._pending)
-        out = []
         period = 1.0 / self.rate_fps
         while self._pending:
             nxt = self._done + 1
             if nxt in self._pending:
-                t, *frame, tag = self._pending.pop(nxt)
-                out.append((tag, self._take(t, *frame)))
+                angles = self._take(*self._pending.pop(nxt))
+                if nxt == key:
+                    answer = angles
             elif (newest - nxt) * period > self.reorder_s + 1e-9:
                 first = min(self._pending)
                 if (first - nxt) * period > self.dse.max_gap_s:
                     self.lost_frames += first - nxt
                     nxt = first - 1  # the filter re-initialises after so long; no need to step through it
                 else:
-                    nan = np.full(len(self.dse.models_), np.nan)
-                    self._take(self._t_of(nxt, t_s, key), nan, nan, nan, nan, np.zeros(len(nan), dtype=bool))
+                    self._take(*self._lost(nxt, t_s, key))
                     self.lost_frames += 1
             else:
                 break
             self._done = nxt
-        return out
+        if answer is not None:
+            return answer
+        self.ahead_frames += 1
+        return self._ahead(key)
 
-    def _t_of(self, key: int, ref_t: float, ref_key: int) -> float:
+    def _lost(self, key: int, ref_t: float, ref_key: int) -> tuple:
+        nan = np.full(len(self.dse.models_), np.nan)
         # Time tags are absolute (large); stepping from a known tag keeps their sub-microsecond part.
-        return ref_t + (key - ref_key) / self.rate_fps
+        return ref_t + (key - ref_key) / self.rate_fps, nan, nan, nan, nan, np.zeros(len(nan), dtype=bool)
+
+    def _ahead(self, key: int) -> np.ndarray:
+        """Estimate at a held frame: a copy of the filter through the held frames up to it."""
+        probe = self.dse.fork()
+        angles = None
+        # The tags still missing are skipped, not stepped as lost: their inputs are taken as linear between
+        # the frames around them, the filter's own rule between frames.
+        for k in sorted(k for k in self._pending if k <= key):
+            angles = probe.update(*self._pending[k])
+        return angles
 
     def _take(self, t: float, v_mag, v_ang, i_mag, i_ang, valid) -> np.ndarray:
         angles = self.dse.update(t, v_mag, v_ang, i_mag, i_ang, valid)
@@ -812,9 +844,9 @@ class StreamingDSE:
     def _interpolate(self, t: float) -> np.ndarray:
         times = [h[0] for h in self._history]
         k = int(np.searchsorted(times, t))
+        if k == len(times) and k and abs(times[-1] - t) < 1e-9:
+            return self._history[-1][1].copy()
         if k == 0 or k == len(times):
-            if k and abs(times[-1] - t) < 1e-9:
-                return self._history[-1][1].copy()
             return np.full(len(self.dse.models_), np.nan)
         (t0, a0), (t1, a1) = self._history[k - 1], self._history[k]
         w = (t - t0) / (t1 - t0)

@@ -9,8 +9,9 @@ whose station id ends in '/<generator name>' (where machines share a bus, each h
 one at its bus.
 
 `estimator` chooses how: 'steady_state' (default), the angle of V + (ra + j xq) I; or 'dse', core.dse's Kalman
-filter on each machine's model from the snapshot's machine data (core.dse.StreamingDSE: frames in time-tag
-order, a tag missing `dse_reorder_s` after a newer frame stepped as lost, a late frame interpolated). Machines
+filter on each machine's model from the snapshot's machine data (core.dse.StreamingDSE: each frame answered on
+arrival, a frame ahead of a missing tag from a copy of the filter, a late one interpolated; the filter itself
+waits `dse_reorder_s` for a missing tag before stepping it as lost). Machines
 without dynamic data fall back to the steady-state estimate; /diagnostics names them (`dse_fallback`). With
 'dse', `valid` still means "this frame had usable data for the generator": where it is false the angle is the
 filter's prediction.
@@ -95,8 +96,8 @@ class PmuIngestionNode(Node):
             'longest run of missing frames the filter bridges by prediction; after a longer one it re-initialises'))
         self.dse_reorder_s = float(declare_bounded(
             self, 'dse_reorder_s', 0.1, 0.0, 10.0,
-            'how long, s, the filter waits for a missing time tag once a newer frame has come (latency traded '
-            'for using late frames; a tag later than that counts as lost)'))
+            'how long, s, the filter waits for a missing time tag once a newer frame has come (frames are still '
+            'answered at once; a longer wait uses more late frames, at the cost of more work while it waits)'))
         self.stream: StreamingDSE | None = None
         self.diag = Diagnostics(self)
         self.diag.values['estimator'] = self.estimator
@@ -250,8 +251,8 @@ class PmuIngestionNode(Node):
             if verdict != 'rejected':
                 self._remember(m.station_id, int(m.bus), t if verdict == 'use' else -math.inf)
         try:
-            out = (self._dse_angles(frame, t, by_bus, by_generator) if self.stream is not None
-                   else [self._angles(frame, by_bus, by_generator)])
+            angles = (self._dse_angles(frame, t, by_bus, by_generator) if self.stream is not None
+                      else self._angles(frame, by_bus, by_generator))
         except (RotorAngleError, DSEError) as exc:  # the snapshot validator should make this impossible
             self.diag.reject('compute_failed', f'rotor angles of the frame at {t:.3f} s: {exc}')
             return
@@ -261,8 +262,7 @@ class PmuIngestionNode(Node):
         self.seen_set.add(key)
         self.unique_frames += 1
         self.first_s, self.newest_s = min(self.first_s, t), max(self.newest_s, t)
-        for angles in out:
-            self.pub.publish(angles)
+        self.pub.publish(angles)
         self._account(t0)
 
     def _angles(self, frame: PmuFrame, by_bus: dict[int, PmuMeasurement],
@@ -293,8 +293,7 @@ class PmuIngestionNode(Node):
                            valid=valid.tolist())
 
     def _dse_angles(self, frame: PmuFrame, t: float, by_bus: dict[int, PmuMeasurement],
-                    by_generator: dict[str, PmuMeasurement]) -> list[RotorAngles]:
-        """Feed the frame to the filter; return the RotorAngles of every frame whose estimate that settles."""
+                    by_generator: dict[str, PmuMeasurement]) -> RotorAngles:
         assert self.grid is not None and self.stream is not None
         gens = self.grid.generators
         source = [by_generator.get(g.name) or by_bus.get(g.bus) for g in gens]
@@ -302,16 +301,13 @@ class PmuIngestionNode(Node):
         cols = np.full((len(gens), len(_FIELDS)), np.nan)
         for i in np.flatnonzero(valid):
             cols[i] = [getattr(source[i], f) for f in _FIELDS]
-        settled = self.stream.offer(t, *cols.T, valid, payload=(frame.header, valid))
-        self.diag.values['dse_lost_frames'] = str(self.stream.lost_frames)
-        self.diag.values['dse_late_frames'] = str(self.stream.late_frames)
-        out = []
-        for (header, had_data), angles in settled:
-            ok = had_data & np.isfinite(angles)
-            out.append(RotorAngles(header=header, generator_names=[g.name for g in gens],
-                                   generator_buses=[g.bus for g in gens],
-                                   angle_rad=np.where(np.isfinite(angles), angles, 0.0).tolist(), valid=ok.tolist()))
-        return out
+        angles = self.stream.offer(t, *cols.T, valid)
+        for key in ('lost_frames', 'late_frames', 'ahead_frames'):
+            self.diag.values[f'dse_{key}'] = str(getattr(self.stream, key))
+        known = np.isfinite(angles)
+        return RotorAngles(header=frame.header, generator_names=[g.name for g in gens],
+                           generator_buses=[g.bus for g in gens], angle_rad=np.where(known, angles, 0.0).tolist(),
+                           valid=(valid & known).tolist())
 
     def _account(self, t0: float) -> None:
         self.diag.computed(time.perf_counter() - t0)
