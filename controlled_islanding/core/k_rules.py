@@ -204,10 +204,10 @@ def pair_runaway(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     equilibrium; one past its unstable equilibrium accelerates away. A stable swing moves less than pi / 2 from
     where it started on its accelerating side. The timing test compares sample counts, so it needs no time unit.
 
-    Each pair's test is a loop over its samples, compiled by numba (_runaway_rows) and spread over the cores for
-    hundreds of machines: on GBnetwork's 394 machines the former numpy version, a pass over all pairs per
-    generator, took 1 to 2 s. The reference is summed in numpy's pairwise order, so every figure is bit for bit
-    the former version's.
+    Each pair's test is a loop over its samples, compiled by numba (_runaway_rows): 0.15 s on GBnetwork's 394
+    machines, where the former numpy version, a pass over all pairs per generator, took 1 to 2 s (threads would
+    save another 0.07 s idle, nothing on a loaded machine, and cost seconds of compilation). The reference is
+    summed in numpy's pairwise order, so every figure is bit for bit the former version's.
 
     Args:
         angles: Rotor angles, rad, shape (n_generators, n_samples), on one time grid; NaN = lost.
@@ -221,18 +221,11 @@ def pair_runaway(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     n, m = angles.shape
     runaway = np.zeros((n, n), dtype=bool)
     deviation = np.zeros((n, n))
-    if n * n * m >= _PARALLEL_FROM_SAMPLES:
-        _runaway_rows_parallel(angles, runaway, deviation, min(n, 8 * numba.get_num_threads()))
-    else:
-        _runaway_rows(angles, runaway, deviation, 0, n)
+    _runaway_rows(angles, runaway, deviation)
     # delta_q - delta_p is -(delta_p - delta_q) sample by sample, so the test of (q, p) is that of (p, q) exactly.
     runaway |= runaway.T
     deviation += deviation.T
     return runaway, deviation
-
-
-# Below this many pair-samples (generators^2 x samples) pair_runaway takes a few ms on one core: no threads.
-_PARALLEL_FROM_SAMPLES = 5_000_000
 
 
 @numba.njit(cache=True)
@@ -287,12 +280,12 @@ def _pairwise_sum(x):
 
 
 @numba.njit(cache=True)
-def _runaway_rows(angles, runaway, deviation, first_row, last_row):
-    """pair_runaway's test of every pair (p, q > p) for p in first_row .. last_row-1, into the upper triangles."""
+def _runaway_rows(angles, runaway, deviation):
+    """pair_runaway's test of every pair (p, q > p), into the upper triangles."""
     n, m = angles.shape
     diff, quarter_diff = np.empty(m), np.empty(m)
     both = np.empty(m, dtype=np.bool_)
-    for p in range(first_row, last_row):
+    for p in range(n):
         for q in range(p + 1, n):
             count, first, last = 0, -1, -1
             for t in range(m):
@@ -342,16 +335,6 @@ def _runaway_rows(angles, runaway, deviation, first_row, last_row):
                 if both[t] and way * (diff[t] - ref) > dev:
                     overshot = True
             runaway[p, q] = last - three_q <= three_q - half and not overshot
-
-
-@numba.njit(cache=True, parallel=True)
-def _runaway_rows_parallel(angles, runaway, deviation, chunks):
-    # Row p holds n - p - 1 pairs: chunks of rows by equal pair counts, interleaved so each chunk gets long and
-    # short rows alike.
-    n = angles.shape[0]
-    for c in numba.prange(chunks):
-        for p in range(c, n, chunks):
-            _runaway_rows(angles, runaway, deviation, p, p + 1)
 
 
 class SeparationRule:
