@@ -289,6 +289,7 @@ class GridRun:
         self.wall_s = 0.0
         self.stopped_s: float | None = None  # where ANDES gave up after an action, if it did
         self._flat: tuple[np.ndarray, np.ndarray, list[tuple[Any, int, int, float]]] | None = None
+        self._reseeds: dict[int, int] = {}  # bus uid -> times restarted off the trivial root
 
     # --- actions ---------------------------------------------------------------------------------------------
     def open_branches(self, branch_ids: Sequence[str], at_s: float, why: str = 'open') -> Applied:
@@ -399,7 +400,8 @@ class GridRun:
         lose their electrical load (measured on IEEE 39: cuts at 5.4 s and 7.1 s of the G6-G7 scenario gave
         V = -0.26 and 0 at G6's terminal; the same cut at 3.0 s, with no swing, gave 1.0). Started from the
         pre-fault profile with each island's angles advanced by the mean advance of its machines' rotor angles,
-        it converges to the physical root. Only the starting point changes, not the equations.
+        it converges to the physical root. Only the starting point changes, not the equations. Buses still
+        left at V = 0 are restarted at the next step (_reseed_trivial_roots).
         """
         if self._flat is None:
             return
@@ -412,6 +414,38 @@ class GridRun:
             uids = np.array(sorted(comp))
             dae.y[bus.a.a[uids]] = a0[uids] + float(np.mean(advance))
             dae.y[bus.v.a[uids]] = v0[uids]
+
+    def _reseed_trivial_roots(self, t_s: float) -> None:
+        """Restart every bus the solver left at the trivial V = 0 root from a live neighbour's voltage.
+
+        Why: the warm start does not always suffice (IEEE 39 G6-G7 cut at 5.708 s: load bus 24, a leaf after the
+        cut, came out at exactly 0 V while its neighbour had 0.52 pu, and the whole island sagged to 0.5-0.7 pu).
+        V = 0 at a bus with an in-service line to a live bus is not physical (the line's current would have
+        nowhere to go); started from the neighbour's voltage and angle, the next step converged to 1.03 pu on
+        every bus of that island. A bus with no in-service line (ANDES zeroes it) or with a fault on is left
+        alone; a bus is reseeded at most 3 times; each reseed is listed among the actions.
+        """
+        ss = self.ss
+        bus, line, y = ss.Bus, ss.Line, ss.dae.y
+        v = y[bus.v.a]
+        dead = np.flatnonzero(np.abs(v) < 1e-3)
+        if not dead.size:
+            return
+        faulted = {int(bus.idx2uid(b)) for b, on, u in zip(ss.Fault.bus.v, ss.Fault.uf.v, ss.Fault.u.v, strict=True)
+                   if on and u} if ss.Fault.n else set()
+        for i in dead:
+            i = int(i)
+            if i in faulted or self._reseeds.get(i, 0) >= 3:
+                continue
+            live = [int(b) for a1, a2, u in zip(line.a1.a, line.a2.a, line.ue.v, strict=True) if u
+                    for b in ((a2,) if a1 == i else (a1,) if a2 == i else ()) if abs(v[int(b)]) > 0.1]
+            if not live:
+                continue
+            y[bus.v.a[i]] = v[live[0]]
+            y[bus.a.a[i]] = y[bus.a.a[live[0]]]
+            self._reseeds[i] = self._reseeds.get(i, 0) + 1
+            self.actions.append(Applied(what='solver reseed', scheduled_s=t_s, applied_s=t_s,
+                                        detail={'bus': int(bus.idx.v[i]), 'from_bus': int(bus.idx.v[live[0]])}))
 
     def _line(self, ref: str) -> Any:
         if ref in self.line_of:
@@ -465,6 +499,8 @@ class GridRun:
             self.samples.append(sample)
             if hook is not None:
                 hook(self, sample)
+            if self.actions:
+                self._reseed_trivial_roots(t_s)
             due = [p for p in self._pending if p[0] <= t_s + 1e-9]
             for entry in due:
                 self._pending.remove(entry)
