@@ -403,8 +403,8 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
            'the same time. Rules (controlled_islanding/sim/closed_loop.py): an island survives when its machines '
            'stay within pi rad of each other (relative to the cut), its frequency within 57.8..61.8 Hz, its bus '
            'voltages within 0.8..1.2 pu from 0.5 s after the cut, and no machine trips. Load lost = load shed + '
-           'the load of every island that did not survive. Generation tripped: in every island whose dispatched '
-           'generation exceeds its load after the shed by more than 5 % of that load, machines are tripped at '
+           "the load of every island that did not survive. Generation tripped: in every island whose machines' "
+           'pre-fault output exceeds its load after the shed by more than 5 % of that load, machines are tripped at '
            'the time of the shed, largest output first, each only if it fits in the remaining surplus '
            '(closed_loop.generation_to_reject; a rejected machine is not judged after its trip); the `milp` row '
            'gets the same rule. `no action` is judged as one island over the same '
@@ -425,8 +425,10 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
             'were a solver artefact, not a collapse: ANDES solves the network in polar power-balance form, where '
             'V = 0 (or V < 0 with the angle off by pi) satisfies a bus trivially, and Newton started from the '
             'voltages of a large swing landed there. The solver now starts each new island from the pre-fault '
-            "voltages turned with its machines' mean rotor-angle advance (GridRun._warm_start); only the starting "
-            'point changes. ANDES still zeroes a bus left with no in-service branch (an island of one bus). '
+            "voltages turned with its machines' mean rotor-angle advance (GridRun._warm_start), and restarts a bus "
+            "still left at 0 V next to a live one from that neighbour's voltage (listed as 'solver reseed' among "
+            "the actions); only the starting point changes, not the equations. ANDES still zeroes a bus left with "
+            'no in-service branch (an island of one bus). '
             "Per-island figures are in each scenario's result.json in the results folder.",
             "- The lockstep opening time is request + the graph's wall latency + the breaker time, so it varies "
             'by tens of ms between runs; outcomes that change across the g6g7 variants with the same physics show '
