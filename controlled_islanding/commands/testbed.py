@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -433,6 +434,12 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
             "- The lockstep opening time is request + the graph's wall latency + the breaker time, so it varies "
             'by tens of ms between runs; outcomes that change across the g6g7 variants with the same physics show '
             'how sensitive a late cut is to it.', '']
+    for r in results:
+        fired = next((e for e in r['events'] if e['what'] == 'out-of-step trigger'), None)
+        if fired is not None:
+            out += [f'- {r["scenario"]}: the out-of-step trigger requested islanding at {fired["at_s"]:.3f} s, the '
+                    f'measured angles {math.degrees(fired["separation_rad"]):.0f} deg apart.']
+    out += ['']
     for fig in figures:
         out += [f'![{fig.stem}]({os.path.relpath(fig, page.parent)})', '']
     return '\n'.join(out)
