@@ -13,7 +13,8 @@ coherency node still working through a backlog, or through its first, slow compu
 the request seconds late and partitioning refuse it as stale, which real time never sees); after it, data
 keeps flowing in bag order (frames delayed past the request still arrive after it, as in real time, up to
 `lockstep_lead_s` of bag time past it) but /clock stays at the request time until a decision is out, plus
-`lockstep_settle_s` for its consumers to handle it. A wait for the decision lasts at most `lockstep_timeout_s`;
+`lockstep_settle_s` for its consumers to handle it. A wait for the decision lasts at most `lockstep_timeout_s`,
+after which the request is sent again with its id (twice at most: a restarted partitioning node lost it);
 a wait for rotor angles or groups lasts until they stop moving towards the newest frame for that long, since
 under load each stage can take longer than any fixed time while it still catches up. So the decision
 sees the data a real-time replay would, and no node sees it as stale on the replayed clock, however loaded the
@@ -154,6 +155,20 @@ class BagPlayerNode(Node):
             self.get_logger().warning(f'lockstep: no {what}, and no progress towards it for lockstep_timeout_s='
                                       f'{self.lockstep_timeout_s}')
 
+    def _await_decision(self, executor: SingleThreadedExecutor, waiting_for: int, request: bytes) -> None:
+        """Hold for the decision; re-send the request (same id) each time the wait times out, twice at most.
+
+        A partitioning node restarted by the supervisor (hung under load, say) lost the volatile request it
+        held; partitioning answers each request id once, so a repeat to a node that has it changes nothing.
+        """
+        for attempt in range(3):
+            if attempt:
+                self.get_logger().warning(f'lockstep: re-sending the islanding request ({attempt} of 2)')
+                self.pubs[topics.ISLANDING_REQUEST].publish(request)
+            self._hold(executor, 'decision', lambda: self.decisions >= waiting_for)
+            if self.decisions >= waiting_for:
+                return
+
     @staticmethod
     def _frame_stamp_ns(raw: bytes, t_ns: int) -> int:
         # CDR: 4-byte encapsulation header, then header.stamp (int32 sec, uint32 nanosec), little endian.
@@ -205,6 +220,7 @@ class BagPlayerNode(Node):
         last_frame_ns = -1
         frozen_at_ns = None  # lockstep: bag time stays here from a request until its decision is handled
         waiting_for = 0
+        pending_request = b''
         for n, (topic, t_ns, raw) in enumerate(self.messages):
             if not self.afap:
                 self._spin_until(executor, start + (t_ns - t0_ns) * 1e-9 / self.rate)
@@ -212,7 +228,7 @@ class BagPlayerNode(Node):
             if frozen_at_ns is not None and t_ns > frozen_at_ns + self.lockstep_lead_ns:
                 # Nodes refuse stamps far ahead of their clock: data may run ahead of the frozen clock by
                 # lockstep_lead_s, not more, so wait for the decision before going further.
-                self._hold(executor, 'decision', lambda w=waiting_for: self.decisions >= w)
+                self._await_decision(executor, waiting_for, pending_request)
             if self.lockstep and request and last_frame_ns >= 0:
                 # A loaded machine can make either stage take longer than any fixed time while it still moves on;
                 # the wait ends early only when the stage stops moving (a dead or hung node).
@@ -237,11 +253,11 @@ class BagPlayerNode(Node):
             if self.lockstep and request:
                 # Data keeps flowing in bag order (late frames arrive after the request, as in real time),
                 # but /clock stops until the decision is out and handled, so nobody sees it as stale.
-                frozen_at_ns, waiting_for = t_ns, self.decisions + 1
+                frozen_at_ns, waiting_for, pending_request = t_ns, self.decisions + 1, raw
             if self.afap and n % 20 == 0:
                 executor.spin_once(timeout_sec=0.0)
         if frozen_at_ns is not None:
-            self._hold(executor, 'decision', lambda: self.decisions >= waiting_for)
+            self._await_decision(executor, waiting_for, pending_request)
             self._spin_until(executor, time.monotonic() + self.lockstep_settle_s)
         wall_s = time.monotonic() - start
         bag_s = (self.messages[-1][1] - t0_ns) * 1e-9
