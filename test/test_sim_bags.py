@@ -116,6 +116,10 @@ def test_bag_follows_its_scenario(name: str) -> None:
     assert data.request_t_s.tolist() == pytest.approx([scenario.request_s])
     assert data.grid.has_flows and sum(g.p_mw for g in data.grid.generators) > sum(ld.p_mw for ld in data.grid.loads)
     assert np.isfinite([g.xq_pu for g in data.grid.generators]).all()
+    # Every machine's dynamic data ride in the snapshot, enough for pmu_ingestion's filter (estimator dse).
+    from controlled_islanding.core.dse import MachineData
+
+    assert set(MachineData.of_generators(data.grid.generators).richest_model()) <= {'classical', 'genrou'}
     assert list(data.truth_generator_names) == [g.name for g in data.grid.generators]
 
     delay = data.frame_delivery_s - data.frame_t_s
