@@ -306,7 +306,10 @@ class GridRun:
             before = self._components()
             for idx in rows:
                 self.ss.Line.set_status(idx, 0)
-            self.ss.TDS.custom_event = True  # rebuild connectivity and the Jacobian after this step
+            self.ss.TDS.custom_event = True  # rebuild the Jacobian
+            # ANDES checks connectivity only after the step; a bus left with no branch must be known to this
+            # step's solve, or its equations are singular (IEEE 14: bus 1 cut off with G1 stopped the solver).
+            self.ss.conn.check_connectivity(info=False)
             self._warm_start(before)
 
         self._pending.append((float(at_s), action, do))
@@ -339,7 +342,8 @@ class GridRun:
         The numbers are the simulation's own at t = 0 (the pre-fault power flow): each machine's electrical
         output and the island's load, less shed_mw (MW) shed at the same time. A machine on a bus ANDES has left
         with no in-service branch is already off the network; its rejection (the turbine trip) is recorded but
-        not switched in ANDES, whose solver does not converge when a machine on such a bus is switched off.
+        not switched in ANDES, whose solver does not converge when a machine on such a bus is switched off. An
+        island whose every machine is rejected is de-energised: its inner lines open, leaving such buses.
         """
         bus_set = {int(b) for b in buses}
         action = Applied(what=why, scheduled_s=float(at_s), detail={'machines': [], 'output_mw': {}})
@@ -356,6 +360,16 @@ class GridRun:
             action.detail.update(machines=list(trip), output_mw={n: machine_mw[n] for n in trip},
                                  island_generation_mw=sum(machine_mw.values()), island_load_mw=load_mw)
             isolated = {int(ss.Bus.idx.v[i]) for i in ss.Bus.islanded_buses}
+            if trip and len(trip) == len(machine_mw):
+                # No load left to serve and every machine goes: the island is de-energised. ANDES cannot solve an
+                # island with lines but no source (measured: IEEE 39 G3 multitrip stopped at the trip), so its
+                # lines are opened, which leaves every bus with no branch for ANDES to zero.
+                for k in range(ss.Line.n):
+                    if ss.Line.ue.v[k] and {int(ss.Line.bus1.v[k]), int(ss.Line.bus2.v[k])} <= bus_set:
+                        ss.Line.set_status(ss.Line.idx.v[k], 0)
+                        ss.TDS.custom_event = True
+                ss.conn.check_connectivity(info=False)
+                isolated |= bus_set
             for model in self._syn:
                 names = [str(n) for n in model.name.v]
                 for name in trip:
