@@ -563,3 +563,9 @@ def make_rule(rule):
     if not callable(getattr(rule, 'choose', None)):
         raise KRuleError(f'a k rule needs a choose(evidence) method, got {rule!r}')
     return rule
+
+
+# Compile (or load from numba's cache) the kernels now, at import: the coherency node imports this at start-up, so
+# that its first request does not pay for it, and tools/setup.sh compiles them once for every later process.
+pair_runaway(np.zeros((2, 4)))
+pair_drift_rad(np.zeros((2, 4)))

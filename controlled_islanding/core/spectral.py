@@ -622,3 +622,13 @@ def _join_group(lab: np.ndarray, owner: np.ndarray, adj: tuple[np.ndarray, np.nd
         while target >= 0:
             lab[target] = grp
             target = prev[target]
+
+
+# Compile (or load from numba's cache) the search kernels now, at import, with the types the repair and the
+# refinement pass (a 3-bus line): a node pays it at start-up, not at its first decision, and tools/setup.sh compiles
+# them once for every later process.
+_line = (np.array([0, 1, 3, 4], dtype=np.int64), np.array([1, 0, 2, 1], dtype=np.int64))
+_pieces_within(_line, np.ones(3, dtype=bool))
+_path_to_stranded(*_line, np.array([True, False, False]), np.array([0, -1, 0]), 0)
+_stays_connected(*_line, np.zeros(3, dtype=int), 1, np.zeros(3, dtype=np.int64), np.empty(3, dtype=np.int64), 1)
+del _line
