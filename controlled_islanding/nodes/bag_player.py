@@ -63,7 +63,7 @@ class BagPlayerNode(Node):
         self.declare_parameter('wait_for_subscriber_count', 1)
         self.declare_parameter('min_subscribers', [''])
         self.declare_parameter('lockstep_on_requests', True)
-        self.declare_parameter('lockstep_timeout_s', 10.0)
+        self.declare_parameter('lockstep_timeout_s', 20.0)
         self.declare_parameter('lockstep_settle_s', 0.1)
         self.declare_parameter('lockstep_lead_s', 0.5)
         self.declare_parameter('report_file', '')

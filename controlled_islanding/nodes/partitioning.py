@@ -37,8 +37,7 @@ from rclpy.node import Node
 
 from controlled_islanding import signing, topics
 from controlled_islanding.core.islanding import IslandingDecision as Decision
-from controlled_islanding.core.islanding import decide
-from controlled_islanding.core.spectral import ConstrainedSpectralPartition  # noqa: F401  imported now, not mid-request
+from controlled_islanding.core.islanding import decide, warm_up
 from controlled_islanding.messages import Groups, Limits, MessageError, grid_from_snapshot, groups_from_msg, stamp_s
 from controlled_islanding.node_common import (
     ClockGate,
@@ -135,6 +134,12 @@ class PartitioningNode(Node):
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         # Polls for the wait deadlines only while a request waits (no 100 Hz wake-ups when idle).
         self.pending_timer = self.create_timer(0.01, guard(self._serve_pending), clock=steady)
+        t0 = time.perf_counter()
+        try:
+            warm_up()  # before spinning: within the supervisor's start-up grace, not in a callback
+        except Exception as exc:  # noqa: BLE001  only loads the engine; a real request reports its own failure
+            self.get_logger().warning(f'engine warm-up failed ({exc}); the first decision will pay the loading')
+        self.diag.values['warm_up_ms'] = f'{(time.perf_counter() - t0) * 1e3:.1f}'
         self.get_logger().info(f'signing decisions with key {self.key_id}')
 
     def _now_s(self) -> float:
@@ -154,7 +159,7 @@ class PartitioningNode(Node):
             self.topology.offer_snapshot(grid, stamp, self._now_s())
             self.cache.clear()
             self.diag.values['buses'] = str(len(grid.buses))
-            self._warm_up(grid)
+            settle_heap()
             self._warm()
         elif kind == 'status':
             _, branch_id, in_service, stamp = item
@@ -269,20 +274,6 @@ class PartitioningNode(Node):
             while len(self.cache) > _KEEP_CACHED:
                 self.cache.popitem(last=False)
         return self.cache[key], time.perf_counter() - t0
-
-    def _warm_up(self, grid: object) -> None:
-        # The first split pays one-off costs (library set-up, caches) of about 1.5 s here: pay them now, on a
-        # trial split of the first generator from the rest, not on the first request.
-        if len(grid.generators) < 2:
-            return
-        trial = {g.name: int(i == 0) for i, g in enumerate(grid.generators)}
-        t0 = time.perf_counter()
-        try:
-            decide(grid, trial)
-        except Exception as exc:  # a trial split may be infeasible; it only warms caches
-            self.get_logger().info(f'warm-up split failed ({exc}); continuing')
-        self.diag.values['warm_up_ms'] = f'{(time.perf_counter() - t0) * 1e3:.1f}'
-        settle_heap()
 
     def _warm(self) -> None:
         if self.topology.snapshot is None or not self.groups or self.pending:
