@@ -428,8 +428,10 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
             'voltages of a large swing landed there. The solver now starts each new island from the pre-fault '
             "voltages turned with its machines' mean rotor-angle advance (GridRun._warm_start), and restarts a bus "
             "still left at 0 V next to a live one from that neighbour's voltage (listed as 'solver reseed' among "
-            "the actions); only the starting point changes, not the equations. ANDES still zeroes a bus left with "
-            'no in-service branch (an island of one bus). '
+            "the actions); only the starting point changes, not the equations. A bus left with no in-service "
+            "branch (an island of one bus) is outside ANDES' network equations: its voltage, and the machine on "
+            'it, are not physical (IEEE 14: G1 alone on bus 1 shows -60 pu and 173 Hz), and such an island is '
+            'lost by definition once its machine is rejected. '
             "Per-island figures are in each scenario's result.json in the results folder.",
             "- The lockstep opening time is request + the graph's wall latency + the breaker time, so it varies "
             'by tens of ms between runs; outcomes that change across the g6g7 variants with the same physics show '
