@@ -70,16 +70,10 @@ KNOWN_WRONG = {
                                      'synchronous: nothing can find the final groups yet; they are found 0.3 s later '
                                      '(docs/coherency_rules.md)',
 }
-# Not run: at 2224 buses and 394 machines coherency and partitioning block their executors longer than the
-# supervisor's hang limit, and are restarted until the replay times out (issue 12, scale).
-TOO_LARGE = {'gbnetwork_bus73_unstable'}
 
 
 def _marked(entry: dict) -> object:
     name = entry['name']
-    if name in TOO_LARGE:
-        return pytest.param(entry, id=name, marks=pytest.mark.xfail(run=False, reason='issue 12: too large to '
-                                                                            'decide before the hang limit'))
     if name in KNOWN_WRONG:
         return pytest.param(entry, id=name, marks=pytest.mark.xfail(strict=True, reason=KNOWN_WRONG[name]))
     return pytest.param(entry, id=name)
