@@ -61,8 +61,9 @@ MAX_GAP_S = 0.25
 QUIET_MESSAGES = 100
 BIG_WAIT_S = 20.0
 # A pacer that neither takes nor counts as lost what was sent for this long (s) has dropped it uncounted (a
-# loss is counted only when the writer's next sample arrives); those messages are written off so that pacing never waits on them again. After a
-# message at the caps the allowance is BIG_STALL_S: decoding one shows no progress until it is done.
+# loss is counted only when the writer's next sample arrives); those messages are written off so that pacing
+# never waits on them again. After a message at the caps the allowance is BIG_STALL_S: decoding one shows no
+# progress until it is done.
 STALL_S = 0.5
 BIG_STALL_S = 5.0
 # The fuzz runs on a sim clock this far (s) before the bag's first message, so nothing the fuzz leaves
