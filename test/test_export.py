@@ -43,15 +43,20 @@ def islands_of(grid: Grid) -> set[frozenset[int]]:
     return {frozenset(b for b, lab in zip(grid.buses, labels, strict=True) if lab == k) for k in set(labels)}
 
 
-# Strict: the exported EI_33 case does not converge in PYPOWER even with nothing cut (its generator table sums to
-# 605,555 MW against 365,264 MW of load), so the export of that case is at fault, not the cut; not yet diagnosed.
-EXPORT_DOES_NOT_SOLVE = {'ei33_bus101048_pair_unstable'}
+# Strict: these exported cases do not converge in PYPOWER even with nothing cut, so the export of the case is at
+# fault, not the cut; not yet diagnosed. Nordic 44 had no expected split before this session's eq. 8 fallback.
+EXPORT_DOES_NOT_SOLVE = {
+    'ei33_bus101048_pair_unstable': 'the uncut EI_33 export does not converge in PYPOWER either (its generator '
+                                    'table sums to 605,555 MW against 365,264 MW of load)',
+    'nordic44_bus6000_three_groups': 'the uncut Nordic 44 export does not converge in PYPOWER either (its '
+                                     'generator table sums to 38,490 MW against 14,890 MW of load)',
+}
 
 
 def _export_marked(entry: dict) -> object:
     if entry['name'] in EXPORT_DOES_NOT_SOLVE:
         return pytest.param(entry, id=entry['name'], marks=pytest.mark.xfail(
-            strict=True, reason='the uncut EI_33 export does not converge in PYPOWER either'))
+            strict=True, reason=EXPORT_DOES_NOT_SOLVE[entry['name']]))
     return pytest.param(entry, id=entry['name'])
 
 
