@@ -89,7 +89,6 @@ ROTOR_ANGLE_OFF = {
     for p in _clean_bags()])
 def test_error_against_simulator_truth_before_the_fault(path: Path) -> None:
     from controlled_islanding.bagdata import load_bag
-
     from controlled_islanding.sim.scenario import load_scenario
 
     bag = load_bag(path)
