@@ -49,7 +49,7 @@ RECORDER = NodeSpec('recorder', 'recorder.yaml')
 # The pipeline nodes have no end of their own, so any exit is a failure; the player and the recorder end
 # normally when the bag does, and are never restarted.
 # A node loads its engines (imports, numba kernels, a first decision on a made-up grid) before its first
-# heartbeat: 10-21 s measured for partitioning at load average 7-12 on the 2-core machine, hence 60 s of grace.
+# heartbeat: 14-16 s measured for partitioning at load average 12 on the 2-core machine, hence 60 s of grace.
 # After it, a 2224-bus decision takes 1.1-1.3 s in one callback there, and a false kill loses the requests a node
 # holds, hence 10 s: a node truly hung is still found well within a replay's lockstep waits.
 PIPELINE_POLICY = RestartPolicy(nodes=frozenset(spec.executable for spec in GRAPH), hang_timeout_s=10.0,
