@@ -274,11 +274,13 @@ class PartitioningNode(Node):
         stamped further ahead could otherwise be served before the honest one arrives. The tolerance is two-sided
         because coherency answers a request with groups it already holds when they end within its own
         sample_tolerance_s of the stamp, which can be just after it. With `since` (when the request came,
-        time.monotonic()), a grouping further than groups_exact_s from t_s counts only if it came after then.
+        time.monotonic()), a grouping further than groups_exact_s before t_s counts only if it came after then
+        (coherency's answer to the request), and one further than groups_exact_s after t_s not at all: a grouping
+        stamped ahead that arrives first must not win over the honest one held.
         """
         return next((g for g in self.groups if abs(g.stamp_s - t_s) <= self.tolerance_s and (
-            since is None or abs(g.stamp_s - t_s) <= self.exact_s or self.groups_arrived.get(g.stamp_s, 0.0) > since
-        )), None)
+            since is None or (g.stamp_s - t_s <= self.exact_s and (
+                t_s - g.stamp_s <= self.exact_s or self.groups_arrived.get(g.stamp_s, 0.0) > since)))), None)
 
     def _decide(self, groups: Groups, t_s: float) -> tuple[Decision, float]:
         grid, out = self.topology.grid_at(t_s)
