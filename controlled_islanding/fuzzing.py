@@ -26,6 +26,8 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from controlled_islanding import topics
+from controlled_islanding.core.grid import DYNAMIC_FIELDS
+from controlled_islanding.messages import MAX_MODEL_NAME
 
 # Nodes under test and the input topics each one subscribes to.
 RECEIVERS: dict[str, tuple[str, ...]] = {
@@ -413,6 +415,8 @@ class Adversary:
             ms[i].voltage_magnitude_pu = -abs(ms[i].voltage_magnitude_pu) - 1.0
             ms[i].frequency_hz = -60.0
             ms[i].current_angle_rad = rng.choice([-1e300, 1e300])
+        elif kind == 'machine_data':
+            self._bad_machine_data(msg)
         elif kind == 'unknown_bus':
             ms[i].bus = rng.choice([0, 999_999, 2**32 - 1])
         elif kind == 'duplicate_station':
@@ -441,7 +445,7 @@ class Adversary:
         kind = self._choose([('nan_value', 10), ('negative_reactance', 6), ('bad_base', 4), ('array_length', 10),
                              ('breaker_ids_length', 4), ('empty', 5), ('duplicate_bus', 6), ('duplicate_branch', 6),
                              ('unknown_bus', 8), ('zero_stamp', 8), ('future_stamp', 10), ('past_stamp', 8),
-                             ('over_cap', 0.3), ('at_cap_nan', 0.3)])
+                             ('machine_data', 8), ('over_cap', 0.3), ('at_cap_nan', 0.3)])
         key = f'snapshot:{kind}'
         if kind in ('over_cap', 'at_cap_nan'):
             if key not in self._big:
@@ -493,12 +497,36 @@ class Adversary:
             ids = list(msg.branch_ids)
             ids[rng.randrange(1, len(ids))] = ids[0]
             msg.branch_ids = ids
+        elif kind == 'machine_data':
+            self._bad_machine_data(msg)
         elif kind == 'unknown_bus':
             name = rng.choice(['branch_from_bus', 'branch_to_bus', 'generator_bus', 'load_bus'])
             values = list(getattr(msg, name))
             values[rng.randrange(len(values))] = rng.choice([0, 999_999, 2**32 - 1])
             setattr(msg, name, values)
         return kind, msg
+
+    def _bad_machine_data(self, msg: object) -> None:
+        """Spoil the optional machine dynamic data the decoder must still reject (NaN alone means unknown)."""
+        rng = self.rng
+        n = len(msg.generator_names)
+        field = rng.choice([f'generator_{name}' for name in DYNAMIC_FIELDS] + ['generator_model'])
+        if field == 'generator_model':
+            models = list(msg.generator_model) or [''] * n
+            if rng.random() < 0.5:
+                models[rng.randrange(n)] = 'X' * (MAX_MODEL_NAME + 1 + rng.randrange(1000))
+            else:
+                models = models[:-1] if n > 1 and rng.random() < 0.5 else models + models[:1]
+            msg.generator_model = models
+            return
+        values = list(getattr(msg, field)) or [float('nan')] * n
+        how = rng.choice(['inf', 'negative', 'length'])
+        if how == 'length':
+            values = values[:-1] if n > 1 and rng.random() < 0.5 else values + values[:1]
+        else:
+            values[rng.randrange(n)] = (rng.choice([float('inf'), float('-inf')]) if how == 'inf'
+                                        else -rng.uniform(1e-9, 1e6))
+        setattr(msg, field, values)
 
     # -- /network/branch_status
     def branch_status(self) -> tuple[str, object]:

@@ -18,6 +18,7 @@ from nodes_harness import graph
 
 from controlled_islanding import fuzzing, topics
 from controlled_islanding.commands.demo import default_bag
+from controlled_islanding.messages import MessageError, grid_from_snapshot
 from controlled_islanding.supervisor import GRAPH
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
@@ -121,6 +122,23 @@ def test_the_adversary_is_seeded_and_never_signs_with_a_trusted_key() -> None:
         fresh = seeds.bag_start_s - 5.0 < stamp_s <= seeds.bag_start_s + 1.0
         well_formed = 0 < len(msg.request_id) <= 128 and msg.header.stamp.sec > 0
         assert not (fresh and well_formed), kind
+
+
+def test_every_fresh_defective_snapshot_is_refused_by_the_decoder() -> None:
+    # A snapshot the decoder accepted with a fresh stamp would legitimately replace the network the nodes hold.
+    entry = default_bag()
+    seeds = fuzzing.load_seeds(REPO / 'bags' / entry['bag'], entry)
+    assert len(seeds.snapshot.generator_m_s) == len(seeds.snapshot.generator_names), 'the bag has no machine data'
+    adversary = fuzzing.Adversary(seeds, 11, lambda: seeds.bag_start_s)
+    seen = set()
+    for _ in range(400):
+        kind, msg = adversary.make(topics.NETWORK_SNAPSHOT)
+        seen.add(kind)
+        if kind in ('zero_stamp', 'future_stamp', 'past_stamp'):
+            continue
+        with pytest.raises(MessageError):
+            grid_from_snapshot(msg)
+    assert 'machine_data' in seen
 
 
 def test_the_gap_to_keep_last_readers_comes_back_down_after_losses() -> None:
