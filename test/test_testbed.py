@@ -54,6 +54,29 @@ def test_assess_separates_a_pole_slip_from_a_swing_and_judges_each_island_alone(
     assert any('voltage' in w for w in swing[0].why_not)
 
 
+def test_frequency_band_is_per_unit_of_the_case_nominal_frequency_on_a_50_and_a_60_hz_case():
+    """Nordic 44 is a 50 Hz case, PJM 5-bus a 60 Hz one: the band scales with the nominal each case gives."""
+    from controlled_islanding.sim.andes_sim import _load_case
+    from controlled_islanding.sim.scenario import load_scenario
+
+    config = LoopConfig()
+    t = np.linspace(0.0, 3.0, 301)
+    names, gen_buses, buses = ('G1', 'G2'), (1, 2), (1, 2)
+    for name, nominal, band in (('nordic44_bus6000_three_groups', 50.0, (48.17, 51.5)),
+                                ('pjm5bus_three_groups', 60.0, (57.8, 61.8))):
+        f0 = float(_load_case(load_scenario(REPO / 'bags' / f'{name}.yaml')).config.freq)  # GridRun's own
+        assert f0 == nominal, name
+        assert config.frequency_band_hz(f0) == pytest.approx(band, abs=0.005)
+        verdicts = {}
+        for speed_pu in (1.0, 0.97, 1.025, 0.96, 1.032):  # in, in, in, below, above
+            omega = np.full((t.size, 2), speed_pu)
+            (isl,) = assess(t, np.zeros((t.size, 2)), omega, np.ones((t.size, 2)), names, gen_buses, buses, None,
+                            1.0, config, f0, {0: 100.0}, {})
+            verdicts[speed_pu] = isl.survived
+            assert isl.f_peak_hz == pytest.approx(speed_pu * f0)
+        assert verdicts == {1.0: True, 0.97: True, 1.025: True, 0.96: False, 1.032: False}, name
+
+
 def test_generation_rejection_trips_the_largest_machines_that_fit_in_the_surplus_on_several_grids():
     """Pre-fault dispatches of the bundled ANDES cases, islands as our decisions cut them."""
     # IEEE 39, G6 and G7 cut off with buses 22 to 24: 1267 MW for 556 MW; G6 alone leaves 24 MW (< 5 %).

@@ -24,8 +24,8 @@ PMU frames, trips and the scenario's islanding request, executes the breaker com
 simulation (breaker operating time, then the decision's load shed in islands short of generation and
 generation rejection in islands with a surplus), keeps
 simulating, and judges every island (docs/testbed.md and controlled_islanding/sim/closed_loop.py give the
-rules: machines within pi rad of each other, frequency 57.8..61.8 Hz, voltage 0.8..1.2 pu, no machine
-tripped).
+rules: machines within pi rad of each other, frequency within 0.9633..1.03 pu of the case's nominal frequency
+(57.8..61.8 Hz at 60 Hz, 48.17..51.5 Hz at 50 Hz), voltage 0.8..1.2 pu, no machine tripped).
 
 Then the same scenario runs twice more in-process, with no graph: with no action, and with the exact MILP cut
 (core/milp.py, the same generator groups as the decision) opened at the same time as the graph's cut, with its
@@ -402,7 +402,9 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
            'decision commanded by breaker_command and executed in the running simulation), `no action` the same '
            'scenario untouched, `milp` the exact minimum-disruption cut for the same generator groups opened at '
            'the same time. Rules (controlled_islanding/sim/closed_loop.py): an island survives when its machines '
-           'stay within pi rad of each other (relative to the cut), its frequency within 57.8..61.8 Hz, its bus '
+           "stay within pi rad of each other (relative to the cut), its frequency within 0.9633..1.03 pu of the "
+           "case's nominal frequency (57.8..61.8 Hz at 60 Hz, 48.17..51.5 Hz at 50 Hz: NERC PRC-024's limits, per "
+           'unit), its bus '
            'voltages within 0.8..1.2 pu from 0.5 s after the cut, and no machine trips. Load lost = load shed + '
            "the load of every island that did not survive. Generation tripped: in every island whose machines' "
            'pre-fault output exceeds its load after the shed by more than 5 % of that load, machines are tripped at '
@@ -421,7 +423,7 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
     out += ['', 'Reading the table:',
             '- An island with a surplus no machine fits in (each is larger than the surplus) keeps it: tripping one '
             'would leave a deficit nobody sheds. No overspeed protection is modelled, so such an island can speed '
-            'up past 61.8 Hz and count as lost.',
+            "up past the band's top (61.8 Hz at 60 Hz) and count as lost.",
             '- "V min" is ANDES\' voltage variable. Zero or negative voltages in islands right after an opening '
             'were a solver artefact, not a collapse: ANDES solves the network in polar power-balance form, where '
             'V = 0 (or V < 0 with the angle off by pi) satisfies a bus trivially, and Newton started from the '

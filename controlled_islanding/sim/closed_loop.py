@@ -34,9 +34,13 @@ the cut would have been made) to the end of the run:
 - coherent: every pair of the island's machines stays within `coherence_bound_rad` (default pi rad) of where
   they were relative to each other at the cut, |(d_p(t) - d_p(t0)) - (d_q(t) - d_q(t0))| <= pi. Pi is the
   pole-slip scale, physics, not a tuned number: past it the pair's synchronising torque reverses.
-- frequency nadir and peak: the lowest and highest machine speed of the island times the nominal frequency,
-  Hz, over the window. Within [f_min_hz, f_max_hz] (default 57.8 .. 61.8 Hz, about where generators'
-  off-frequency protection trips at once in North American practice, NERC PRC-024) counts as held.
+- frequency nadir and peak: the lowest and highest machine speed of the island times the nominal frequency
+  f0 (the case's own, ANDES `config.freq`: 50 Hz for Nordic 44, 60 Hz for the others), Hz, over the window.
+  Within [f_min_pu, f_max_pu] x f0 counts as held. The band is per unit of nominal so that it means the same
+  on a 50 Hz and a 60 Hz grid: the defaults 0.9633 .. 1.03 pu are NERC PRC-024's limits beyond which
+  generators' off-frequency protection may trip at once, 57.8 .. 61.8 Hz at 60 Hz (-3.67 %, +3 %); at 50 Hz
+  they are 48.17 .. 51.5 Hz, whose top is the 51.5 Hz up to which ENTSO-E's Requirements for Generators
+  (EU 2016/631) keep machines connected (its bottom, 47.5 Hz, is wider than ours).
 - voltage: the lowest and highest bus voltage magnitude of the island, pu; judged from `voltage_settle_s`
   after the cut (the cut itself is a switching transient), within [v_min_pu, v_max_pu] (default 0.8 .. 1.2 pu).
 - machines tripped: synchronous machines whose status went to 0 during the run other than by rejection (by a
@@ -81,7 +85,8 @@ class LoopConfig:
         shed_delay_s: From the opening to the load shed, s.
         run_after_s: The run lasts at least this long after the islanding request, s (and at least end_s).
         coherence_bound_rad: Largest change of a machine pair's angle difference within an island, rad.
-        f_min_hz, f_max_hz: Frequency band an island must stay in, Hz.
+        f_min_pu, f_max_pu: Frequency band an island must stay in, pu of the case's nominal frequency
+            (frequency_band_hz).
         v_min_pu, v_max_pu: Voltage band every bus must stay in once settled, pu.
         voltage_settle_s: Voltage is judged from this long after the cut, s.
         rejection_margin: Generation surplus an island keeps without tripping machines, as a fraction of its
@@ -93,12 +98,16 @@ class LoopConfig:
     shed_delay_s: float = 0.2
     run_after_s: float = 3.0
     coherence_bound_rad: float = math.pi
-    f_min_hz: float = 57.8
-    f_max_hz: float = 61.8
+    f_min_pu: float = 57.8 / 60.0
+    f_max_pu: float = 61.8 / 60.0
     v_min_pu: float = 0.8
     v_max_pu: float = 1.2
     voltage_settle_s: float = 0.5
     rejection_margin: float = 0.05
+
+    def frequency_band_hz(self, f0_hz: float) -> tuple[float, float]:
+        """Return the frequency band, Hz, of a grid whose nominal frequency is f0_hz (Hz)."""
+        return self.f_min_pu * f0_hz, self.f_max_pu * f0_hz
 
 
 @dataclass(frozen=True)
@@ -644,6 +653,7 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
     if not settled.any():
         settled = window
     rejected = rejected or {}
+    band_lo, band_hi = config.frequency_band_hz(f0_hz)
     delta_rad = np.array(delta_rad, dtype=float)
     omega_pu = np.array(omega_pu, dtype=float)
     for j, name in enumerate(generator_names):
@@ -676,8 +686,8 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
         coherent = swing <= config.coherence_bound_rad
         if not coherent:
             why.append(f'machines {swing:.2f} rad apart (> {config.coherence_bound_rad:.2f})')
-        if cols and not (config.f_min_hz <= f_lo and f_hi <= config.f_max_hz):
-            why.append(f'frequency {f_lo:.2f}..{f_hi:.2f} Hz outside {config.f_min_hz}..{config.f_max_hz}')
+        if cols and not (band_lo <= f_lo and f_hi <= band_hi):
+            why.append(f'frequency {f_lo:.2f}..{f_hi:.2f} Hz outside {band_lo:.2f}..{band_hi:.2f}')
         if not (config.v_min_pu <= v_lo and v_hi <= config.v_max_pu):
             why.append(f'voltage {v_lo:.3f}..{v_hi:.3f} pu outside {config.v_min_pu}..{config.v_max_pu}')
         gone = tuple(n for n in tripped if n in names)
