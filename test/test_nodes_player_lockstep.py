@@ -108,3 +108,42 @@ def test_request_waits_for_groups_up_to_the_newest_frame_while_clock_keeps_comin
     held = [ns for t, ns in clocks if seen['newest_frame'] + 0.2 <= t <= seen['groups']]
     assert len(held) >= 5, f'{len(held)} /clock messages in {HOLD_S - 0.2:.1f} s of lockstep wait'
     assert set(held) == {held[0]} and held[0] <= frame_ns(REQUEST_AT - 1)
+
+
+def test_a_request_lost_by_a_restarted_partitioning_is_sent_again_with_the_same_id():
+    run = BUILD / 'test_nodes' / f'resend_{uuid.uuid4().hex}'
+    run.mkdir(parents=True)
+    bag = run / 'in_bag'
+    write_bag(bag)
+    with graph('test_nodes_player_resend', []) as (sup, probe):
+        node = probe.node
+        angles_pub = node.create_publisher(RotorAngles, topics.ROTOR_ANGLES, qos_for(topics.ROTOR_ANGLES))
+        groups_pub = node.create_publisher(CoherentGroups, topics.COHERENT_GROUPS, qos_for(topics.COHERENT_GROUPS))
+        decision_pub = node.create_publisher(IslandingDecision, topics.ISLANDING_DECISION,
+                                             qos_for(topics.ISLANDING_DECISION))
+        requests: list[str] = []
+
+        def on_frame(frame: PmuFrame) -> None:
+            angles_pub.publish(RotorAngles(header=frame.header, generator_names=['G1', 'G2'],
+                                           generator_buses=[1, 2], angle_rad=[0.0, 0.0], valid=[True, True]))
+            groups = CoherentGroups(generator_names=['G1', 'G2'], group=[0, 1], k=2, method='dtw')
+            groups.header.stamp.sec, groups.header.stamp.nanosec = split_stamp(stamp_s(frame.header.stamp))
+            groups_pub.publish(groups)
+
+        def on_request(msg: IslandingRequest) -> None:
+            requests.append(msg.request_id)
+            if len(requests) >= 2:  # the first one died with the node that held it
+                decision_pub.publish(IslandingDecision(request_id=msg.request_id, request_stamp=msg.header.stamp,
+                                                       status=IslandingDecision.STATUS_NO_SPLIT))
+
+        node.create_subscription(PmuFrame, topics.PMU_FRAMES, on_frame, qos_for(topics.PMU_FRAMES))
+        node.create_subscription(IslandingRequest, topics.ISLANDING_REQUEST, on_request,
+                                 qos_for(topics.ISLANDING_REQUEST))
+        node.create_subscription(Clock, topics.CLOCK, lambda m: None, qos_for(topics.CLOCK))  # so play starts at once
+        player = sup.start(PLAYER, {'bag': bag, 'as_fast_as_possible': True, 'report_file': run / 'report.json',
+                                    'lockstep_timeout_s': 2.0, 'clock_min_step_s': 0.05})
+        assert probe.spin_until(lambda: player.poll() is not None, 30.0), 'player did not finish'
+        assert player.returncode == 0, sup.log_tail('bag_player')
+        log = sup.log_tail('bag_player')
+    assert requests == ['req-1', 'req-1'], (requests, log)
+    assert 're-sending the islanding request (1 of 2)' in log and '(2 of 2)' not in log, log
