@@ -51,6 +51,16 @@ the bag), DTW coherency with --k-rule is run on windows ending every --lead-step
 the end of the bag; the earliest request time whose groups are the final (true) groups is reported against the
 first pole slip: lead = slip - found, >= 0 means found before the slip.
 
+--closed-loop adds a column: each row's cut opened in ANDES on the scenario the bag was simulated from
+(bags/index.yaml names it), breaker_operating_s (0.05 s) after the request, with the row's load to shed and
+generation rejection 0.2 s later, judged per island as the testbed judges it (sim/closed_loop.py: machines
+within pi rad, frequency within 0.9633..1.03 pu of nominal, voltage 0.8..1.2 pu, no machine tripped); it shows
+islands survived / formed, and the first reason an island was lost. Every row's cut opens at the same time (its
+compute time is in its own column; the testbed charges the graph's latency), rows with the same cut share one
+run, and a row that does not split gets the no-action run. Not for the paper's MATPOWER cases (no dynamic data).
+It is off by default because each distinct cut is a time-domain run: a minute or two for IEEE 39, more for the
+large cases.
+
 --observability FILE.md instead drops PMUs (the largest machines kept first, and seeded random placements) at
 100/75/50/25 % coverage and scores each placement's decision against the truth and the MILP (docs/observability.md).
 
@@ -114,6 +124,7 @@ class MethodResult:
     coherency_time_s: float = 0.0
     optimum_mw: float | None = None
     note: str = ''
+    closed_loop: dict[str, Any] | None = None
 
     @property
     def gap_pct(self) -> float | None:
@@ -151,6 +162,7 @@ class CaseReport:
     k_rule: str = ''
     first_pole_slip_s: float | None = None
     detection: Detection | None = None
+    no_action: dict[str, Any] | None = None
 
 
 def add_arguments(parser) -> None:
@@ -187,6 +199,10 @@ def add_arguments(parser) -> None:
                         help='with --k-rules: also simulate this scenario in ANDES and compare on its rotor angles')
     parser.add_argument('--time-limit-s', type=float, default=60.0,
                         help='MILP time limit per solve, s (default: 60)')
+    parser.add_argument('--closed-loop', action='store_true',
+                        help="also run each row's cut in ANDES on the bag's scenario and judge every island "
+                             '(sim/closed_loop.py, as the testbed does): the closed-loop column; a minute or more of '
+                             'simulation per distinct cut')
     parser.add_argument('--report', type=Path, metavar='FILE.md',
                         help='also write a Markdown page with every table (for docs/evaluation.md)')
     parser.add_argument('--report-figures', action='append', metavar='CASE', default=None,
@@ -240,6 +256,12 @@ def run(args) -> int:
                                       k_rule=args.k_rule, lead_step_s=args.lead_step_s))
         except EvaluateError as exc:
             raise CliError(f'{bag.path}: {exc}') from exc
+        if args.closed_loop:
+            entry = _manifest_entry(bag) or {}
+            if not entry.get('scenario'):
+                raise CliError(f'{bag.path}: --closed-loop needs the scenario the bag came from, and the '
+                               f'bags/index.yaml beside it names none')
+            closed_loop_outcomes(cases[-1], bag.path.parent / entry['scenario'])
     for case in cases:
         _progress(f'{case.name}: figures')
         case.figures.update(write_figures(case, args.out / case.name, bag=next(
@@ -257,7 +279,7 @@ def run(args) -> int:
         if unknown:
             raise CliError(f'--report-figures names cases that were not evaluated: {unknown}')
         command = ' '.join(['controlled-islanding evaluate', *(['--paper-cases'] if args.paper_cases else []),
-                            *args.bags, '--report', str(args.report),
+                            *(['--closed-loop'] if args.closed_loop else []), *args.bags, '--report', str(args.report),
                             *(f'--report-figures {c}' for c in args.report_figures or [])])
         write_report(cases, args.report, figures_for=shown, command=command)
         print(f'report: {args.report}', file=sys.stderr)
@@ -328,6 +350,68 @@ def _manifest_entry(bag) -> dict | None:
 
 def _progress(text: str) -> None:
     print(f'evaluate: {text}', file=sys.stderr, flush=True)
+
+
+def closed_loop_outcomes(case: CaseReport, scenario_path: Path, config: Any = None) -> None:
+    """Run every row's cut of a bag's case in ANDES and judge its islands; fill row.closed_loop and case.no_action.
+
+    The cut opens config.breaker_operating_s after the scenario's request for every row alike; rows with the same
+    cut share one run, and a row that does not split is the no-action run (see DESCRIPTION, --closed-loop).
+
+    Args:
+        case: A bag's case, its rows decided.
+        scenario_path: The scenario YAML the bag was simulated from.
+        config: A sim.closed_loop.LoopConfig (default: its defaults, the testbed's).
+
+    Raises:
+        CliError: The scenario cannot be read or simulated.
+
+    """
+    from controlled_islanding.sim.closed_loop import ClosedLoopError, LoopConfig, run_offline
+    from controlled_islanding.sim.scenario import ScenarioError, load_scenario
+
+    config = config or LoopConfig()
+    try:
+        scenario = load_scenario(scenario_path)
+    except ScenarioError as exc:
+        raise CliError(str(exc)) from exc
+    opened_s = scenario.request_s + config.breaker_operating_s
+    runs: dict[tuple[str, ...], dict[str, Any]] = {}
+
+    def outcome(decision: IslandingDecision | None) -> dict[str, Any]:
+        cut = tuple(sorted(decision.cut_branch_ids)) if decision is not None and decision.split else ()
+        if cut not in runs:
+            _progress(f'{case.name}: closed loop, cut {", ".join(cut) or "none"} (ANDES)')
+            try:
+                if cut:
+                    run = run_offline(scenario, 'cut', cut_branch_ids=cut, bus_island=decision.bus_island,
+                                      island_shed_mw=list(decision.island_shed_mw), opened_s=opened_s, config=config)
+                else:
+                    run = run_offline(scenario, 'no action', judged_from_s=opened_s, config=config)
+            except (ClosedLoopError, ScenarioError, RuntimeError) as exc:
+                raise CliError(f'{scenario_path}: closed loop: {exc}') from exc
+            summary = run.summary()
+            runs[cut] = {k: summary[k] for k in ('opened_s', 'judged_from_s', 'all_survived', 'load_lost_mw',
+                                                 'shed_mw', 'rejected_mw', 'f_nadir_hz', 'f_peak_hz', 'v_min_pu')}
+            runs[cut]['islands'] = [{k: i[k] for k in ('island', 'generators', 'survived', 'why_not',
+                                                       'max_pair_swing_rad', 'f_nadir_hz', 'f_peak_hz', 'v_min_pu',
+                                                       'v_max_pu', 'rejected')} for i in summary['islands']]
+        return runs[cut]
+
+    case.no_action = outcome(None)
+    for row in case.rows:
+        if row.decision is not None:
+            row.closed_loop = outcome(row.decision)
+
+
+def closed_loop_text(result: dict[str, Any] | None) -> str:
+    """Return a closed-loop outcome as a table cell: islands survived / formed, and the first reason one was lost."""
+    if result is None:
+        return '-'
+    islands = result['islands']
+    ok = sum(1 for i in islands if i['survived'])
+    why = next((f'island {i["island"]}: {i["why_not"][0]}' for i in islands if i['why_not']), '')
+    return f'{ok}/{len(islands)}' + (f' ({why})' if why else '')
 
 
 def _groups_from_lists(lists: Sequence[Sequence[str]]) -> dict[str, int]:
@@ -590,24 +674,36 @@ TABLE_COLUMNS = ('method', 'lines cut', 'islands formed', 'load/generation imbal
                  'power flow disrupted (MW)', 'gap to MILP optimum (%)', 'compute time (ms)')
 
 
+CLOSED_LOOP_COLUMN = 'closed loop: islands survived'
+
+
+def columns(case: CaseReport) -> tuple[str, ...]:
+    """Return the columns of a case's table: TABLE_COLUMNS, and the closed-loop column when it was run."""
+    return TABLE_COLUMNS + ((CLOSED_LOOP_COLUMN,) if case.no_action is not None else ())
+
+
 def table_rows(case: CaseReport) -> list[list[str]]:
-    """Return the table cells of a case, one list per method, in TABLE_COLUMNS order."""
+    """Return the table cells of a case, one list per method, in columns(case) order."""
     out = []
+    extra = case.no_action is not None
     for row in case.rows:
         d = row.decision
         if d is None:
-            out.append([row.method] + ['-'] * 6 + [_num(1e3 * row.compute_time_s, '.1f') if row.groups else '-'])
+            out.append([row.method] + ['-'] * 6 + [_num(1e3 * row.compute_time_s, '.1f') if row.groups else '-']
+                       + (['-'] if extra else []))
             continue
         out.append([row.method, str(len(d.cut_branches)), str(d.n_islands),
                     _num(float(np.abs(d.island_imbalance_mw).sum())), _num(float(sum(d.island_shed_mw))),
-                    _num(d.disrupted_mw), _num(row.gap_pct), _num(1e3 * row.compute_time_s, '.1f')])
+                    _num(d.disrupted_mw), _num(row.gap_pct), _num(1e3 * row.compute_time_s, '.1f')]
+                   + ([closed_loop_text(row.closed_loop)] if extra else []))
     return out
 
 
 def format_case(case: CaseReport) -> str:
     """Render a case as a Markdown table (readable in a terminal too), then its groups, cut lines and notes."""
-    cells = [list(TABLE_COLUMNS)] + table_rows(case)
-    widths = [max(len(r[i]) for r in cells) for i in range(len(TABLE_COLUMNS))]
+    cols = columns(case)
+    cells = [list(cols)] + table_rows(case)
+    widths = [max(len(r[i]) for r in cells) for i in range(len(cols))]
     lines = [f'### {case.name}', '', f'{case.source}', '']
     if case.truth_groups is not None:
         lines += [f'True coherent groups (final grouping): {_group_text(case.truth_groups)}', '']
@@ -624,6 +720,9 @@ def format_case(case: CaseReport) -> str:
         if n == 0:
             lines.append('|' + '|'.join('-' * (w + 1) + (':' if i else '-') for i, w in enumerate(widths)) + '|')
     lines.append('')
+    if case.no_action is not None:
+        lines += [f'Closed loop (--closed-loop): no action {closed_loop_text(case.no_action)}; each cut opened at '
+                  f'{case.no_action["judged_from_s"]:.3f} s (request + breaker time).', '']
     for row in case.rows:
         cut = ', '.join(row.decision.cut_branch_ids) if row.decision is not None else '-'
         detail = f'- {row.method}: groups {_group_text(row.groups)}'
@@ -641,7 +740,7 @@ def case_to_json(case: CaseReport) -> dict[str, Any]:
         d = row.decision
         rows.append({
             'method': row.method, 'groups': row.groups, 'note': row.note,
-            'compute_time_s': row.compute_time_s, 'optimum_mw': row.optimum_mw,
+            'compute_time_s': row.compute_time_s, 'optimum_mw': row.optimum_mw, 'closed_loop': row.closed_loop,
             'gap_pct': None if row.gap_pct is None or math.isinf(row.gap_pct) else row.gap_pct,
             'decision': None if d is None else {
                 'split': d.split, 'n_islands': d.n_islands, 'cut_branch_ids': list(d.cut_branch_ids),
@@ -654,7 +753,7 @@ def case_to_json(case: CaseReport) -> dict[str, Any]:
     det = case.detection
     return {'case': case.name, 'source': case.source, 'truth_groups': case.truth_groups, 'rows': rows,
             'figures': {k: str(v) for k, v in case.figures.items()}, 'k_rule': case.k_rule,
-            'first_pole_slip_s': case.first_pole_slip_s,
+            'first_pole_slip_s': case.first_pole_slip_s, 'no_action': case.no_action,
             'detection': None if det is None else {'found_s': det.found_s, 'kept_from_s': det.kept_from_s,
                                                    'lead_s': det.lead_s}}
 
