@@ -181,7 +181,7 @@ class Supervisor:
         self.watchdog = Watchdog(policy) if policy is not None else None
         self.restarts: list[RestartRecord] = []
         self.hangs: list[HangRecord] = []
-        self._launch: dict[str, tuple[NodeSpec, dict[str, object], str]] = {}
+        self._launch: dict[str, tuple[NodeSpec, dict[str, object], str, list[str]]] = {}
         self._t0_s = time.monotonic()
 
     def __enter__(self) -> Supervisor:
@@ -191,7 +191,7 @@ class Supervisor:
         self.stop_all()
 
     def start(self, spec: NodeSpec, overrides: Mapping[str, object] | None = None, name: str | None = None,
-              namespace: str | None = None) -> subprocess.Popen:
+              namespace: str | None = None, prefix: Sequence[str] = ()) -> subprocess.Popen:
         """Start one executable as its own process (own session, so a terminal Ctrl-C reaches only us).
 
         Args:
@@ -199,6 +199,8 @@ class Supervisor:
             overrides: Parameters set after the file.
             name: The child's name here (its log file); default the executable's.
             namespace: The node's namespace; default the supervisor's.
+            prefix: Command that runs the node, e.g. `ip netns exec <netns>` to put it on an emulated host
+                (controlled_islanding.wan); a restart uses it again.
 
         Raises:
             SupervisorError: A child of that name is already running.
@@ -207,14 +209,15 @@ class Supervisor:
         name = name or spec.executable
         if name in self.children and self.children[name].poll() is None:
             raise SupervisorError(f'{name} is already running (pid {self.children[name].pid})')
-        self._launch[name] = (spec, dict(overrides or {}), self.namespace if namespace is None else namespace)
+        self._launch[name] = (spec, dict(overrides or {}), self.namespace if namespace is None else namespace,
+                              list(prefix))
         return self._spawn(name)
 
     def _spawn(self, name: str) -> subprocess.Popen:
-        spec, overrides, namespace = self._launch[name]
+        spec, overrides, namespace, prefix = self._launch[name]
         with open(self.log_dir / f'{name}.log', 'ab') as log:
-            child = subprocess.Popen(node_command(spec, overrides, namespace, self.remaps), env=self.env, stdout=log,
-                                     stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            child = subprocess.Popen([*prefix, *node_command(spec, overrides, namespace, self.remaps)], env=self.env,
+                                     stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                      start_new_session=True, preexec_fn=_die_with_parent)
         self.children[name] = child
         if self.watchdog is not None:

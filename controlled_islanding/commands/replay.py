@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
@@ -12,7 +13,7 @@ from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
-from controlled_islanding import topics
+from controlled_islanding import topics, wan
 from controlled_islanding.cli import CliError
 
 HELP = 'replay a bag through the ROS 2 node graph and print its islanding decision'
@@ -38,11 +39,20 @@ Namespace: with --namespace /area1 every node of the graph, the player and the r
 replays in two namespaces share one domain without crosstalk. /diagnostics stays global; each status is
 named by its node's full name (/area1/pmu_ingestion).
 
+Hosts: with --hosts pdc,control,substation the graph runs on three emulated hosts, each a network namespace of
+its own (pdc: pmu_ingestion and the bag player; control: coherency and partitioning; substation:
+breaker_command), joined by a user-space WAN with --wan-delay-ms, --wan-jitter-ms and --wan-loss-pct between
+hosts; DDS discovers by multicast across it. Roles joined by '+' share a host (pdc+control,substation). The
+observer and the recorder are a fourth host, the operator's, whose view is a tap without delay or loss. Needs
+root; without it, says so and exits 2. docs/deployment.md describes the emulation and a real deployment.
+
 Examples (bag names from bags/index.yaml):
   controlled-islanding replay bags/ieee39_g6g7_unstable            real time
   controlled-islanding replay bags/ieee39_g6g7_unstable --fast --json
   controlled-islanding replay bags/ieee39_g6g7_unstable --probe-hz 20   extra requests: a latency benchmark
   controlled-islanding replay bags/ieee39_g6g7_unstable --fast --namespace /area1   one area of several
+  controlled-islanding replay bags/ieee39_case2_g3_unstable --fast --hosts pdc,control,substation \
+      --wan-delay-ms 20 --wan-jitter-ms 5 --wan-loss-pct 1
 """
 
 REPO = Path(__file__).resolve().parents[2]
@@ -78,6 +88,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--estimator', choices=('steady_state', 'dse'), default=None,
                         help="pmu_ingestion's rotor angle estimator: steady_state, or dse (a Kalman filter on each "
                              "machine's model from the snapshot's machine data); default: config/pmu_ingestion.yaml")
+    parser.add_argument('--hosts', default=None, metavar='H1,H2,...',
+                        help='run the graph on emulated hosts joined by an emulated WAN (needs root): comma-separated '
+                             'hosts, each a role (pdc, control, substation) or roles joined by +')
+    parser.add_argument('--wan-delay-ms', type=float, default=0.0, help='with --hosts: one-way delay between hosts, ms')
+    parser.add_argument('--wan-jitter-ms', type=float, default=0.0,
+                        help='with --hosts: each packet delayed uniformly within delay +- jitter, ms')
+    parser.add_argument('--wan-loss-pct', type=float, default=0.0,
+                        help='with --hosts: probability that a packet between hosts is lost, %%')
+    parser.add_argument('--wan-seed', type=int, default=0, help='with --hosts: seed of the loss and jitter draws')
 
 
 @dataclass
@@ -92,6 +111,7 @@ class Observation:
     heartbeats_s: dict[str, float] = field(default_factory=dict)  # node -> arrival of its newest diagnostics
     restarts: list = field(default_factory=list)  # supervisor.RestartRecord, as the supervisor records them
     hangs: list = field(default_factory=list)  # supervisor.HangRecord
+    wan: dict = field(default_factory=dict)  # with hosts: the emulated network, its namespaces and its statistics
 
 
 def _say(quiet: bool, text: str) -> None:
@@ -130,11 +150,13 @@ def namespace_name(namespace: str) -> str:
 
 def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: float, timeout_s: float,
               quiet: bool, arm: bool = True, record: bool = True, isolate: bool = True, namespace: str = '',
-              estimator: str | None = None) -> tuple[Observation, dict]:
+              estimator: str | None = None, hosts: dict[str, tuple[str, ...]] | None = None,
+              link: wan.LinkModel | None = None) -> tuple[Observation, dict]:
     """Run the node graph on a bag; return what the observer saw and the player's speed report.
 
     The graph runs in `namespace` ('' = the root one), with its own /clock there (`<namespace>/clock`).
-    `estimator` overrides pmu_ingestion's (None: its parameter file's).
+    `estimator` overrides pmu_ingestion's (None: its parameter file's). With `hosts` (wan.parse_hosts), each host
+    is a network namespace joined to the others by an emulated WAN with `link`; this observer joins the operator's.
 
     Raises:
         CliError: The bag is unreadable, a node died, or no decision came in time.
@@ -167,7 +189,22 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
 
     obs = Observation()
     logs = results / 'logs'
-    with graph_environment(results / 'ros_log', isolate) as env:
+    with graph_environment(results / 'ros_log', isolate) as env, contextlib.ExitStack() as network:
+        net = None
+        if hosts:
+            try:
+                net = network.enter_context(wan.EmulatedWan(list(hosts), link or wan.LinkModel(), results))
+            except wan.WanError as exc:
+                raise CliError(str(exc)) from exc
+            network.enter_context(wan.entered(net.namespaces[wan.OPERATOR]))
+            env.update(wan.DDS_ENVIRONMENT)
+            obs.wan = {'hosts': {h: list(r) for h, r in hosts.items()}, 'link': asdict(net.link),
+                       'addresses': net.addresses, 'namespaces': net.namespaces, 'views': net.views,
+                       'stats': net.stats}  # filled when the network is taken down
+
+        def on_host(executable: str) -> list[str]:
+            return net.prefix(wan.host_of(hosts, executable)) if net else []
+
         saved = dict(os.environ)
         os.environ.update(env)
         context = rclpy.Context()
@@ -220,9 +257,9 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 if estimator is not None:
                     extra['pmu_ingestion'] = {'estimator': estimator}
                 for spec in GRAPH:
-                    sup.start(spec, {**sim, **extra.get(spec.executable, {})})
+                    sup.start(spec, {**sim, **extra.get(spec.executable, {})}, prefix=on_host(spec.executable))
                 if record:
-                    sup.start(RECORDER, {**sim, 'output': results / 'output_bag'})
+                    sup.start(RECORDER, {**sim, 'output': results / 'output_bag'}, prefix=on_host(RECORDER.executable))
                 _say(quiet, f'replay: started {len(GRAPH)} nodes{" and the recorder" if record else ""} '
                             f'(logs in {logs})')
                 arm_client = node.create_client(SetArmed, 'breaker_command/set_armed')
@@ -260,7 +297,8 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                     spin_for(0.1)
                 player = sup.start(PLAYER, {'bag': bag.resolve(), 'as_fast_as_possible': fast, 'rate': rate,
                                             'report_file': report_file, 'clock_min_step_s': 0.05 if fast else 0.0,
-                                            'min_subscribers': str([f'{t}={n}' for t, n in counts.items()])})
+                                            'min_subscribers': str([f'{t}={n}' for t, n in counts.items()])},
+                                   prefix=on_host(PLAYER.executable))
                 settle_heap()  # this observer's timestamps must not wait on a full garbage collection either
                 deadline = time.monotonic() + timeout_s
                 probe_period = 1.0 / probe_hz if probe_hz > 0 else None
@@ -269,6 +307,8 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 while time.monotonic() < deadline:
                     spin_for(0.01)
                     sup.supervise(obs.heartbeats_s)
+                    if net:
+                        net.check_alive()
                     bag_done = player.poll() is not None
                     if bag_done and player.returncode != 0:
                         raise CliError(f'bag_player failed:\n{sup.log_tail("bag_player")}')
@@ -295,7 +335,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 else:
                     raise CliError(f'no decision for every request within --timeout {timeout_s} s; '
                                    f'logs in {logs}')
-        except SupervisorError as exc:
+        except (SupervisorError, wan.WanError) as exc:
             raise CliError(str(exc)) from exc
         finally:
             node.destroy_node()
@@ -461,10 +501,22 @@ def render(summary: dict) -> str:
                      f'({rep["speed_vs_real_time"]:.1f}x real time)')
     for name, rejects in summary['diagnostics_rejects'].items():
         lines.append(f'dropped inputs at {name}: ' + ', '.join(f'{k}={v}' for k, v in rejects.items()))
+    if summary.get('wan'):
+        lines.append(wan_line(summary['wan']))
     if graph_failure(summary):
         lines.append(f'FAILED: {graph_failure(summary)}')
     lines.append(f'results: {summary["results_dir"]}')
     return '\n'.join(lines)
+
+
+def wan_line(info: dict) -> str:
+    """Return one line on the emulated WAN: hosts, link model and what crossed it."""
+    link, stats = info['link'], info.get('stats') or {}
+    pairs = [p for k, p in stats.get('pairs', {}).items() if not k.endswith(f'->{wan.OPERATOR}')]
+    sent = sum(p['packets'] + p['dropped'] for p in pairs)
+    dropped = sum(p['dropped'] for p in pairs)
+    return (f'emulated WAN: hosts {", ".join(info["hosts"])} (+ {wan.OPERATOR}); one-way delay {link["delay_ms"]:g} '
+            f'+- {link["jitter_ms"]:g} ms, loss {link["loss_pct"]:g} %: {sent} packets between hosts, {dropped} lost')
 
 
 def write_figures(bag: Path, results: Path, summary: dict) -> list[Path]:
@@ -515,10 +567,12 @@ def write_figures(bag: Path, results: Path, summary: dict) -> list[Path]:
 
 def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float = 1.0, probe_hz: float = 0.0,
            timeout_s: float = 120.0, figures: bool = True, quiet: bool = False, arm: bool = True,
-           record: bool = True, isolate: bool = True, namespace: str = '', estimator: str | None = None) -> dict:
+           record: bool = True, isolate: bool = True, namespace: str = '', estimator: str | None = None,
+           hosts: str | None = None, link: wan.LinkModel | None = None) -> dict:
     """Replay a bag through the graph; write the results folder; return the summary.
 
     `estimator` is pmu_ingestion's rotor angle estimator, 'steady_state' or 'dse' (None: its parameter file's).
+    `hosts` (`--hosts`, e.g. 'pdc,control,substation') runs the graph on emulated hosts joined by a WAN with `link`.
 
     Raises:
         CliError: Bad arguments, an unreadable bag, a failed node or a missing decision.
@@ -529,6 +583,15 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
     if rate <= 0:
         raise CliError(f'--rate {rate} must be positive')
     namespace = namespace_name(namespace)
+    host_roles = None
+    if hosts:
+        try:
+            host_roles = wan.parse_hosts(hosts)
+        except ValueError as exc:
+            raise CliError(str(exc)) from exc
+        why = wan.unavailable_reason()
+        if why:
+            raise CliError(why)
     if results is None:
         stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
         results = Path('results') / f'replay-{bag.name}-{stamp}'
@@ -538,9 +601,11 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
     results.mkdir(parents=True)
     obs, report = run_graph(bag, results, fast=fast, rate=rate, probe_hz=probe_hz, timeout_s=timeout_s,
                             quiet=quiet, arm=arm, record=record, isolate=isolate, namespace=namespace,
-                            estimator=estimator)
+                            estimator=estimator, hosts=host_roles, link=link)
     summary = summarize(bag, results, obs, report)
     summary['namespace'] = namespace
+    if obs.wan:
+        summary['wan'] = obs.wan
     summary['estimator'] = next((d['estimator'] for name, d in obs.diagnostics.items()
                                  if name.endswith('pmu_ingestion') and 'estimator' in d), estimator)
     if figures and record:
@@ -555,6 +620,18 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
     return summary
 
 
+def _link(args: argparse.Namespace) -> wan.LinkModel | None:
+    wan_set = args.wan_delay_ms or args.wan_jitter_ms or args.wan_loss_pct
+    if not args.hosts:
+        if wan_set:
+            raise CliError('--wan-delay-ms, --wan-jitter-ms and --wan-loss-pct need --hosts')
+        return None
+    try:
+        return wan.LinkModel(args.wan_delay_ms, args.wan_jitter_ms, args.wan_loss_pct, args.wan_seed)
+    except ValueError as exc:
+        raise CliError(str(exc)) from exc
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the replay subcommand."""
     if args.repeat < 1:
@@ -564,7 +641,7 @@ def run(args: argparse.Namespace) -> int:
     summary = replay(args.bag, args.results, fast=args.fast, rate=args.rate, probe_hz=args.probe_hz,
                      timeout_s=args.timeout, figures=not args.no_figures, quiet=args.json, arm=not args.disarmed,
                      record=not args.no_record, isolate=args.isolate, namespace=args.namespace,
-                     estimator=args.estimator)
+                     estimator=args.estimator, hosts=args.hosts, link=_link(args))
     if args.json:
         print(json.dumps(summary, default=str))
     else:
@@ -584,7 +661,7 @@ def _run_repeated(args: argparse.Namespace) -> int:
         summary = replay(args.bag, base / f'run-{i}', fast=args.fast, rate=args.rate, probe_hz=args.probe_hz,
                          timeout_s=args.timeout, figures=False, quiet=True, arm=not args.disarmed,
                          record=not args.no_record, isolate=args.isolate, namespace=args.namespace,
-                         estimator=args.estimator)
+                         estimator=args.estimator, hosts=args.hosts, link=_link(args))
         outcomes.add((summary['split'], tuple(sorted(summary.get('cut_branch_ids', [])))))
         failures.append(graph_failure(summary))
         latencies += summary['latency_ms']['samples']  # the bag's requests and any --probe-hz ones
