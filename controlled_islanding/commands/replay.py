@@ -578,11 +578,6 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
         CliError: Bad arguments, an unreadable bag, a failed node or a missing decision.
 
     """
-    if not bag.exists():
-        raise CliError(f'bag {bag} does not exist')
-    if rate <= 0:
-        raise CliError(f'--rate {rate} must be positive')
-    namespace = namespace_name(namespace)
     host_roles = None
     if hosts:
         try:
@@ -592,6 +587,11 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
         why = wan.unavailable_reason()
         if why:
             raise CliError(why)
+    if not bag.exists():
+        raise CliError(f'bag {bag} does not exist')
+    if rate <= 0:
+        raise CliError(f'--rate {rate} must be positive')
+    namespace = namespace_name(namespace)
     if results is None:
         stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
         results = Path('results') / f'replay-{bag.name}-{stamp}'
