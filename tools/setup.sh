@@ -85,11 +85,12 @@ step="import check"
 step="compile the numba kernels"
 # numba compiles on a process's first call and caches beside the sources; compiled here once, not by every node
 # process at its first decision (30 to 90 s each on a busy 2-core machine, past the supervisor's hang limit).
-echo "setup: compiling the numba kernels (DTW, PAM, k rules, spectral repair; the last two on import)"
+echo "setup: compiling the numba kernels (DTW, PAM, k rules, spectral repair, DSE filter; the last three on import)"
 "$VENV/bin/python" -c "
 import numpy as np
 import controlled_islanding.core.k_rules
 import controlled_islanding.core.spectral
+import controlled_islanding.core.dse_kernel
 from controlled_islanding.core.dtw import dtw_distance_matrix
 from controlled_islanding.core.pam import pam
 rng = np.random.default_rng(0)

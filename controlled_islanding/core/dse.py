@@ -47,7 +47,8 @@ one would keep accelerating the machine), and the speed's uncertainty growing by
 swing. The first frame after lost ones counts as blind too (its held inputs are stale). After a gap longer than
 ``max_gap_s`` the estimate is withdrawn (NaN) and the machine is re-initialised at its next valid frame, from the
 steady-state relations, on the 2 pi branch nearest its last angle. Frames must come in time order.
-Each model class runs one batched filter for all its machines: one set of numpy calls per frame.
+Each model class runs one bank of filters for all its machines: one call per frame of the compiled step in
+core/dse_kernel.py (numpy call overhead made the batched numpy version cost 2 to 11 ms per frame).
 """
 
 from __future__ import annotations
@@ -192,14 +193,11 @@ def _to_dq(x: np.ndarray, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return -y.imag, y.real
 
 
-def _from_dq(d: np.ndarray, q: np.ndarray, delta: np.ndarray) -> np.ndarray:
-    return (q - 1j * d) * np.exp(1j * delta)
-
-
 class _Model:
-    """One machine model: state layout, steady-state initialisation, dynamics and measurement, all batched.
+    """One machine model: state layout and steady-state initialisation, batched over machines (numpy).
 
-    Parameters arrive as a dict of arrays shaped to broadcast against the states' leading axes.
+    Its dynamics and measurement are in core/dse_kernel.py (_derivative, _internal_voltage), under its name in
+    _MODEL_CLASSES. Parameters arrive as a dict of arrays, one value per machine.
     """
 
     states: tuple[str, ...] = ()
@@ -215,24 +213,6 @@ class _Model:
         """Steady-state states (g, n) and fixed per-machine values (g,) from one frame's V and I."""
         raise NotImplementedError
 
-    def derivative(self, x: np.ndarray, aux: np.ndarray, v: np.ndarray, i: np.ndarray, p: dict,
-                   omega_base: float) -> np.ndarray:
-        raise NotImplementedError
-
-    def internal_voltage(self, x: np.ndarray, aux: np.ndarray, i: np.ndarray, p: dict) -> np.ndarray:
-        """Return z = V + (ra + j x_s) I as the states predict it (network frame, complex)."""
-        raise NotImplementedError
-
-    @staticmethod
-    def _swing(x: np.ndarray, v: np.ndarray, i: np.ndarray, p: dict, omega_base: float, tm: np.ndarray) \
-            -> tuple[np.ndarray, np.ndarray]:
-        te = (v * np.conj(i)).real + p['ra_pu'] * (i.real ** 2 + i.imag ** 2)
-        # Without data the electrical torque is unknown: the mechanical one is its best guess (no acceleration
-        # but the damping's); holding the last measured one would keep accelerating the machine.
-        te = np.where(p['blind'], tm, te)
-        omega = x[..., 1]
-        return omega_base * (omega - 1.0), (tm - te - p['d_pu'] * (omega - 1.0)) / p['m_s']
-
 
 class _Classical(_Model):
     states = ('delta_rad', 'omega_pu', 'tm_pu')
@@ -242,13 +222,6 @@ class _Classical(_Model):
         e = v + (p['ra_pu'] + 1j * p['xd1_pu']) * i
         te = (v * np.conj(i)).real + p['ra_pu'] * np.abs(i) ** 2
         return np.stack([np.angle(e), np.ones_like(te), te], axis=-1), np.abs(e)
-
-    def derivative(self, x, aux, v, i, p, omega_base):
-        d_delta, d_omega = self._swing(x, v, i, p, omega_base, x[..., 2])
-        return np.stack([d_delta, d_omega, np.zeros_like(d_delta)], axis=-1)
-
-    def internal_voltage(self, x, aux, i, p):
-        return aux * np.exp(1j * x[..., 0])
 
 
 class _TwoAxis(_Model):
@@ -267,18 +240,6 @@ class _TwoAxis(_Model):
         vf = e1q + (p['xd_pu'] - p['xd1_pu']) * i_d
         te = vd * i_d + vq * i_q + p['ra_pu'] * (i_d ** 2 + i_q ** 2)
         return np.stack([delta, np.ones_like(te), e1q, e1d, te, vf], axis=-1), np.zeros_like(te)
-
-    def derivative(self, x, aux, v, i, p, omega_base):
-        d_delta, d_omega = self._swing(x, v, i, p, omega_base, x[..., 4])
-        i_d, i_q = _to_dq(i, x[..., 0])
-        d_e1q = (x[..., 5] - x[..., 2] - (p['xd_pu'] - p['xd1_pu']) * i_d) / p['td10_s']
-        d_e1d = (-x[..., 3] + (p['xq_pu'] - p['xq1_pu']) * i_q) / p['tq10_s']
-        zero = np.zeros_like(d_delta)
-        return np.stack([d_delta, d_omega, d_e1q, d_e1d, zero, zero], axis=-1)
-
-    def internal_voltage(self, x, aux, i, p):
-        _, i_q = _to_dq(i, x[..., 0])
-        return _from_dq(x[..., 3] - (p['xd1_pu'] - p['xq1_pu']) * i_q, x[..., 2], x[..., 0])
 
 
 class _Genrou(_Model):
@@ -301,12 +262,6 @@ class _Genrou(_Model):
         gq2 = (p['xq1_pu'] - p['xq2_pu']) / (p['xq1_pu'] - xl) ** 2
         gqd = (p['xq_pu'] - xl) / (p['xd_pu'] - xl)
         return gd1, gq1, gd2, gq2, gqd
-
-    @staticmethod
-    def _saturation(psi2d, psi2q, p):
-        psi = np.sqrt(psi2d ** 2 + psi2q ** 2)
-        over = np.maximum(psi - p['sat_a'], 0.0)
-        return p['sat_b'] * over ** 2 / np.maximum(psi, 1e-9)
 
     def init(self, v, i, p):
         # ANDES' GENROU initialisation (after OpenIPSL's), which assumes x''d = x''q.
@@ -331,29 +286,6 @@ class _Genrou(_Model):
         e2q = -i_q * (p['xl_pu'] - p['xq_pu']) - se0 * gqd * psi2q0
         return np.stack([delta, np.ones_like(te), e1q, e1d, e2d, e2q, te, vf], axis=-1), np.zeros_like(te)
 
-    def _fluxes(self, x, p):
-        gd1, gq1 = p['gd1'], p['gq1']
-        return gd1 * x[..., 2] + (1 - gd1) * x[..., 4], gq1 * x[..., 3] + (1 - gq1) * x[..., 5]
-
-    def derivative(self, x, aux, v, i, p, omega_base):
-        d_delta, d_omega = self._swing(x, v, i, p, omega_base, x[..., 6])
-        gd1, gq1, gd2, gq2, gqd = p['gd1'], p['gq1'], p['gd2'], p['gq2'], p['gqd']
-        i_d, i_q = _to_dq(i, x[..., 0])
-        e1q, e1d, e2d, e2q = x[..., 2], x[..., 3], x[..., 4], x[..., 5]
-        psi2d, psi2q = self._fluxes(x, p)
-        se = self._saturation(psi2d, psi2q, p)
-        xad_ifd = e1q + (p['xd_pu'] - p['xd1_pu']) * (gd1 * i_d - gd2 * e2d + gd2 * e1q) + se * psi2d
-        xaq_i1q = e1d + (p['xq_pu'] - p['xq1_pu']) * (gq2 * e1d - gq2 * e2q - gq1 * i_q) + se * psi2q * gqd
-        zero = np.zeros_like(d_delta)
-        return np.stack([d_delta, d_omega, (x[..., 7] - xad_ifd) / p['td10_s'], -xaq_i1q / p['tq10_s'],
-                         (-e2d + e1q - (p['xd1_pu'] - p['xl_pu']) * i_d) / p['td20_s'],
-                         (-e2q + e1d + (p['xq1_pu'] - p['xl_pu']) * i_q) / p['tq20_s'], zero, zero], axis=-1)
-
-    def internal_voltage(self, x, aux, i, p):
-        psi2d, psi2q = self._fluxes(x, p)
-        _, i_q = _to_dq(i, x[..., 0])
-        return _from_dq(psi2q - (p['xd2_pu'] - p['xq2_pu']) * i_q, psi2d, x[..., 0])
-
 
 _MODEL_CLASSES = {'classical': _Classical, 'two_axis': _TwoAxis, 'genrou': _Genrou}
 
@@ -361,11 +293,16 @@ _MODEL_CLASSES = {'classical': _Classical, 'two_axis': _TwoAxis, 'genrou': _Genr
 class _Bank:
     """The batched filter of the machines that share one model."""
 
-    def __init__(self, model: _Model, rows: np.ndarray, params: dict[str, np.ndarray]) -> None:
+    def __init__(self, name: str, model: _Model, rows: np.ndarray, params: dict[str, np.ndarray]) -> None:
+        from controlled_islanding.core import dse_kernel
+
         self.model = model
+        self.kind = dse_kernel.KINDS[name]
+        self.filter_frame = dse_kernel.filter_frame
         self.rows = rows
         self.p = params                                  # (g,) arrays
-        self.p_sigma = {k: v[:, None] for k, v in params.items()}   # broadcast against (g, points)
+        # (g, len(PARAMS)), one row per machine, as the kernel reads them; NaN = a value its model does not use
+        self.par = np.stack([params.get(k, np.full(len(rows), np.nan)) for k in dse_kernel.PARAMS], axis=-1)
         g, n = len(rows), len(model.states)
         self.x = np.full((g, n), np.nan)
         self.cov = np.zeros((g, n, n))
@@ -456,7 +393,7 @@ class RotorAngleDSE:
                 params['sat_a'], params['sat_b'] = saturation_coefficients(params['s10'], params['s12'])
                 if name == 'genrou':
                     params.update(zip(('gd1', 'gq1', 'gd2', 'gq2', 'gqd'), _Genrou.gains(params), strict=True))
-                bank = _Bank(cls(), rows, params)
+                bank = _Bank(name, cls(), rows, params)
                 bank.step_s = self._step_seconds(bank)
                 self._banks.append(bank)
         self._steady_rows = np.flatnonzero(chosen == 'steady_state')
@@ -585,8 +522,11 @@ class RotorAngleDSE:
             bank.i_last = np.where(resumed, i, bank.i_last)
             v_end = np.where(ok, v, bank.v_last)
             i_end = np.where(ok, i, bank.i_last)
-            self._predict(bank, run, dt, v_end, i_end, blind=~ok | resumed)
-            self._correct(bank, run & ok, v, i)
+            steps = max(1, int(np.ceil(dt / bank.step_s - 1e-9)))
+            bank.filter_frame(bank.kind, bank.x, bank.cov, bank.aux, bank.q_rate, bank.par, run, run & ok,
+                              ~ok | resumed, bank.v_last, v_end, bank.i_last, i_end, v, i, dt, steps,
+                              2 * np.pi * self.freq_hz, self.measurement_tve / 3.0,
+                              self.blind_speed_walk_pu_per_sqrt_s)
         if start.any():
             self._initialise(bank, start, v, i)
         bank.v_last = np.where(ok, v, bank.v_last)
@@ -636,91 +576,6 @@ class RotorAngleDSE:
         if n > tm_idx + 1:
             q[:, tm_idx + 1] = (self.field_walk_per_sqrt_s * scale[:, tm_idx + 1]) ** 2
         return q
-
-    @staticmethod
-    def _sigma_points(x: np.ndarray, cov: np.ndarray) -> np.ndarray:
-        n = x.shape[-1]
-        cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))
-        try:
-            root = np.linalg.cholesky(cov)
-        except np.linalg.LinAlgError:
-            w, vec = np.linalg.eigh(cov)
-            root = vec * np.sqrt(np.maximum(w, 0.0))[:, None, :]
-        offsets = np.sqrt(n) * np.swapaxes(root, -1, -2)          # rows: columns of the square root
-        return np.concatenate([x[:, None, :] + offsets, x[:, None, :] - offsets], axis=1)
-
-    @staticmethod
-    def _rows(bank: _Bank, rows: np.ndarray):
-        """Index for the machines in rows: a plain slice when it is all of them (the usual frame)."""
-        return slice(None) if rows.all() else rows
-
-    def _predict(self, bank: _Bank, rows: np.ndarray, dt: float, v_end: np.ndarray, i_end: np.ndarray,
-                 blind: np.ndarray) -> None:
-        model = bank.model
-        r = self._rows(bank, rows)
-        p = dict(bank.p_sigma if isinstance(r, slice) else {k: val[r] for k, val in bank.p_sigma.items()})
-        p['blind'] = blind[r][:, None]
-        pts = self._sigma_points(bank.x[r], bank.cov[r])
-        aux = bank.aux[r][:, None]
-        v0, dv = bank.v_last[r][:, None], (v_end[r] - bank.v_last[r])[:, None]
-        i0, di = bank.i_last[r][:, None], (i_end[r] - bank.i_last[r])[:, None]
-        steps = max(1, int(np.ceil(dt / bank.step_s - 1e-9)))
-        h = dt / steps
-        omega_base = 2 * np.pi * self.freq_hz
-
-        def f(state, s):
-            return model.derivative(state, aux, v0 + dv * s, i0 + di * s, p, omega_base)
-
-        for k in range(steps):
-            s0, sm, s1 = k / steps, (k + 0.5) / steps, (k + 1) / steps
-            k1 = f(pts, s0)
-            k2 = f(pts + 0.5 * h * k1, sm)
-            k3 = f(pts + 0.5 * h * k2, sm)
-            k4 = f(pts + h * k3, s1)
-            pts = pts + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
-        mean = pts.mean(axis=1)
-        dev = pts - mean[:, None, :]
-        cov = np.swapaxes(dev, 1, 2) @ dev / pts.shape[1]
-        diag = np.arange(pts.shape[2])
-        cov[:, diag, diag] += bank.q_rate[r] * dt
-        # When within the frame the inputs changed is unknown (a fault, a switching): uniformly anywhere, the state
-        # reached differs from the linear-input one by up to the change of the derivative times the step.
-        x_start = bank.x[r][:, None, :]
-        jump = (f(x_start, 1.0) - f(x_start, 0.0))[:, 0, :] * dt
-        cov += jump[:, :, None] * jump[:, None, :] / 12.0
-        # With no data the electrical torque is unknown, and so is the speed, to the size of a swing.
-        cov[:, 1, 1] += np.where(blind[r], self.blind_speed_walk_pu_per_sqrt_s ** 2, 0.0) * dt
-        bank.x[r] = mean
-        bank.cov[r] = cov
-
-    def _correct(self, bank: _Bank, rows: np.ndarray, v: np.ndarray, i: np.ndarray) -> None:
-        if not rows.any():
-            return
-        model = bank.model
-        r = self._rows(bank, rows)
-        p = bank.p_sigma if isinstance(r, slice) else {k: val[r] for k, val in bank.p_sigma.items()}
-        x, cov = bank.x[r], bank.cov[r]
-        pts = self._sigma_points(x, cov)
-        vv, ii = v[r], i[r]
-        z_pts = model.internal_voltage(pts, bank.aux[r][:, None], ii[:, None], p)
-        z_pts = np.stack([z_pts.real, z_pts.imag], axis=-1)
-        zs = p['ra_pu'][:, 0] + 1j * model.stator_x(p)[:, 0]
-        z_meas = vv + zs * ii
-        z_mean = z_pts.mean(axis=1)
-        dz = z_pts - z_mean[:, None, :]
-        dx = pts - x[:, None, :]
-        sigma = self.measurement_tve / 3.0
-        r_var = sigma ** 2 * (np.abs(vv) ** 2 + np.abs(zs * ii) ** 2)
-        dz_t = np.swapaxes(dz, 1, 2)
-        s = dz_t @ dz / pts.shape[1]
-        s[:, 0, 0] += r_var
-        s[:, 1, 1] += r_var
-        cxz = np.swapaxes(dx, 1, 2) @ dz / pts.shape[1]
-        gain = cxz @ np.linalg.inv(s)
-        innovation = np.stack([z_meas.real - z_mean[:, 0], z_meas.imag - z_mean[:, 1]], axis=-1)
-        bank.x[r] = x + (gain @ innovation[:, :, None])[:, :, 0]
-        new_cov = cov - gain @ s @ np.swapaxes(gain, -1, -2)
-        bank.cov[r] = 0.5 * (new_cov + np.swapaxes(new_cov, -1, -2))
 
 
 class StreamingDSE:
@@ -851,3 +706,4 @@ class StreamingDSE:
         (t0, a0), (t1, a1) = self._history[k - 1], self._history[k]
         w = (t - t0) / (t1 - t0)
         return a0 + w * (a1 - a0)
+
