@@ -116,6 +116,24 @@ def test_out_of_step_trigger_needs_90_deg_of_separation_and_no_fault_on_voltage(
     assert not out_of_step([0.3 + 1.6, math.nan, math.nan], ref, healthy)  # one machine cannot separate
 
 
+def test_assess_says_when_each_variable_left_its_band_and_what_the_cut_inherited():
+    """G3 runs at 62.4 Hz from 0.6 s to 1.5 s and the cut is at 1.0 s: outside since -0.4 s, back at +0.5 s."""
+    t, delta, omega, volts = _run(4.0, 0.0)
+    omega[(t >= 0.6) & (t < 1.5), 2] = 1.04
+    volts[(t >= 2.0) & (t <= 2.5), 3] = 1.25
+    volts[(t >= 2.0) & (t <= 2.5), 1] = 1.21
+    names, gen_buses, buses = ('G1', 'G2', 'G3'), (1, 2, 3), (1, 2, 3, 4)
+    step = t[1] - t[0]
+    (isl,) = assess(t, delta, omega, volts, names, gen_buses, buses, None, 1.0, LoopConfig(), 60.0, {0: 1.0}, {})
+    assert not isl.survived
+    assert isl.f_outside_s == pytest.approx((0.0, 0.5 - step), abs=step)
+    assert isl.f_outside_since_s == pytest.approx(-0.4, abs=step)
+    assert isl.v_outside_s == pytest.approx((1.0, 1.5), abs=step) and isl.v_worst_bus == 4
+    (calm,) = assess(t, delta, omega, volts, names, gen_buses, buses, None, 2.6, LoopConfig(), 60.0, {0: 1.0}, {})
+    assert calm.survived and calm.f_outside_s is None and calm.f_outside_since_s is None
+    assert calm.v_outside_s is None and calm.v_worst_bus is None
+
+
 def test_assess_leaves_a_rejected_machine_out_after_its_trip():
     """A machine rejected at 2 s keeps running away in the data (ANDES freezes it; here it drifts): not judged."""
     t, delta, omega, volts = _run(4.0, 0.0)

@@ -359,6 +359,50 @@ def table_rows(results: list[dict]) -> list[list[str]]:
     return rows
 
 
+def _span(span: list[float] | None) -> str:
+    return f'{span[0]:+.3f} to {span[1]:+.3f} s' if span else ''
+
+
+def failure_text(isl: dict) -> str:
+    """Return what failed in a lost island and when, s after the cut (from its assessment, closed_loop.assess)."""
+    gens = isl['generators']
+    head = f'island {isl["island"]} ({", ".join(gens[:3])}{", ..." if len(gens) > 3 else ""}'
+    head += f'; rejected {", ".join(isl["rejected"])})' if isl.get('rejected') else ')'
+    if 'f_outside_s' not in isl:  # a result written before the timings were recorded
+        return f'{head}: {"; ".join(isl["why_not"])}'
+    out = []
+    if isl['generators'] and isl['rejected'] and len(isl['rejected']) == len(isl['generators']):
+        out.append(f'every machine tripped by generation rejection (island load {isl["load_mw"]:.0f} MW)')
+    if not isl['coherent']:
+        out.append(f'machines {isl["max_pair_swing_rad"]:.2f} rad apart')
+    if isl['f_outside_s']:
+        since = isl['f_outside_since_s']
+        out.append(f'frequency {isl["f_nadir_hz"]:.2f}..{isl["f_peak_hz"]:.2f} Hz, out of band '
+                   f'{_span(isl["f_outside_s"])}' + ('' if since is None else f', already out at the cut (since '
+                                                                                f'{since:+.3f} s)'))
+    if isl['v_outside_s']:
+        out.append(f'voltage {isl["v_min_pu"]:.3f}..{isl["v_max_pu"]:.3f} pu, out of band '
+                   f'{_span(isl["v_outside_s"])}, worst at bus {isl["v_worst_bus"]}')
+    if isl['machines_tripped']:
+        out.append(f'machines tripped: {", ".join(isl["machines_tripped"])}')
+    out += [w for w in isl['why_not'] if w.startswith('simulation stopped')]
+    return f'{head}: {"; ".join(out)}'
+
+
+def failure_lines(results: list[dict]) -> list[str]:
+    """Return a line per lost island of every closed-loop run, and of a MILP run whose cut differs."""
+    out = []
+    for r in results:
+        for label in ('dtw', 'milp'):
+            run = r['runs'].get(label)
+            if run is None or (label == 'milp' and run.get('label', '').startswith('milp (same cut')):
+                continue
+            for isl in run['islands']:
+                if not isl['survived']:
+                    out.append(f'- {r["scenario"]} `{label}` {failure_text(isl)}.')
+    return out
+
+
 HEADER = ['scenario', 'run', 'cut', 'islands survived', 'load lost MW', 'generation tripped MW', 'f nadir / peak Hz',
           'V min pu',
           'request -> opening s']
@@ -437,7 +481,12 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
             "Per-island figures are in each scenario's result.json in the results folder.",
             "- The lockstep opening time is request + the graph's wall latency + the breaker time, so it varies "
             'by tens of ms between runs; outcomes that change across the g6g7 variants with the same physics show '
-            'how sensitive a late cut is to it.', '']
+            'how sensitive a late cut is to it.', '',
+            "What failed, island by island (times in s after the cut; frequency is the machines' speed, judged from "
+            "the cut; voltage from 0.5 s after it; 'already out at the cut' means the island's machines left the "
+            'band before the cut, so no action after the cut caused it):', '']
+    out += failure_lines(results) or ['- nothing: every island of every closed-loop run survived.']
+    out += ['']
     for r in results:
         fired = next((e for e in r['events'] if e['what'] == 'out-of-step trigger'), None)
         if fired is not None:

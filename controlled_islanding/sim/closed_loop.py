@@ -155,6 +155,13 @@ class IslandOutcome:
         shed_mw: Load shed in the island, MW.
         rejected: Machines tripped by generation rejection (not judged after their trip).
         rejected_mw: Their dispatched output, MW.
+        f_outside_s: First and last time the frequency of a machine still running was outside the band, s after
+            the cut (None: never).
+        f_outside_since_s: When the island's frequency was already outside the band at the cut, when that
+            excursion began, s after the cut (<= 0; None otherwise): what the cut inherited, not what it did.
+        v_outside_s: First and last time a bus voltage was outside its band once settled, s after the cut (None:
+            never).
+        v_worst_bus: The bus whose voltage went furthest outside its band (None: none did).
         max_pair_swing_rad: Largest change of a machine pair's angle difference after the cut, rad.
         coherent: max_pair_swing_rad <= the bound.
         f_nadir_hz, f_peak_hz: Lowest and highest machine frequency after the cut, Hz.
@@ -181,6 +188,16 @@ class IslandOutcome:
     why_not: tuple[str, ...] = ()
     rejected: tuple[str, ...] = ()
     rejected_mw: float = 0.0
+    f_outside_s: tuple[float, float] | None = None
+    f_outside_since_s: float | None = None
+    v_outside_s: tuple[float, float] | None = None
+    v_worst_bus: int | None = None
+
+
+def _outside_span(t_s: np.ndarray, outside: np.ndarray, from_s: float) -> tuple[float, float] | None:
+    """Return the first and last time a flag is set, s after from_s (None: never)."""
+    hit = np.flatnonzero(outside)
+    return None if not hit.size else (float(t_s[hit[0]] - from_s), float(t_s[hit[-1]] - from_s))
 
 
 @dataclass(frozen=True)
@@ -671,11 +688,21 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
         kept = [j for j in cols if generator_names[j] not in rejected]
         if cols and not kept:
             why.append('every machine rejected')
+        f_span, f_since = None, None
         if cols:
             dev = delta_rad[window][:, cols] - delta_rad[first, cols]
             dev = dev[~np.isnan(dev).all(axis=1)]  # after every machine of the island was rejected
             swing = float(np.nanmax(np.nanmax(dev, axis=1) - np.nanmin(dev, axis=1))) if len(dev) else 0.0
-            speed = omega_pu[window][:, cols] * f0_hz
+            hz = omega_pu[:, cols] * f0_hz
+            with np.errstate(invalid='ignore'):
+                off = ((hz < band_lo) | (hz > band_hi)).any(axis=1)  # NaN (rejected) compares False
+            f_span = _outside_span(t_s[window], off[window], from_s)
+            if off[first]:
+                begun = first
+                while begun > 0 and off[begun - 1]:
+                    begun -= 1
+                f_since = float(t_s[begun] - from_s)
+            speed = hz[window]
             speed = speed[~np.isnan(speed)]
             f_lo, f_hi = (float(speed.min()), float(speed.max())) if speed.size else (f0_hz, f0_hz)
         else:
@@ -683,6 +710,9 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
             why.append('no machine')
         volts = bus_v_pu[settled][:, vcols]
         v_lo, v_hi = float(volts.min()), float(volts.max())
+        beyond = np.maximum(config.v_min_pu - volts, volts - config.v_max_pu)  # > 0 outside the band, pu
+        v_span = _outside_span(t_s[settled], (beyond > 0).any(axis=1), from_s)
+        worst = None if v_span is None else int(bus_numbers[vcols[int(np.argmax(beyond.max(axis=0)))]])
         coherent = swing <= config.coherence_bound_rad
         if not coherent:
             why.append(f'machines {swing:.2f} rad apart (> {config.coherence_bound_rad:.2f})')
@@ -698,7 +728,8 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
             shed_mw=float(shed_by_island.get(island, 0.0)), max_pair_swing_rad=swing, coherent=coherent,
             f_nadir_hz=f_lo, f_peak_hz=f_hi, v_min_pu=v_lo, v_max_pu=v_hi, machines_tripped=gone,
             survived=not why, why_not=tuple(why), rejected=tuple(n for n in names if n in rejected),
-            rejected_mw=float(sum(rejected[n][1] for n in names if n in rejected))))
+            rejected_mw=float(sum(rejected[n][1] for n in names if n in rejected)), f_outside_s=f_span,
+            f_outside_since_s=f_since, v_outside_s=v_span, v_worst_bus=worst))
     return out
 
 
