@@ -40,13 +40,21 @@ between 0.025 and 0.05; the default 0.2 is the middle of the range (0.125 to 0.3
 paper's Tables I and V on MATPOWER case39 with either pre-outage flows (outaged branches removed) or
 post-outage AC flows, without any repair.
 
-Solving eq. 8 at scale without an n x n array: deflating v0 gives a symmetric-definite pencil with the
-same positive eigenpairs. With b0 = B v0, B~ = B - b0 b0^T / (v0^T B v0) (B~ v0 = 0) and L' = L_N + v0 v0^T /
-vol (positive definite: L_N is positive definite on v0's complement), every eigenvector v of eq. 8 with
-lambda != 0 is v = w + alpha v0 where B~ w = theta L' w, theta = 1/lambda, w orthogonal to v0 and
-alpha = -b0^T w / (v0^T B v0); conversely. The k-1 largest theta (all the positive ones) are found by
-ARPACK's Lanczos (scipy eigsh) in L'-inner product, with L'^-1 applied through a sparse LU of L_N grounded
-at one bus. B~ and L' are applied as sparse matrices plus rank-(k+1) terms, never formed.
+Solving eq. 8 at scale without an n x n array. Its positive eigenpairs are the roots of a k x k problem:
+with c = sigma lambda and A(c) = L_N + c I (positive definite for c > 0), eq. 8 reads A(c) v = lambda U core U^T v,
+so v = lambda Y z with Y = A(c)^-1 U and z = core U^T v, and z solves core S(c) z = (1/lambda) z with
+S(c) = U^T Y, k x k and positive definite. lambda > 0 is an eigenvalue of eq. 8 exactly when c mu_j(c) = sigma
+for an eigenvalue mu_j of the pencil (core, S(c)^-1). Its j-th largest, j < k, is positive (same inertia as
+core), and c mu_j(c) increases with c (t S(c)^-1, t = 1/c, grows in the Loewner order), from at most
+1^T Q 1 / vol < sigma near c = 0 to mu_j(Q_N) > sigma as c grows: one root c_j per j, and they are the k-1
+positive eigenvalues, lambda_j = c_j / sigma, in the order of j. Each root is found by Newton's method on
+log(c mu_j) against log c (derivative 1 - c |Y S^-1 z|^2 for z normalised by z^T S^-1 z = 1), kept inside the
+bracket of the evaluations so far; each evaluation is one sparse LU of A(c) (symmetric mode: A(c) is positive
+definite, so no pivoting is needed) and k solves, or, near the previous c, iterative refinement with the
+previous factors. The eigenvector is v = Y S^-1 z at the root. v0 = D^1/2 1 (lambda = 0) never appears, so
+nothing is deflated. Up to _DENSE_MAX_BUSES buses LAPACK solves the pencil deflated of v0 densely instead:
+with b0 = B v0, B~ = B - b0 b0^T / (v0^T B v0) and L' = L_N + v0 v0^T / vol, every eigenvector of eq. 8 with
+lambda != 0 is v = w + alpha v0 where B~ w = theta L' w, theta = 1/lambda, alpha = -b0^T w / (v0^T B v0).
 
 Step 8/9: the eigenvectors are normalised to sqrt(vol), the k-1 with the lowest eigenvalues are kept,
 mapped back to the relaxed island indicators u = D^-1/2 v (the paper's recovery of u from v), and
@@ -90,6 +98,16 @@ _BALANCE_STEPS = 20
 # Up to this many buses the deflated pencil is solved densely: at 300 buses its two arrays take 1.4 MB and
 # LAPACK's eigh beats ARPACK's hundred Python-level iterations (case39: well under a millisecond against tens).
 _DENSE_MAX_BUSES = 300
+# The roots of eq. 8's k x k problem (module docstring): the first guess of c = sigma lambda (L_N's spectrum lies in
+# [0, 2]; roots seen from 2e-6 to 0.25 on case1354pegase .. case9241pegase), Newton's stopping step in log c
+# (after a step this small, quadratic convergence leaves the last evaluation exact to rounding), and its limit.
+_FIRST_C = 1e-2
+_X_TOLERANCE = 1e-9
+_NEWTON_STEPS = 100
+# Within this distance in log c of the last LU, iterative refinement with it (_REFINE_STEPS at most) replaces a new
+# LU: its error shrinks by about |c - c0| / c0 per solve.
+_REFINE_WITHIN = 0.02
+_REFINE_STEPS = 20
 
 
 class SpectralError(ValueError):
@@ -160,7 +178,7 @@ class ConstrainedSpectralPartition:
     Args:
         beta: The satisfaction threshold of eq. 7 as a fraction (0, 1) of its feasibility bound
             mu_{k-1}(Q_N) * vol, or of the way from 1^T Q 1 to it when that is higher (see the module docstring).
-        random_state: Seeds ARPACK's starting vector (PAM's BUILD initialisation is deterministic).
+        random_state: Kept for the API; nothing is random (the eigensolvers and PAM's BUILD are deterministic).
         repair: Apply `repair_partition` (on by default; off only to study the raw relaxation).
         refine: After the repair, move single boundary buses while that lowers eq. 9 (`refine_partition`).
             On by default; off, the fit stops at the repaired relaxation, as the paper's method does.
@@ -249,7 +267,7 @@ class ConstrainedSpectralPartition:
         if self.beta_ <= trivial:
             self.beta_ = float(trivial + self.beta * (bound - trivial))
         sigma = self.beta_ / vol
-        lam, v = _positive_eigenpairs(w, d_isqrt, u_mat, core, sigma, k - 1, self.random_state)
+        lam, v = _positive_eigenpairs(w, d_isqrt, u_mat, core, sigma, k - 1)
         if len(lam) < k - 1:
             raise SpectralError(f'eq. 8 has {len(lam)} positive eigenvalues, {k - 1} are needed for {k} islands '
                                 f'(beta = {self.beta})')
@@ -294,18 +312,21 @@ def _constraints(d_isqrt: np.ndarray, gen_idx: np.ndarray, column: np.ndarray, w
 
 
 def _positive_eigenpairs(w: sparse.csr_array, d_isqrt: np.ndarray, u_mat: np.ndarray, core: np.ndarray, sigma: float,
-                         count: int, seed: int, dense: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+                         count: int, dense: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Return eq. 8's positive eigenvalues, ascending, and their eigenvectors v (columns), at most count of them.
 
-    Eq. 8 is L_N v = lambda (Q_N - sigma I) v with Q_N = U core U^T; solved through the deflated pencil of
-    the module docstring, by LAPACK on dense n x n arrays up to _DENSE_MAX_BUSES buses (dense=None), else by
-    ARPACK.
+    Eq. 8 is L_N v = lambda (Q_N - sigma I) v with Q_N = U core U^T; solved (module docstring) by LAPACK on
+    the deflated dense pencil up to _DENSE_MAX_BUSES buses (dense=None), else through its k x k roots.
     """
     n = len(d_isqrt)
     if dense is None:
         dense = n <= _DENSE_MAX_BUSES
     rows = np.repeat(np.arange(n), np.diff(w.indptr))
     adjacency_n = sparse.csr_array((w.data * d_isqrt[rows] * d_isqrt[w.indices], w.indices, w.indptr), shape=w.shape)
+    if not dense:
+        lam, v = _secular_eigenpairs(adjacency_n, u_mat, core, sigma, count)
+        keep = lam > 1e-10  # the dense solver's threshold for lambda = 0
+        return lam[keep], v[:, keep]
     v0 = 1.0 / d_isqrt  # D^1/2 1: L_N v0 = 0
     v0_unit = v0 / np.linalg.norm(v0)
 
@@ -314,54 +335,90 @@ def _positive_eigenpairs(w: sparse.csr_array, d_isqrt: np.ndarray, u_mat: np.nda
 
     b0 = b_apply(v0)
     b00 = float(v0 @ b0)  # = 1^T Q 1 - beta < 0
-
-    def bt_apply(x: np.ndarray) -> np.ndarray:
-        x = x.reshape(n, -1)
-        return b_apply(x) - np.outer(b0, b0 @ x) / b00
-
-    if dense:
-        lap_p = np.eye(n) - adjacency_n.toarray() + np.outer(v0_unit, v0_unit)
-        theta, wv = scipy.linalg.eigh(bt_apply(np.eye(n)), lap_p, subset_by_index=[n - count, n - 1])
-    else:
-        theta, wv = _largest_pencil_eigenpairs(bt_apply, adjacency_n, v0_unit, count, seed)
-    keep = (theta > 0.0) & (theta * 1e-10 < 1.0)  # lambda = 1/theta > 1e-10, the old dense solver's threshold
+    lap_p = np.eye(n) - adjacency_n.toarray() + np.outer(v0_unit, v0_unit)
+    b_tilde = b_apply(np.eye(n)) - np.outer(b0, b0) / b00
+    theta, wv = scipy.linalg.eigh(b_tilde, lap_p, subset_by_index=[n - count, n - 1])
+    keep = (theta > 0.0) & (theta * 1e-10 < 1.0)  # lambda = 1/theta > 1e-10
     theta, wv = theta[keep], wv[:, keep]
     order = np.argsort(-theta)[:count]  # largest theta = smallest lambda
     theta, wv = theta[order], wv[:, order]
     return 1.0 / theta, wv - np.outer(v0, (b0 @ wv) / b00)
 
 
-def _largest_pencil_eigenpairs(bt_apply, adjacency_n: sparse.csr_array, v0_unit: np.ndarray, count: int,
-                               seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Return the count largest theta of B~ w = theta L' w, L' = I - adjacency_n + v0 v0^T (ARPACK, sparse)."""
-    n = len(v0_unit)
+class _Resolvent:
+    """Y = (L_N + c I)^-1 U for a c that moves a little at a time (Newton's steps towards a root).
+
+    A sparse LU of L_N + c I per new c, or, within _REFINE_WITHIN of the last factored c (in log c), iterative
+    refinement with those factors: its error shrinks by |c - c0| / c0 per step, so a few solves replace an LU.
+    """
+
+    def __init__(self, lap: sparse.csc_array, u_mat: np.ndarray) -> None:
+        self.lap, self.u_mat = lap, u_mat
+        self.eye = sparse.identity(lap.shape[0], format='csc')
+        self.c0 = None
+        self.lu = None
+        self.y = None
+
+    def solve(self, c: float) -> np.ndarray:
+        if self.lu is not None and abs(np.log(c / self.c0)) <= _REFINE_WITHIN:
+            y, last = self.y.copy(), np.inf
+            for _ in range(_REFINE_STEPS):
+                dy = self.lu.solve(self.u_mat - (self.lap @ y + c * y))
+                y += dy
+                size, scale = float(np.abs(dy).max()), float(np.abs(y).max())
+                # converged, or stalled at rounding (refinement in working precision stops there)
+                if size <= 4.0 * np.finfo(float).eps * scale or (size > 0.5 * last and size <= 1e-12 * scale):
+                    self.y = y
+                    return y
+                last = size
+        # symmetric mode: L_N + c I is positive definite, so the diagonal pivots need no search
+        self.lu = sparse_linalg.splu(self.lap + c * self.eye, permc_spec='MMD_AT_PLUS_A', diag_pivot_thresh=0.0,
+                                     options={'SymmetricMode': True})
+        self.c0, self.y = c, self.lu.solve(self.u_mat)
+        return self.y
+
+
+def _secular_eigenpairs(adjacency_n: sparse.csr_array, u_mat: np.ndarray, core: np.ndarray, sigma: float,
+                        count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return the count smallest positive eigenvalues of eq. 8 and their eigenvectors, as roots c mu_j(c) = sigma.
+
+    Module docstring: Newton's method on log(c mu_j(c) / sigma) against x = log c, bracketed by every evaluation.
+    """
+    n = u_mat.shape[0]
     lap = (sparse.identity(n, format='csr') - adjacency_n).tocsc()
+    gen = np.flatnonzero(np.any(u_mat != 0.0, axis=1))  # U is zero off the generator buses
+    resolvent = _Resolvent(lap, u_mat)
+    seen: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = []  # (x, f_j, slope_j, Y S^-1 z_j) per c
 
-    def lp_apply(x: np.ndarray) -> np.ndarray:
-        x = x.reshape(n, -1)
-        return lap @ x + np.outer(v0_unit, v0_unit @ x)
+    def evaluate(x: float) -> None:
+        c = float(np.exp(x))
+        y = resolvent.solve(c)
+        s = u_mat[gen].T @ y[gen]
+        s = (s + s.T) / 2.0
+        mu, p = scipy.linalg.eigh(s @ core @ s, s)  # core z = mu S^-1 z with p = S^-1 z, p^T S p = 1
+        yp = y @ p[:, ::-1][:, :count]
+        seen.append((x, np.log(np.maximum(c * mu[::-1][:count] / sigma, 1e-300)), 1.0 - c * (yp ** 2).sum(axis=0), yp))
 
-    # L_N is singular (null vector v0) but positive definite once one bus is grounded; for a right-hand side
-    # orthogonal to v0 the grounded solution solves L_N x = r, and projecting v0 out gives L_N^+ r.
-    # L'^-1 = L_N^+ + v0 v0^T.
-    ground = int(np.argmax(v0_unit))
-    keep = np.flatnonzero(np.arange(n) != ground)
-    lu = sparse_linalg.splu(lap[keep][:, keep].tocsc())
-
-    def lp_solve(r: np.ndarray) -> np.ndarray:
-        r = r.reshape(n, -1)
-        along = v0_unit @ r
-        x = np.zeros_like(r)
-        x[keep] = lu.solve(np.ascontiguousarray(r[keep] - np.outer(v0_unit[keep], along)))
-        x -= np.outer(v0_unit, v0_unit @ x)
-        return x + np.outer(v0_unit, along)
-
-    def operator(fn) -> sparse_linalg.LinearOperator:
-        return sparse_linalg.LinearOperator((n, n), matvec=fn, matmat=fn, dtype=float)
-
-    start = np.random.default_rng(seed).standard_normal(n)
-    return sparse_linalg.eigsh(operator(bt_apply), k=count, M=operator(lp_apply), Minv=operator(lp_solve),
-                               which='LA', v0=start, tol=0.0)
+    lam, vectors = np.empty(count), np.empty((n, count))
+    evaluate(np.log(_FIRST_C))
+    for j in range(count):
+        for _ in range(_NEWTON_STEPS):
+            lo = max((e[0] for e in seen if e[1][j] < 0.0), default=-np.inf)
+            hi = min((e[0] for e in seen if e[1][j] >= 0.0), default=np.inf)
+            x, f, slope, _ = min(seen, key=lambda e: abs(e[1][j]))  # Newton from the evaluation nearest the root
+            if f[j] == 0.0:
+                break
+            nxt = x - f[j] / slope[j] if slope[j] > 0.0 else np.nan
+            if not lo < nxt < hi:  # outside the bracket (or no slope): halve it, or widen it by e^2
+                nxt = (lo + hi) / 2.0 if np.isfinite(lo) and np.isfinite(hi) else x + (2.0 if f[j] < 0.0 else -2.0)
+            evaluate(nxt)
+            if abs(nxt - x) <= _X_TOLERANCE:
+                break
+        else:
+            raise SpectralError(f'eq. 8: no root for eigenvalue {j + 1} after {_NEWTON_STEPS} Newton steps')
+        x, _, _, yp = seen[-1] if abs(seen[-1][0] - x) <= _X_TOLERANCE else min(seen, key=lambda e: abs(e[1][j]))
+        lam[j], vectors[:, j] = np.exp(x) / sigma, yp[:, j]
+    return lam, vectors
 
 
 def repair_partition(grid: Grid, generator_groups: Mapping[str, int], labels: np.ndarray,
