@@ -41,6 +41,8 @@ class IslandingDecision:
         unobserved_generators: Generators decided without a group (no PMU); their island is their bus's.
         constraint_fallback: Empty when the partitioner used eq. 6 as written; else why it departed from it (the
             spectral partitioner's group-balanced constraint weights when no beta exists, core/spectral.py).
+        partitioner_summary: Empty for a single method; the portfolio's line on which member's islands were kept,
+            both disruptions and the exact member's status and gap (core/portfolio.py).
 
     """
 
@@ -54,6 +56,7 @@ class IslandingDecision:
     disrupted_mw: float
     unobserved_generators: tuple[str, ...] = ()
     constraint_fallback: str = ''
+    partitioner_summary: str = ''
 
     @property
     def n_islands(self) -> int:
@@ -192,7 +195,7 @@ def decide(grid: Grid, generator_groups: Mapping[str, int],
     groups = check_generator_groups(grid, generator_groups, unobserved)
     if not grid.has_flows:
         grid = grid.with_flows()
-    fallback = ''
+    fallback = summary = ''
     if len(set(groups.values())) <= 1:
         decision = evaluate_partition(grid, dict.fromkeys(grid.buses, 0))
     else:
@@ -202,11 +205,13 @@ def decide(grid: Grid, generator_groups: Mapping[str, int],
             partitioner = ConstrainedSpectralPartition()
         labels = partitioner.fit(grid, groups).labels_
         fallback = str(getattr(partitioner, 'fallback_', ''))
+        summary = str(getattr(partitioner, 'summary_', ''))
         decision = evaluate_partition(grid, {b: int(i) for b, i in zip(grid.buses, labels, strict=True)})
-    return replace(decision, unobserved_generators=tuple(sorted(unobserved)), constraint_fallback=fallback)
+    return replace(decision, unobserved_generators=tuple(sorted(unobserved)), constraint_fallback=fallback,
+                   partitioner_summary=summary)
 
 
-def warm_up() -> None:
+def warm_up(partitioner: Partitioner | None = None) -> None:
     """Decide once on a small made-up grid, so that the compiled kernels are loaded before any real decision.
 
     numba loads each compiled kernel on its first call, and scipy its solvers: measured 5.7 s under load on the
@@ -222,4 +227,4 @@ def warm_up() -> None:
     generators = tuple(Generator(f'G{b}', b, 100.0, 200.0) for b in (1, 3, 5, 7))
     grid = Grid('warm-up', 100.0, tuple(range(1, n + 1)), branches, generators,
                 tuple(Load(b, 100.0) for b in (2, 4, 6, 8)), p_from_mw=flows, p_to_mw=-flows)
-    decide(grid, {'G1': 0, 'G3': 0, 'G5': 1, 'G7': 1})
+    decide(grid, {'G1': 0, 'G3': 0, 'G5': 1, 'G7': 1}, partitioner)

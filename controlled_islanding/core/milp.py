@@ -28,10 +28,21 @@ from scipy.optimize import Bounds, LinearConstraint, milp
 from controlled_islanding.core.grid import Grid
 
 _STATUS = {0: 'optimal', 1: 'time_limit', 2: 'infeasible', 3: 'unbounded', 4: 'error'}
+# HiGHS's own model status on reaching mip_max_nodes; scipy has no code for it and reports 4 with this in the text.
+_NODE_LIMIT_TEXT = 'HiGHS Status 16:'
 
 
 class MilpError(ValueError):
-    """The partition problem is malformed, infeasible, or the solver found no solution in time."""
+    """The partition problem is malformed, infeasible, or the solver found no solution in time.
+
+    Attributes:
+        status: 'infeasible', 'time_limit', 'node_limit' or 'error' (malformed input, or any other solver end).
+
+    """
+
+    def __init__(self, message: str, status: str = 'error') -> None:
+        super().__init__(message)
+        self.status = status
 
 
 class ExactPartition:
@@ -41,22 +52,26 @@ class ExactPartition:
         time_limit_s: Wall-clock limit for HiGHS, s. On hitting it the best solution found is kept and
             `status_` is 'time_limit' with `gap_` > 0 (or MilpError if none was found).
         mip_rel_gap: Relative optimality gap at which HiGHS may stop, fraction (0 = prove optimality).
+        node_limit: Branch-and-bound nodes HiGHS may explore (None = no limit): a budget that, unlike the time
+            limit, does not depend on machine load. On hitting it the best solution found is kept and `status_` is
+            'node_limit' (or MilpError if none was found).
 
     Attributes:
         labels_: Island per bus, aligned with grid.buses (island = the generator group number).
         disruption_mw_: Eq. 9 objective of the returned partition, MW.
         bound_mw_: Best lower bound on eq. 9 the solver proved, MW.
         gap_: Relative optimality gap (disruption - bound) / disruption, fraction; 0 when optimal.
-        status_: 'optimal' or 'time_limit'.
+        status_: 'optimal', 'time_limit' or 'node_limit'.
         optimal_: Whether optimality was proved (within mip_rel_gap).
         solve_time_s_: Wall time of the solve, s.
         cut_branch_ids_: In-service branches joining two islands.
 
     """
 
-    def __init__(self, time_limit_s: float = 60.0, mip_rel_gap: float = 0.0) -> None:
+    def __init__(self, time_limit_s: float = 60.0, mip_rel_gap: float = 0.0, node_limit: int | None = None) -> None:
         self.time_limit_s = time_limit_s
         self.mip_rel_gap = mip_rel_gap
+        self.node_limit = node_limit
 
     def fit(self, grid: Grid, generator_groups: Mapping[str, int]) -> ExactPartition:
         """Solve the partition problem.
@@ -83,7 +98,7 @@ class ExactPartition:
         n_bus = len(grid.buses)
         groups = sorted(set(fixed.values()))
         if len(groups) <= 1:
-            self._finish(np.full(n_bus, groups[0] if groups else 0, dtype=int), grid, 0.0, 0.0, 0, start)
+            self._finish(np.full(n_bus, groups[0] if groups else 0, dtype=int), grid, 0.0, 0.0, 'optimal', start)
             return self
         k = len(groups)
         col = {g: c for c, g in enumerate(groups)}
@@ -144,32 +159,35 @@ class ExactPartition:
         matrix = sparse.csr_array((vals, (rows, cols)), shape=(len(lo), n_x + n_y + n_f))
         cost = np.concatenate([np.zeros(n_x), weights, np.zeros(n_f)])
         integrality = np.concatenate([np.ones(n_x), np.zeros(n_y + n_f)])
+        options = {'time_limit': float(self.time_limit_s), 'mip_rel_gap': float(self.mip_rel_gap), 'disp': False}
+        if self.node_limit is not None:
+            options['node_limit'] = int(self.node_limit)
         result = milp(cost, integrality=integrality, bounds=Bounds(lb, ub),
-                      constraints=LinearConstraint(matrix, lo, hi),
-                      options={'time_limit': float(self.time_limit_s), 'mip_rel_gap': float(self.mip_rel_gap),
-                               'disp': False})
+                      constraints=LinearConstraint(matrix, lo, hi), options=options)
         status = _STATUS.get(result.status, 'error')
+        if status == 'error' and _NODE_LIMIT_TEXT in str(result.message):
+            status = 'node_limit'
         if result.x is None:
             if status == 'infeasible':
                 raise MilpError(f'no partition of {grid.name} keeps every group on one connected island with its '
-                                'generators (a group is split by the outages or separated by another group)')
+                                'generators (a group is split by the outages or separated by another group)', status)
             raise MilpError(f'HiGHS found no partition of {grid.name} ({status}: {result.message}) within '
-                            f'{self.time_limit_s} s')
+                            f'{self.time_limit_s} s and {self.node_limit} nodes', status)
         x = np.rint(result.x[:n_x]).reshape(n_bus, k)
         labels = np.array([groups[int(c)] for c in x.argmax(axis=1)], dtype=int)
         objective = float(result.fun)
         bound = float(getattr(result, 'mip_dual_bound', objective) or objective)
-        self._finish(labels, grid, objective, bound, result.status, start)
+        self._finish(labels, grid, objective, bound, status, start)
         return self
 
-    def _finish(self, labels: np.ndarray, grid: Grid, objective_mw: float, bound_mw: float, status: int,
+    def _finish(self, labels: np.ndarray, grid: Grid, objective_mw: float, bound_mw: float, status: str,
                 start: float) -> None:
         self.labels_ = labels
         self.disruption_mw_ = objective_mw
         self.bound_mw_ = min(bound_mw, objective_mw)
         self.gap_ = 0.0 if objective_mw <= 1e-9 else max(0.0, (objective_mw - self.bound_mw_) / objective_mw)
-        self.status_ = _STATUS.get(status, 'error')
-        self.optimal_ = status == 0
+        self.status_ = status
+        self.optimal_ = status == 'optimal'
         self.solve_time_s_ = time.perf_counter() - start
         island = dict(zip(grid.buses, labels.tolist(), strict=True))
         self.cut_branch_ids_ = tuple(b.branch_id for b in grid.branches
