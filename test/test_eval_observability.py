@@ -30,12 +30,16 @@ def test_sweep_scores_every_draw_against_truth_and_optimum(name, tmp_path):
             assert not d.error, d.error
             # The MILP is the optimum under the same groups: nothing the spectral clustering finds beats it.
             assert d.gap_pct is None or d.gap_pct >= -1e-6
+            # The portfolio keeps the lower of the spectral cut and the exact one: never above either.
+            assert d.portfolio_mw is not None and d.portfolio_mw <= d.disrupted_mw + 1e-6
+            assert d.portfolio_gap_pct is None or abs(d.portfolio_gap_pct) <= 1e-3
     full = rows[0].draws[0]
     truth_blocks = study.blocks(scenario.truth)
     assert full.groups_right == (full.k == len(truth_blocks))
     page = obs.write_report(rows, tmp_path / 'o.md', command='test', k_rule='separation', window_s=3.0)
     text = page.read_text()
     assert text.count(f'| {name} |') == len(rows) and not list(tmp_path.glob('.*partial'))
+    assert f'- {name}: groups ' in text and 'portfolio meets' in text
 
 
 def test_bad_sweep_settings_are_named():

@@ -17,10 +17,17 @@ The exact member is tried in order of cost, each step exact:
    branch-and-bound nodes. A wall-clock limit is only a safety net: when it fires the MILP's answer is not used
    (a decision must not depend on how busy the machine is) and the result says so.
 
-Measured on the observability sweep's instances (bags/, 50 to 100 % of the PMUs; build of issue 17): every
-HiGHS solve there closed at the root node, and the step-1 bound equalled the MILP optimum in every case; HiGHS
-took 35 ms on IEEE 39 and 6.4 to 7.3 s on GBnetwork (load 9 on 2 cores) where the spectral fit took 3 ms and
-0.7 to 0.9 s.
+The min-cut weights are integers for scipy's max-flow (scaled to the int32 range, rounded down): the bound stays
+rigorous, and the cut found is optimal to within one rounding step per cut branch (about 1e-5 MW on IEEE 39);
+`milp_gap_` says how close.
+
+Measured (load 9-10 on the shared 2-core machine) on the 88 two-group instances the observability sweep builds
+from bags/ (GBnetwork included, 25 to 100 % of the PMUs): the portfolio's cut equalled the MILP optimum in all 88,
+the spectral cut was above it in 28 (up to 16052 against 293 MW on GBnetwork at 25 %); the minimum cut gave a
+connected optimum in all but one, which HiGHS then solved. The exact member took 2-30 ms on IEEE 39 and 20-100 ms
+on GBnetwork, where the spectral fit took 3-40 ms and 0.3-1.6 s, and HiGHS alone 35 ms and 3.7-15.5 s. With three or
+four regional groups HiGHS took 50-90 ms on IEEE 39 and Nordic 44 (<= 176 binaries) and 3.7-13 s on EI 33 (1584
+and 2112 binaries), hence the default cap of 1000 binaries.
 """
 
 from __future__ import annotations
@@ -49,9 +56,9 @@ class PortfolioPartition:
         spectral: The paper's method; default `ConstrainedSpectralPartition()` (refinement on).
         node_limit: Branch-and-bound nodes HiGHS may explore (deterministic budget).
         max_milp_binaries: HiGHS is run only on models with at most this many binary variables, buses x groups
-            (deterministic budget: GBnetwork's 2224 buses x 2 groups = 4448 took 6 to 7 s under load, EI 33's
-            528 x 2 = 1056 took 0.3 to 1.4 s).
-        safety_time_limit_s: Wall-clock cap on HiGHS, s; when it fires its answer is discarded and said so.
+            (deterministic budget; module docstring for the measurements behind the default).
+        safety_time_limit_s: Wall-clock cap on HiGHS, s; when it fires its answer is discarded and said so. Below
+            the partitioning node's hang limit (10 s without a heartbeat).
 
     Attributes:
         labels_: Island (= coherent group) of each bus, aligned with `grid.buses`.
@@ -73,7 +80,7 @@ class PortfolioPartition:
     """
 
     def __init__(self, spectral: ConstrainedSpectralPartition | None = None, node_limit: int = 1000,
-                 max_milp_binaries: int = 2500, safety_time_limit_s: float = 30.0) -> None:
+                 max_milp_binaries: int = 1000, safety_time_limit_s: float = 5.0) -> None:
         self.spectral = spectral
         self.node_limit = node_limit
         self.max_milp_binaries = max_milp_binaries
