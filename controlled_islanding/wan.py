@@ -35,7 +35,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -158,23 +158,9 @@ def _setns(target: str | Path | int) -> None:
             os.close(fd)
 
 
-@contextlib.contextmanager
-def entered(netns: str) -> Iterator[None]:
-    """Move the calling thread into a named network namespace for the block, then back.
-
-    Threads and processes started inside the block stay in the namespace (sockets belong to the namespace of the
-    thread that opens them), so a DDS participant created here talks over that namespace only.
-    """
-    home = '/proc/thread-self/ns/net'
-    saved = os.open(home, os.O_RDONLY)
-    try:
-        _setns(f'/run/netns/{netns}')
-        try:
-            yield
-        finally:
-            _setns(saved)
-    finally:
-        os.close(saved)
+def prefix(netns: str) -> list[str]:
+    """Return the argv prefix that runs a command in a named network namespace."""
+    return ['ip', 'netns', 'exec', netns]
 
 
 def _ip(*args: str, netns: str | None = None, check: bool = True) -> str:
@@ -308,7 +294,7 @@ class EmulatedWan:
 
     def prefix(self, host: str) -> list[str]:
         """Return the argv prefix that runs a command on a host (in its namespace)."""
-        return ['ip', 'netns', 'exec', self.namespaces[host]]
+        return prefix(self.namespaces[host])
 
     def __exit__(self, *exc_info: object) -> None:
         if self._emulator is not None:

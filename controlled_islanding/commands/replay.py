@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
+import signal
 import statistics
+import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -151,12 +152,13 @@ def namespace_name(namespace: str) -> str:
 def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: float, timeout_s: float,
               quiet: bool, arm: bool = True, record: bool = True, isolate: bool = True, namespace: str = '',
               estimator: str | None = None, hosts: dict[str, tuple[str, ...]] | None = None,
-              link: wan.LinkModel | None = None) -> tuple[Observation, dict]:
+              netns: dict[str, str] | None = None) -> tuple[Observation, dict]:
     """Run the node graph on a bag; return what the observer saw and the player's speed report.
 
     The graph runs in `namespace` ('' = the root one), with its own /clock there (`<namespace>/clock`).
-    `estimator` overrides pmu_ingestion's (None: its parameter file's). With `hosts` (wan.parse_hosts), each host
-    is a network namespace joined to the others by an emulated WAN with `link`; this observer joins the operator's.
+    `estimator` overrides pmu_ingestion's (None: its parameter file's). With `hosts` (wan.parse_hosts), each host's
+    nodes start in its network namespace `netns[host]` of an emulated WAN, and this process must be on the
+    operator's (see _replay_on_hosts).
 
     Raises:
         CliError: The bag is unreadable, a node died, or no decision came in time.
@@ -189,21 +191,14 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
 
     obs = Observation()
     logs = results / 'logs'
-    with graph_environment(results / 'ros_log', isolate) as env, contextlib.ExitStack() as network:
-        net = None
+    with graph_environment(results / 'ros_log', isolate) as env:
         if hosts:
-            try:
-                net = network.enter_context(wan.EmulatedWan(list(hosts), link or wan.LinkModel(), results))
-            except wan.WanError as exc:
-                raise CliError(str(exc)) from exc
-            network.enter_context(wan.entered(net.namespaces[wan.OPERATOR]))
             env.update(wan.DDS_ENVIRONMENT)
-            obs.wan = {'hosts': {h: list(r) for h, r in hosts.items()}, 'link': asdict(net.link),
-                       'addresses': net.addresses, 'namespaces': net.namespaces, 'views': net.views,
-                       'stats': net.stats}  # filled when the network is taken down
+        # Across a lossy WAN, a lost discovery message waits for Fast DDS' next builtin heartbeat (3 s by default).
+        discovery_s = 80.0 if hosts else 20.0
 
         def on_host(executable: str) -> list[str]:
-            return net.prefix(wan.host_of(hosts, executable)) if net else []
+            return wan.prefix(netns[wan.host_of(hosts, executable)]) if hosts else []
 
         saved = dict(os.environ)
         os.environ.update(env)
@@ -263,19 +258,21 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 _say(quiet, f'replay: started {len(GRAPH)} nodes{" and the recorder" if record else ""} '
                             f'(logs in {logs})')
                 arm_client = node.create_client(SetArmed, 'breaker_command/set_armed')
-                if not arm_client.wait_for_service(timeout_sec=20.0):
+                if not arm_client.wait_for_service(timeout_sec=discovery_s):
                     sup.check_alive()
-                    raise CliError(f'breaker_command did not offer {ns}/breaker_command/set_armed within 20 s')
+                    raise CliError(f'breaker_command did not offer {ns}/breaker_command/set_armed within '
+                                   f'{discovery_s:g} s')
                 # The service can be discovered before it has matched our reply reader; Fast DDS then drops the
                 # response ("failed to send response"). Arming is idempotent, so ask again, with a fresh nonce.
                 for _attempt in range(3):
                     request = signing.signed_arm_request(SetArmed.Request(), operator_key, f'{ns}/breaker_command',
                                                          arm, time.time())
                     future = arm_client.call_async(request)
-                    if spin_for(5.0, future.done):
+                    if spin_for(discovery_s / 4, future.done):
                         break
                 if not future.done() or not future.result().accepted or future.result().armed != arm:
-                    why = future.result().message if future.done() else 'no answer to 3 requests within 15 s'
+                    why = (future.result().message if future.done() else
+                           f'no answer to 3 requests within {discovery_s * 3 / 4:g} s')
                     raise CliError(f'breaker_command did not switch to armed={arm}: {why}')
                 _say(quiet, f'replay: breaker_command {"armed" if arm else "left disarmed"}; playing the bag')
                 # The player starts once every subscriber now in the graph (this observer included) matches it.
@@ -286,7 +283,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 counts: dict[str, int] = {}
                 wiring: dict[str, tuple[int, int]] = {}
                 stable_since = begun = time.monotonic()
-                while time.monotonic() < begun + 20.0:
+                while time.monotonic() < begun + discovery_s:
                     now_counts = {t: node.count_subscribers(graph_topic(t)) for t in played}
                     now_wiring = {t: (node.count_publishers(graph_topic(t)), node.count_subscribers(graph_topic(t)))
                                   for t in internal}
@@ -307,8 +304,6 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 while time.monotonic() < deadline:
                     spin_for(0.01)
                     sup.supervise(obs.heartbeats_s)
-                    if net:
-                        net.check_alive()
                     bag_done = player.poll() is not None
                     if bag_done and player.returncode != 0:
                         raise CliError(f'bag_player failed:\n{sup.log_tail("bag_player")}')
@@ -335,7 +330,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 else:
                     raise CliError(f'no decision for every request within --timeout {timeout_s} s; '
                                    f'logs in {logs}')
-        except (SupervisorError, wan.WanError) as exc:
+        except SupervisorError as exc:
             raise CliError(str(exc)) from exc
         finally:
             node.destroy_node()
@@ -599,13 +594,24 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
     if results.exists():
         raise CliError(f'results folder {results} exists; name a new one')
     results.mkdir(parents=True)
+    options = {'fast': fast, 'rate': rate, 'probe_hz': probe_hz, 'timeout_s': timeout_s, 'figures': figures,
+               'quiet': quiet, 'arm': arm, 'record': record, 'isolate': isolate, 'namespace': namespace,
+               'estimator': estimator}
+    if host_roles:
+        return _replay_on_hosts(bag, results, host_roles, link or wan.LinkModel(), options)
+    return _replay_here(bag, results, **options)
+
+
+def _replay_here(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: float, timeout_s: float,
+                 figures: bool, quiet: bool, arm: bool, record: bool, isolate: bool, namespace: str,
+                 estimator: str | None, hosts: dict[str, tuple[str, ...]] | None = None,
+                 netns: dict[str, str] | None = None) -> dict:
+    """Run the graph from this process, summarize, draw, and write the summary into `results` (made already)."""
     obs, report = run_graph(bag, results, fast=fast, rate=rate, probe_hz=probe_hz, timeout_s=timeout_s,
                             quiet=quiet, arm=arm, record=record, isolate=isolate, namespace=namespace,
-                            estimator=estimator, hosts=host_roles, link=link)
+                            estimator=estimator, hosts=hosts, netns=netns)
     summary = summarize(bag, results, obs, report)
     summary['namespace'] = namespace
-    if obs.wan:
-        summary['wan'] = obs.wan
     summary['estimator'] = next((d['estimator'] for name, d in obs.diagnostics.items()
                                  if name.endswith('pmu_ingestion') and 'estimator' in d), estimator)
     if figures and record:
@@ -613,11 +619,74 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
             summary['figures'] = [str(p) for p in write_figures(bag, results, summary)]
         except Exception as exc:  # a figure must never hide the decision
             _say(quiet, f'replay: figures failed: {exc}')
+    _write_summary(results, summary)
+    return summary
+
+
+def _write_summary(results: Path, summary: dict) -> None:
     tmp = results / 'summary.json.tmp'
     tmp.write_text(json.dumps(summary, indent=2, default=str))
     os.replace(tmp, results / 'summary.json')
     (results / 'summary.txt').write_text(render(summary) + '\n')
+
+
+def _replay_on_hosts(bag: Path, results: Path, hosts: dict[str, tuple[str, ...]], link: wan.LinkModel,
+                     options: dict) -> dict:
+    """Build the emulated WAN, run the replay from a fresh process on the operator's host, add the WAN to it.
+
+    The observer runs in a process of its own started in the operator's namespace: a DDS participant takes its
+    network from the process it lives in, and one made earlier in this process (a test suite's, or a loopback
+    replay's) left Fast DDS sending the new one's traffic to loopback only.
+    """
+    spec = results / 'replay_on_hosts.json'
+    try:
+        with wan.EmulatedWan(list(hosts), link, results) as net:
+            spec.write_text(json.dumps({'bag': str(bag), 'results': str(results), 'options': options,
+                                        'hosts': hosts, 'netns': net.namespaces}))
+            child = subprocess.Popen([*net.prefix(wan.OPERATOR), sys.executable, '-c',
+                                      'import sys; from controlled_islanding.commands.replay import on_host_main; '
+                                      'sys.exit(on_host_main(sys.argv[1]))', str(spec)], stdin=subprocess.DEVNULL)
+            try:
+                while child.poll() is None:
+                    net.check_alive()
+                    time.sleep(0.2)
+                status = child.returncode
+            finally:
+                if child.poll() is None:  # interrupted: let it stop its graph, as Ctrl-C would
+                    child.send_signal(signal.SIGINT)
+                    try:
+                        child.wait(timeout=20.0)
+                    except subprocess.TimeoutExpired:
+                        child.kill()
+                        child.wait()
+            info = {'hosts': {h: list(r) for h, r in hosts.items()}, 'link': asdict(link),
+                    'addresses': net.addresses, 'namespaces': net.namespaces, 'views': net.views}
+            net_stats = net.stats  # filled when the network is taken down, below
+    except wan.WanError as exc:
+        raise CliError(str(exc)) from exc
+    error = results / 'replay_on_hosts.error'
+    if status != 0 or not (results / 'summary.json').exists():
+        why = error.read_text().strip() if error.exists() else f'the replay on the operator host exited with {status}'
+        raise CliError(why)
+    summary = json.loads((results / 'summary.json').read_text())
+    summary['wan'] = {**info, 'stats': net_stats}
+    _write_summary(results, summary)
     return summary
+
+
+def on_host_main(spec_file: str) -> int:
+    """Run the replay that _replay_on_hosts describes in `spec_file`, from the operator's namespace."""
+    spec = json.loads(Path(spec_file).read_text())
+    results = Path(spec['results'])
+    try:
+        _replay_here(Path(spec['bag']), results, **spec['options'],
+                     hosts={h: tuple(r) for h, r in spec['hosts'].items()}, netns=spec['netns'])
+    except CliError as exc:
+        (results / 'replay_on_hosts.error').write_text(f'{exc}\n')
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    return 0
 
 
 def _link(args: argparse.Namespace) -> wan.LinkModel | None:

@@ -1,0 +1,122 @@
+"""Request -> breaker command latency across the emulated WAN, against loopback (`controlled-islanding bench --wan`).
+
+Each setting (one-way delay, loss) replays a bag as fast as possible, `repeat` times, each on a fresh graph on the
+hosts pdc, control and substation (controlled_islanding.wan), and records per replay: the decision (split and cut),
+the latency from the bag's request to the breaker command as the operator's tap sees them (both leave their
+senders then; the path is pdc -> control for the request and control -> substation for the decision, two one-way
+delays), and the breaker commands the audit log holds against those seen: a command seen twice is duplicated, one
+recorded but never seen is lost. The loopback row is the same bag without --hosts, the reference decision.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from controlled_islanding import wan
+from controlled_islanding.cli import CliError
+
+DELAYS_MS = (0.0, 10.0, 50.0)
+LOSSES_PCT = (0.0, 1.0, 5.0)
+HOSTS = 'pdc,control,substation'
+
+
+@dataclass
+class Row:
+    """What the replays of one setting gave."""
+
+    label: str
+    delay_ms: float | None = None
+    loss_pct: float | None = None
+    latencies_ms: list[float] = field(default_factory=list)
+    decisions: list[tuple] = field(default_factory=list)  # (split, sorted cut branch ids) per replay
+    duplicated: int = 0
+    lost: int = 0
+    failures: list[str] = field(default_factory=list)
+    wan_lost_packets: int = 0
+    wan_packets: int = 0
+
+
+def _commands(summary: dict) -> tuple[int, int]:
+    """Return (duplicated, lost) breaker commands of one replay: seen twice at the tap, or audited but never seen."""
+    seen = [c['command_id'] for c in summary.get('breaker_commands', [])]
+    audit = Path(summary['results_dir']) / 'breaker_audit.jsonl'
+    recorded = [c['command_id'] for line in (audit.read_text().splitlines() if audit.exists() else [])
+                for c in json.loads(line).get('commands', []) if json.loads(line).get('event') == 'command']
+    return len(seen) - len(set(seen)), len(set(recorded) - set(seen))
+
+
+def _replay_into(row: Row, bag: Path, results: Path, hosts: str | None, link: wan.LinkModel | None) -> None:
+    from controlled_islanding.commands.replay import graph_failure, replay
+
+    try:
+        summary = replay(bag, results, fast=True, figures=False, quiet=True, record=False, hosts=hosts, link=link)
+    except CliError as exc:
+        row.failures.append(str(exc).splitlines()[0])
+        return
+    failure = graph_failure(summary)
+    if failure:
+        row.failures.append(failure)
+    if summary.get('split') is None or summary.get('undecided_requests'):
+        row.failures.append(f'undecided requests {summary.get("undecided_requests")}')
+    row.decisions.append((summary.get('split'), tuple(sorted(summary.get('cut_branch_ids', [])))))
+    if summary.get('latency_request_to_command_ms') is not None:
+        row.latencies_ms.append(summary['latency_request_to_command_ms'])
+    duplicated, lost = _commands(summary)
+    row.duplicated += duplicated
+    row.lost += lost
+    pairs = [p for k, p in summary.get('wan', {}).get('stats', {}).get('pairs', {}).items()
+             if not k.endswith(f'->{wan.OPERATOR}')]
+    row.wan_packets += sum(p['packets'] + p['dropped'] for p in pairs)
+    row.wan_lost_packets += sum(p['dropped'] for p in pairs)
+
+
+def run_bench(bag: Path, results: Path, repeat: int, delays_ms=DELAYS_MS, losses_pct=LOSSES_PCT,
+              jitter_ms: float = 0.0) -> list[Row]:
+    """Replay `bag` on loopback and across the emulated WAN in every setting; return one row per setting.
+
+    Raises:
+        CliError: The emulated WAN cannot be built here.
+
+    """
+    why = wan.unavailable_reason()
+    if why:
+        raise CliError(why)
+    rows = [Row('loopback')]
+    for i in range(repeat):
+        _replay_into(rows[0], bag, results / f'loopback-{i}', None, None)
+        print(f'bench --wan: loopback {i + 1}/{repeat}', file=sys.stderr, flush=True)
+    for delay in delays_ms:
+        for loss in losses_pct:
+            row = Row(f'{delay:g} ms, {loss:g} %', delay, loss)
+            for i in range(repeat):
+                link = wan.LinkModel(delay_ms=delay, jitter_ms=jitter_ms, loss_pct=loss, seed=i)
+                _replay_into(row, bag, results / f'd{delay:g}-l{loss:g}-{i}', HOSTS, link)
+                print(f'bench --wan: {row.label} {i + 1}/{repeat}', file=sys.stderr, flush=True)
+            rows.append(row)
+    return rows
+
+
+def render(rows: list[Row], repeat: int) -> str:
+    """Return the rows as a markdown table (the one in docs/deployment.md)."""
+    reference = set(rows[0].decisions)
+    lines = ['| setting (one-way delay, loss) | replays decided | latency median ms | latency max ms | '
+             'decision as loopback | commands duplicated / lost | WAN packets lost |',
+             '|---|---|---|---|---|---|---|']
+    for row in rows:
+        lat = row.latencies_ms
+        same = ('reference' if row is rows[0] else
+                'yes' if row.decisions and set(row.decisions) == reference and len(reference) == 1 else
+                f'no: {sorted(set(row.decisions), key=str)}')
+        packets = (f'{row.wan_lost_packets} of {row.wan_packets}' if row.wan_packets else '-')
+        lines.append(f'| {row.label} | {len(row.decisions) - sum(1 for d in row.decisions if d[0] is None)}/{repeat} '
+                     f'| {statistics.median(lat):.1f} | {max(lat):.1f} | {same} | {row.duplicated} / {row.lost} '
+                     f'| {packets} |' if lat else
+                     f'| {row.label} | 0/{repeat} | - | - | {same} | {row.duplicated} / {row.lost} | {packets} |')
+    failures = [f'- {row.label}: {f}' for row in rows for f in row.failures]
+    if failures:
+        lines += ['', 'Failures:', *failures]
+    return '\n'.join(lines)
