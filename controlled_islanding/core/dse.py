@@ -325,8 +325,8 @@ class RotorAngleDSE:
         max_gap_s: Longest run of missing frames bridged by prediction alone; after a longer one the estimate is
             withdrawn (NaN) and the machine re-initialised at its next valid frame.
         measurement_tve: Total vector error of the phasors, taken as a 3-sigma bound (C37.118: at most 0.01).
-        max_step_s: Longest integration (RK4) step, s; None: a quarter of the machine's shortest time constant,
-            capped at 1/60 s.
+        max_step_s: Longest integration (RK4) step, s; None: 0.6 times the machine's shortest time constant,
+            capped at 1/60 s, and one step per frame for the classical model (see _step_seconds).
         torque_walk_per_sqrt_s: Random-walk intensity of the mechanical torque, in units of the machine's output
             at initialisation (its apparent power, at least 0.1 pu) per square root of a second.
         field_walk_per_sqrt_s: The same for the field voltage, in units of its value at initialisation (at least 1).
@@ -505,6 +505,11 @@ class RotorAngleDSE:
             return self.max_step_s
         # RK4 is stable up to h / T = 2.8 and accurate to about 1e-4 of a step's change at h / T = 0.6.
         constants = [np.min(c) for c in bank.model.time_constants(bank.p)]
+        if not constants:
+            # The classical model has no time constant: its torque comes from the measured inputs, linear in time
+            # over a step, so the speed is a quadratic and the angle a cubic in time (damping aside, whose time
+            # constant M/D is seconds), which RK4 integrates exactly in one step of any length.
+            return np.inf
         return min([1.0 / 60.0] + [0.6 * c for c in constants])
 
     def _step_bank(self, bank: _Bank, t: float, dt: float | None, v: np.ndarray, i: np.ndarray,
