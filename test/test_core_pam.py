@@ -48,3 +48,24 @@ def test_bad_input_is_named() -> None:
         pam(np.zeros((3, 1)), 4)
     with pytest.raises(ValueError, match='finite 2-D'):
         pam(np.array([[np.nan]]), 1)
+
+
+@pytest.mark.parametrize('seed', range(12))
+def test_one_dimension_shortlist_chooses_as_the_full_passes(seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    # From _SHORTLIST_FROM points in one dimension, BUILD and SWAP run the kernel only on the candidates that prefix
+    # sums leave within their error bound of the best: the same medoids and labels as every candidate's full pass,
+    # with rounded values (exact ties), duplicates, and clusters of very unequal size and spread.
+    from controlled_islanding.core import pam as pam_module
+
+    rng = np.random.default_rng(seed)
+    n, k = int(rng.integers(pam_module._SHORTLIST_FROM, 1500)), int(rng.integers(2, 5))
+    x = rng.normal(size=(n, 1)) * rng.choice([1e-3, 1.0, 30.0], size=(n, 1)) + rng.integers(0, 4, size=(n, 1))
+    if seed % 3 == 0:
+        x = np.round(x, 1)
+    if seed % 3 == 1:
+        x[: n // 4] = x[n // 4: 2 * (n // 4)]
+    got = pam(x, k)
+    monkeypatch.setattr(pam_module, '_SHORTLIST_FROM', n + 1)
+    full = pam(x, k)
+    assert got[1].tolist() == full[1].tolist()
+    assert got[0].tolist() == full[0].tolist()
