@@ -42,6 +42,8 @@ from rclpy.node import Node
 from controlled_islanding import signing, topics
 from controlled_islanding.core.islanding import IslandingDecision as Decision
 from controlled_islanding.core.islanding import decide, warm_up
+from controlled_islanding.core.portfolio import PortfolioPartition
+from controlled_islanding.core.spectral import ConstrainedSpectralPartition
 from controlled_islanding.messages import Groups, Limits, MessageError, grid_from_snapshot, groups_from_msg, stamp_s
 from controlled_islanding.node_common import (
     ClockGate,
@@ -57,6 +59,7 @@ from controlled_islanding.topology import Topology, TopologyError
 _KEEP_GROUPS = 16
 _KEEP_ANSWERED = 10_000
 _KEEP_CACHED = 64
+PARTITIONERS = {'spectral': ConstrainedSpectralPartition, 'portfolio': PortfolioPartition}
 
 
 @dataclass
@@ -114,7 +117,14 @@ class PartitioningNode(Node):
         self.declare_parameter('key_dir', '', ParameterDescriptor(
             description='directory with partitioning.key, the decision signing key; empty = '
                         '$CONTROLLED_ISLANDING_KEYS or ~/.config/controlled_islanding/keys', read_only=True))
+        self.declare_parameter('partitioner', 'portfolio', ParameterDescriptor(
+            description="how buses are given to islands: 'spectral' (the paper's eqs. 4-8, refined) or 'portfolio' "
+                        '(that and the exact minimum cut within a fixed budget, the lower eq. 9 kept; '
+                        'core/portfolio.py)', read_only=True))
         self.method = str(self.get_parameter('groups_method').value)
+        self.partitioner = str(self.get_parameter('partitioner').value)
+        if self.partitioner not in PARTITIONERS:
+            raise NodeSetupError(f'partitioner must be one of {sorted(PARTITIONERS)}, got {self.partitioner!r}')
         key_dir = self.get_parameter('key_dir').value
         key_path = signing.key_paths(Path(key_dir) if key_dir else signing.default_key_dir(), 'partitioning').private
         try:
@@ -130,6 +140,7 @@ class PartitioningNode(Node):
         self.answered: deque[str] = deque(maxlen=_KEEP_ANSWERED)
         self.answered_set: set[str] = set()
         self.diag = Diagnostics(self)
+        self.diag.values['partitioner'] = self.partitioner
         self.inputs = ClockGate(self, self.diag, self.future_tolerance_s, 1000, self._apply_input)
         self.decision_pub = self.create_publisher(IslandingDecision, topics.relative(topics.ISLANDING_DECISION),
                                                   qos_for(topics.ISLANDING_DECISION))
@@ -146,7 +157,8 @@ class PartitioningNode(Node):
         self.pending_timer = self.create_timer(0.01, guard(self._serve_pending), clock=steady)
         t0 = time.perf_counter()
         try:
-            warm_up()  # before spinning: within the supervisor's start-up grace, not in a callback
+            # before spinning: within the supervisor's start-up grace, not in a callback
+            warm_up(PARTITIONERS[self.partitioner]())
         except Exception as exc:  # noqa: BLE001  only loads the engine; a real request reports its own failure
             self.get_logger().warning(f'engine warm-up failed ({exc}); the first decision will pay the loading')
         self.diag.values['warm_up_ms'] = f'{(time.perf_counter() - t0) * 1e3:.1f}'
@@ -287,7 +299,8 @@ class PartitioningNode(Node):
         key = (groups.names, groups.labels, groups.unobserved, out)
         t0 = time.perf_counter()
         if key not in self.cache:
-            self.cache[key] = decide(grid, groups.as_mapping(), unobserved=groups.unobserved)
+            self.cache[key] = decide(grid, groups.as_mapping(), PARTITIONERS[self.partitioner](),
+                                     unobserved=groups.unobserved)
             while len(self.cache) > _KEEP_CACHED:
                 self.cache.popitem(last=False)
         return self.cache[key], time.perf_counter() - t0
@@ -354,6 +367,9 @@ class PartitioningNode(Node):
                 if decision.constraint_fallback:  # IslandingDecision has no field for it yet: said in the log
                     self.get_logger().warning(f'request {request.request_id}: {decision.constraint_fallback}; '
                                               'split with group-balanced constraint weights')
+                if decision.partitioner_summary:  # no message field for it either: the log and diagnostics say it
+                    self.get_logger().info(f'request {request.request_id}: {decision.partitioner_summary}')
+                    self.diag.values['last_partition'] = decision.partitioner_summary[:200]
                 grid = self.topology.snapshot_at(req_s)[1]
                 msg = decision_to_msg(decision, request, groups.method, time.perf_counter() - t0,
                                       {g.name: g.bus for g in grid.generators})
