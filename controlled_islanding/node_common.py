@@ -10,6 +10,9 @@ QoS per topic (reliable everywhere: a lost request, decision or command is a los
 - /network/branch_status: KEEP_LAST 100, transient local: a late partitioning node still learns every trip.
 - /islanding/request, /islanding/decision, /breaker/commands: KEEP_LAST 100, volatile. Never latched: a
   breaker node that starts late must not execute a decision made before it existed.
+- /islanding/decision also has an AUTOMATIC liveliness lease of DECISION_LEASE_S: the topic is silent between
+  requests by design, so only liveliness tells a breaker node that the control centre is gone (process dead,
+  host or WAN down). A reader matches only writers offering a lease no longer than the one it requests.
 - /diagnostics: KEEP_LAST 10, volatile (the diagnostic_aggregator convention).
 - /clock: KEEP_LAST 1, volatile; rclpy's time source subscribes best effort, which a reliable writer serves.
 
@@ -35,10 +38,11 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.clock import Clock, ClockType
+from rclpy.duration import Duration
 from rclpy.exceptions import InvalidParameterValueException, ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
 
 from controlled_islanding import topics
 from controlled_islanding.messages import Limits
@@ -49,10 +53,19 @@ class NodeSetupError(ValueError):
     """A node's parameters or message types are unusable."""
 
 
-def _qos(depth: int, latched: bool = False) -> QoSProfile:
-    return QoSProfile(
+# rmw_fastrtps asserts AUTOMATIC liveliness every 2/3 of the lease, so one lost assertion outlasts it; a lease of
+# 3 s at 2 s assertions gives a writer's silence away within 3-5 s (measured in docs/deployment.md).
+DECISION_LEASE_S = 3.0
+
+
+def _qos(depth: int, latched: bool = False, lease_s: float | None = None) -> QoSProfile:
+    qos = QoSProfile(
         history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+    if lease_s is not None:
+        qos.liveliness = LivelinessPolicy.AUTOMATIC
+        qos.liveliness_lease_duration = Duration(nanoseconds=int(lease_s * 1e9))
+    return qos
 
 
 TOPIC_QOS: dict[str, QoSProfile] = {
@@ -62,7 +75,7 @@ TOPIC_QOS: dict[str, QoSProfile] = {
     topics.COHERENT_GROUPS: _qos(16, latched=True),
     topics.BRANCH_STATUS: _qos(100, latched=True),
     topics.ISLANDING_REQUEST: _qos(100),
-    topics.ISLANDING_DECISION: _qos(100),
+    topics.ISLANDING_DECISION: _qos(100, lease_s=DECISION_LEASE_S),
     topics.BREAKER_COMMANDS: _qos(100),
     topics.DIAGNOSTICS: _qos(10),
     topics.CLOCK: _qos(1),
@@ -261,11 +274,13 @@ class Diagnostics:
         return self._node.get_clock().now().nanoseconds * 1e-9
 
     def subscribe(self, msg_type: type, topic: str, callback: Callable[[object], None],
-                  rate_hz: float | None = None, stamp_bounds_s: tuple[float, float] = (-1.0, 5.0)) -> object:
+                  rate_hz: float | None = None, stamp_bounds_s: tuple[float, float] = (-1.0, 5.0),
+                  event_callbacks: object | None = None) -> object:
         """Subscribe (in the node's namespace) with the topic's documented QoS; count, guard, count losses.
 
         The losses are `lost.<topic>` in /diagnostics, present (0) from the start. With `rate_hz`, the topic
         also gets its own status (`TopicStatus`): expected rate, Hz, and acceptable stamp delays, s.
+        `event_callbacks` (rclpy SubscriptionEventCallbacks) are passed on, e.g. for liveliness changes.
         """
         counter = LossCounter()
         key = f'lost.{topic}'
@@ -287,7 +302,8 @@ class Diagnostics:
                 status.arrived(self._clock_s(), stamp.sec + stamp.nanosec * 1e-9 if stamp is not None else None)
             guarded(msg)
 
-        return self._node.create_subscription(msg_type, topics.relative(topic), take, qos_for(topic))
+        return self._node.create_subscription(msg_type, topics.relative(topic), take, qos_for(topic),
+                                              event_callbacks=event_callbacks)
 
     def arrived(self) -> None:
         """Count one input message."""

@@ -10,13 +10,17 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 
 import pytest
+from nodes_harness import graph
 from test_e2e_bags import ENTRIES, REPO, check_breaker_rules, check_decision, results_dir
 
 from controlled_islanding import wan
 from controlled_islanding.commands.demo import default_bag
 from controlled_islanding.commands.replay import replay
+from controlled_islanding.node_common import DECISION_LEASE_S
+from controlled_islanding.supervisor import GRAPH
 
 UNAVAILABLE = wan.unavailable_reason()
 
@@ -81,3 +85,40 @@ def test_default_bag_across_three_hosts_over_a_lossy_wan_reaches_the_manifest_de
     # The request crosses pdc -> control and the decision control -> substation: two one-way delays at least.
     assert summary['latency_request_to_command_ms'] >= 2 * (delay_ms - jitter_ms)
     assert not [n for n in wan.our_namespaces() if n.startswith(f'{wan.NAME_PREFIX}{os.getpid()}-')]
+
+
+# A control centre reduced to its decision writer (partitioning's QoS), in a process of its own.
+CONTROL_CENTRE = """
+import rclpy
+from controlled_islanding_msgs.msg import IslandingDecision
+from controlled_islanding import topics
+from controlled_islanding.node_common import qos_for
+rclpy.init()
+node = rclpy.create_node('partitioning')
+node.create_publisher(IslandingDecision, topics.relative(topics.ISLANDING_DECISION), qos_for(topics.ISLANDING_DECISION))
+rclpy.spin(node)
+"""
+
+
+@pytest.mark.ros
+def test_breaker_reports_a_control_centre_gone_silent_by_liveliness(tmp_path):
+    breaker = next(s for s in GRAPH if s.executable == 'breaker_command')
+    with graph('liveliness', [(breaker, {'audit_log': tmp_path / 'audit.jsonl'})]) as (sup, probe):
+        control = subprocess.Popen([sys.executable, '-c', CONTROL_CENTRE], env=sup.env)
+        try:
+            status = lambda: probe.diagnostics.get('breaker_command', {})  # noqa: E731
+            assert probe.spin_until(lambda: status().get('decision_writers_alive') == '1', 30.0), status()
+            probe.spin_for(DECISION_LEASE_S)  # alive and asserting: no alarm
+            assert 'warn.control_centre_silent' not in status()
+            control.kill()  # no clean goodbye: only the lease running out tells
+            control.wait()
+            killed = time.monotonic()
+            assert probe.spin_until(lambda: 'warn.control_centre_silent' in status(), 15.0), status()
+            # Within the lease of the last assertion, plus the diagnostics' way to us on a loaded machine.
+            assert time.monotonic() - killed <= DECISION_LEASE_S + 3.0
+            assert probe.levels['breaker_command'][0] == b'\x01'  # WARN
+            assert status()['decision_writers_alive'] == '0'
+        finally:
+            if control.poll() is None:
+                control.kill()
+                control.wait()

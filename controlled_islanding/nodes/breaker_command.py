@@ -26,6 +26,7 @@ from controlled_islanding_msgs.msg import BranchStatus, BreakerCommand, Islandin
 from controlled_islanding_msgs.msg import NetworkSnapshot as NetworkSnapshotMsg
 from controlled_islanding_msgs.srv import SetArmed
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
@@ -33,7 +34,14 @@ from controlled_islanding import signing, topics
 from controlled_islanding.actuation import Refusal, plan_commands
 from controlled_islanding.audit import AuditError, AuditLog
 from controlled_islanding.messages import Limits, MessageError, grid_from_snapshot, stamp_s
-from controlled_islanding.node_common import ClockGate, Diagnostics, NodeSetupError, qos_for, spin_node
+from controlled_islanding.node_common import (
+    DECISION_LEASE_S,
+    ClockGate,
+    Diagnostics,
+    NodeSetupError,
+    qos_for,
+    spin_node,
+)
 from controlled_islanding.supervisor import config_dir
 from controlled_islanding.topology import Topology, TopologyError
 
@@ -151,7 +159,11 @@ class BreakerCommandNode(Node):
         self.inputs = ClockGate(self, self.diag, self.future_tolerance_s, 200, self._apply_input)
         self.pub = self.create_publisher(BreakerCommand, topics.relative(topics.BREAKER_COMMANDS),
                                          qos_for(topics.BREAKER_COMMANDS))
-        self.diag.subscribe(IslandingDecision, topics.ISLANDING_DECISION, self.on_decision)
+        self.decision_writers_alive = 0
+        self.diag.values['decision_writers_alive'] = '0'
+        self.diag.subscribe(IslandingDecision, topics.ISLANDING_DECISION, self.on_decision,
+                            event_callbacks=SubscriptionEventCallbacks(
+                                liveliness=self.diag.guard(self.on_decision_liveliness)))
         self.diag.subscribe(NetworkSnapshotMsg, topics.NETWORK_SNAPSHOT, self.on_snapshot)
         self.diag.subscribe(BranchStatus, topics.BRANCH_STATUS, self.on_branch_status)
         self.create_service(SetArmed, '~/set_armed', self.diag.guard(self.on_set_armed))
@@ -319,6 +331,22 @@ class BreakerCommandNode(Node):
         if len(known) >= self.max_remembered:
             raise Refusal('overloaded', f'{len(known)} fresh decision ids held, max_remembered_decisions='
                                         f'{self.max_remembered}')
+
+    def on_decision_liveliness(self, info: object) -> None:
+        """Report a silent control centre: every decision writer that was alive lost its lease or left.
+
+        WARN `control_centre_silent` while none is alive after one was; never before the first, since a
+        breaker node may start before the control centre does.
+        """
+        was = self.decision_writers_alive
+        self.decision_writers_alive = int(info.alive_count)
+        self.diag.values['decision_writers_alive'] = str(self.decision_writers_alive)
+        if self.decision_writers_alive == 0 and was > 0:
+            self.diag.warn('control_centre_silent',
+                           f'no live decision writer since {time.time():.3f} (wall, s): no decision can arrive '
+                           f'(liveliness lease {DECISION_LEASE_S:g} s)')
+        elif self.decision_writers_alive > 0:
+            self.diag.warn('control_centre_silent', None)
 
     def on_decision(self, msg: IslandingDecision) -> None:
         """Check a decision against every rule; command its breakers only if all hold."""
