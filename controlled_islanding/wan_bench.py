@@ -6,13 +6,24 @@ the latency from the bag's request to the breaker command as the operator's tap 
 senders then; the path is pdc -> control for the request and control -> substation for the decision, two one-way
 delays), and the breaker commands the audit log holds against those seen: a command seen twice is duplicated, one
 recorded but never seen is lost. The loopback row is the same bag without --hosts, the reference decision.
+
+`silence_detection` measures the time breaker_command takes to report a control centre gone silent
+(`warn.control_centre_silent`, from the liveliness lease of /islanding/decision): a stand-in control centre (a
+process holding partitioning's decision writer) on host control, the real breaker_command on host substation, and
+an observer of /diagnostics on the operator's tap; the control centre is killed (SIGKILL: no goodbye, only the
+lease tells) once the breaker has seen it alive for `alive_s`, during which any alarm is a false one.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import select
+import signal
 import statistics
+import subprocess
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -120,3 +131,87 @@ def render(rows: list[Row], repeat: int) -> str:
     if failures:
         lines += ['', 'Failures:', *failures]
     return '\n'.join(lines)
+
+
+_CONTROL_CENTRE = """
+import rclpy
+from controlled_islanding_msgs.msg import IslandingDecision
+from controlled_islanding import topics
+from controlled_islanding.node_common import qos_for
+rclpy.init()
+node = rclpy.create_node('partitioning')
+node.create_publisher(IslandingDecision, topics.relative(topics.ISLANDING_DECISION), qos_for(topics.ISLANDING_DECISION))
+rclpy.spin(node)
+"""
+_OBSERVER = """
+import json, time, rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from controlled_islanding.node_common import qos_for
+rclpy.init()
+node = rclpy.create_node('observer')
+def on(msg):
+    for s in msg.status:
+        if s.name == '/breaker_command':
+            v = {kv.key: kv.value for kv in s.values}
+            print(json.dumps([time.monotonic(), v.get('decision_writers_alive'), 'warn.control_centre_silent' in v]),
+                  flush=True)
+node.create_subscription(DiagnosticArray, '/diagnostics', on, qos_for('/diagnostics'))
+rclpy.spin(node)
+"""
+
+
+def silence_detection(link: wan.LinkModel, work: Path, alive_s: float = 30.0) -> tuple[float | None, int]:
+    """Return (s from killing the control centre to the breaker's warning, or None; false alarms while alive).
+
+    Raises:
+        CliError: The emulated WAN cannot be built here.
+
+    """
+    from controlled_islanding import signing
+    from controlled_islanding.rosenv import isolated_ros_environment
+    from controlled_islanding.supervisor import GRAPH, node_command
+
+    work.mkdir(parents=True, exist_ok=True)
+    keys = work / 'keys'
+    signing.init_keys(keys)
+    breaker = next(s for s in GRAPH if s.executable == 'breaker_command')
+    with isolated_ros_environment(work / 'ros_log') as env, wan.EmulatedWan(['control', 'substation'], link,
+                                                                             work) as net:
+        env.update(wan.DDS_ENVIRONMENT)
+        argv = {'breaker': net.prefix('substation') + node_command(breaker, {'audit_log': work / 'audit.jsonl',
+                                                                              'key_dir': keys}),
+                'observer': net.prefix(wan.OPERATOR) + [sys.executable, '-c', _OBSERVER],
+                'control': net.prefix('control') + [sys.executable, '-c', _CONTROL_CENTRE]}
+        procs: dict[str, subprocess.Popen] = {}
+        try:
+            for name, command in argv.items():
+                with open(work / f'{name}.log', 'ab') as log:
+                    procs[name] = subprocess.Popen(command, env=env, stderr=log, stdin=subprocess.DEVNULL,
+                                                   stdout=subprocess.PIPE if name == 'observer' else log)
+            observer = procs['observer'].stdout
+            alive_since = killed = None
+            false_alarms = 0
+            end = time.monotonic() + alive_s + 120.0
+            while time.monotonic() < end:
+                if alive_since is not None and killed is None and time.monotonic() - alive_since >= alive_s:
+                    procs['control'].kill()
+                    killed = time.monotonic()
+                if not select.select([observer], [], [], 0.2)[0]:
+                    continue
+                t, alive, silent = json.loads(observer.readline() or 'null') or (None, None, None)
+                if t is None:
+                    break
+                if alive == '1' and alive_since is None:
+                    alive_since = t
+                if silent and killed is None:
+                    false_alarms += 1
+                elif silent:
+                    return t - killed, false_alarms
+            return None, false_alarms
+        finally:
+            for proc in procs.values():
+                if proc.poll() is None:
+                    os.kill(proc.pid, signal.SIGKILL)
+                proc.wait()
+                if proc.stdout:
+                    proc.stdout.close()
