@@ -89,6 +89,10 @@ class PmuIngestionNode(Node):
         self.estimator = str(self.get_parameter('estimator').value)
         if self.estimator not in _ESTIMATORS:
             raise NodeSetupError(f'estimator={self.estimator!r} must be one of {_ESTIMATORS}')
+        if self.estimator == 'dse':
+            # Loaded at start, not by the first snapshot's filter: loading numba and the kernel takes seconds under
+            # load, and the frames arriving meanwhile queued behind it (a real-time replay fell 4.8 s behind).
+            from controlled_islanding.core import dse_kernel  # noqa: F401
         self.declare_parameter('dse_model', 'auto')
         self.dse_model = str(self.get_parameter('dse_model').value)
         self.dse_max_gap_s = float(declare_bounded(
