@@ -55,8 +55,8 @@ def _commands(summary: dict) -> tuple[int, int]:
     """Return (duplicated, lost) breaker commands of one replay: seen twice at the tap, or audited but never seen."""
     seen = [c['command_id'] for c in summary.get('breaker_commands', [])]
     audit = Path(summary['results_dir']) / 'breaker_audit.jsonl'
-    recorded = [c['command_id'] for line in (audit.read_text().splitlines() if audit.exists() else [])
-                for c in json.loads(line).get('commands', []) if json.loads(line).get('event') == 'command']
+    records = [json.loads(line) for line in audit.read_text().splitlines()] if audit.exists() else []
+    recorded = [c['command_id'] for r in records if r.get('event') == 'command' for c in r['commands']]
     return len(seen) - len(set(seen)), len(set(recorded) - set(seen))
 
 
@@ -215,3 +215,20 @@ def silence_detection(link: wan.LinkModel, work: Path, alive_s: float = 30.0) ->
                 proc.wait()
                 if proc.stdout:
                     proc.stdout.close()
+
+
+def silence_table(results: Path, repeat: int, settings=((0.0, 0.0), (10.0, 1.0), (50.0, 5.0))) -> str:
+    """Return the silent-control-centre detection times, `repeat` runs per (delay ms, loss %), as markdown."""
+    from controlled_islanding.node_common import DECISION_LEASE_S
+
+    lines = [f'Time for breaker_command to report a killed control centre (liveliness lease {DECISION_LEASE_S:g} s), '
+             f'{repeat} runs per setting, each after 30 s alive:', '',
+             '| setting (one-way delay, loss) | detected after s (each run) | false alarms while alive |',
+             '|---|---|---|']
+    for delay, loss in settings:
+        runs = [silence_detection(wan.LinkModel(delay, 0.0, loss, seed=i),
+                                  results / f'silence-d{delay:g}-l{loss:g}-{i}') for i in range(repeat)]
+        times = ', '.join('never' if t is None else f'{t:.2f}' for t, _ in runs)
+        lines.append(f'| {delay:g} ms, {loss:g} % | {times} | {sum(f for _, f in runs)} |')
+        print(f'bench --wan: silence {delay:g} ms, {loss:g} % done', file=sys.stderr, flush=True)
+    return '\n'.join(lines)

@@ -461,7 +461,7 @@ def bench_wan(bags: Path, repeat: int, results: Path | None) -> None:
     from datetime import UTC, datetime
 
     from controlled_islanding.commands.demo import default_bag
-    from controlled_islanding.wan_bench import render, run_bench
+    from controlled_islanding.wan_bench import render, run_bench, silence_table
 
     bag = bags / default_bag()['bag']
     stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
@@ -470,19 +470,8 @@ def bench_wan(bags: Path, repeat: int, results: Path | None) -> None:
           f'({load_average()}):')
     print(render(run_bench(bag, results, repeat), repeat))
     print(f'after: {load_average()}; replays in {results}')
-    from controlled_islanding import wan
-    from controlled_islanding.node_common import DECISION_LEASE_S
-    from controlled_islanding.wan_bench import silence_detection
-
-    print(f'\ntime for breaker_command to report a killed control centre (liveliness lease {DECISION_LEASE_S:g} s), '
-          f'{repeat} runs per setting, 30 s alive first:')
-    print('| setting (one-way delay, loss) | detected after s (each run) | false alarms while alive |')
-    print('|---|---|---|')
-    for delay, loss in ((0.0, 0.0), (10.0, 1.0), (50.0, 5.0)):
-        runs = [silence_detection(wan.LinkModel(delay, 0.0, loss, seed=i),
-                                  results / f'silence-d{delay:g}-l{loss:g}-{i}') for i in range(repeat)]
-        times = ', '.join('never' if t is None else f'{t:.2f}' for t, _ in runs)
-        print(f'| {delay:g} ms, {loss:g} % | {times} | {sum(f for _, f in runs)} |', flush=True)
+    print()
+    print(silence_table(results, repeat))
     print(f'after: {load_average()}')
 
 
