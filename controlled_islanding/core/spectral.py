@@ -95,9 +95,10 @@ from controlled_islanding.core.pam import pam
 _MIN_WEIGHT_FRACTION = 1e-6
 # The fallback's exponent p of the group-balanced weights c_g^-p is searched in steps of 1/_BALANCE_STEPS.
 _BALANCE_STEPS = 20
-# Up to this many buses the deflated pencil is solved densely: at 300 buses its two arrays take 1.4 MB and
-# LAPACK's eigh beats ARPACK's hundred Python-level iterations (case39: well under a millisecond against tens).
-_DENSE_MAX_BUSES = 300
+# Up to this many buses the deflated pencil is solved densely (case39: about a millisecond). Not beyond: LAPACK's
+# eigh on n x n runs OpenBLAS's threads, which fight other work: at load 10 on 2 cores it took 0.23 s at 118 buses
+# and 0.88 s at 300 (22 and 43 ms on one thread), where the k x k roots take 15 to 95 ms.
+_DENSE_MAX_BUSES = 100
 # The roots of eq. 8's k x k problem (module docstring): the first guess of c = sigma lambda (L_N's spectrum lies in
 # [0, 2]; roots seen from 2e-6 to 0.25 on case1354pegase .. case9241pegase), Newton's stopping step in log c
 # (after a step this small, quadratic convergence leaves the last evaluation exact to rounding), and its limit.
@@ -523,35 +524,50 @@ def refine_partition(grid: Grid, generator_groups: Mapping[str, int], labels: np
     w.sum_duplicates()
     w.sort_indices()
     ptr, nbr = _check_connected(grid, w)
-    wt = w.data
-    k = int(lab.max()) + 1
-    # to[i, c]: weight from bus i to island c; a move of i to c gains to[i, c] - to[i, lab[i]].
+    _refine_moves(ptr, nbr, w.data, lab, fixed, int(lab.max()) + 1, 1e-9 * float(w.data.sum()))
+    return lab
+
+
+@numba.njit(cache=True)
+def _refine_moves(ptr, nbr, wt, lab, fixed, k, tol):
+    """Make refine_partition's moves in place on lab (compiled: at 9241 buses a move's numpy pass took ms).
+
+    to[i, c] is the weight from bus i to island c, so a move of i to c gains to[i, c] - to[i, lab[i]]; each step
+    takes the largest gain (the first in bus-then-island order on ties) above tol, unless the move would split
+    i's island, in which case that (bus, island) is blocked until the next move.
+    """
+    n = lab.shape[0]
     to = np.zeros((n, k))
-    np.add.at(to, (np.repeat(np.arange(n), np.diff(ptr)), lab[nbr]), wt)
-    tol = 1e-9 * float(wt.sum())
-    blocked: set[tuple[int, int]] = set()  # (bus, island) moves refused for connectivity since the last move
+    for i in range(n):
+        for e in range(ptr[i], ptr[i + 1]):
+            to[i, lab[nbr[e]]] += wt[e]
+    blocked = np.zeros((n, k), dtype=np.bool_)
     seen, queue = np.zeros(n, dtype=np.int64), np.empty(n, dtype=np.int64)  # the searches' scratch
     searches = 0
     while True:
-        gain = to - to[np.arange(n), lab][:, None]
-        gain[np.arange(n), lab] = -np.inf
-        gain[fixed] = -np.inf
-        for bus, isl in blocked:
-            gain[bus, isl] = -np.inf
-        best = int(np.argmax(gain))
-        i, c = divmod(best, k)
-        if not gain[i, c] > tol:
-            return lab
+        best, bi, bc = -np.inf, -1, -1
+        for i in range(n):
+            if fixed[i]:
+                continue
+            here = to[i, lab[i]]
+            for c in range(k):
+                if c != lab[i] and not blocked[i, c]:
+                    g = to[i, c] - here
+                    if g > best:
+                        best, bi, bc = g, i, c
+        if not best > tol:
+            return
         searches += 1
-        if not _stays_connected(ptr, nbr, lab, i, seen, queue, searches):
-            blocked.add((i, c))
+        if not _stays_connected(ptr, nbr, lab, bi, seen, queue, searches):
+            blocked[bi, bc] = True
             continue
-        old = lab[i]
-        lab[i] = c
-        row = nbr[ptr[i]:ptr[i + 1]]
-        np.subtract.at(to, (row, old), wt[ptr[i]:ptr[i + 1]])
-        np.add.at(to, (row, c), wt[ptr[i]:ptr[i + 1]])
-        blocked.clear()
+        old = lab[bi]
+        lab[bi] = bc
+        for e in range(ptr[bi], ptr[bi + 1]):
+            to[nbr[e], old] -= wt[e]
+        for e in range(ptr[bi], ptr[bi + 1]):
+            to[nbr[e], bc] += wt[e]
+        blocked[:, :] = False
 
 
 @numba.njit(cache=True)
@@ -688,4 +704,5 @@ _line = (np.array([0, 1, 3, 4], dtype=np.int64), np.array([1, 0, 2, 1], dtype=np
 _pieces_within(_line, np.ones(3, dtype=bool))
 _path_to_stranded(*_line, np.array([True, False, False]), np.array([0, -1, 0]), 0)
 _stays_connected(*_line, np.zeros(3, dtype=int), 1, np.zeros(3, dtype=np.int64), np.empty(3, dtype=np.int64), 1)
+_refine_moves(*_line, np.ones(4), np.array([0, 1, 1]), np.array([True, False, True]), 2, 1e-9)
 del _line
