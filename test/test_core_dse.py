@@ -183,3 +183,20 @@ def test_saturation_coefficients_as_andes() -> None:
     s = np.array([0.09, 0.38])
     assert b[0] * (np.array([1.0, 1.2]) - a[0]) ** 2 / np.array([1.0, 1.2]) == pytest.approx(s)
     assert b[1] == 0.0
+
+
+@pytest.mark.parametrize('diagonal', [[4e-4, 1e-4, 9e-6], [4e-4, 1e-4, -1e-18]])
+def test_sigma_points_carry_the_covariance_and_survive_an_indefinite_one(diagonal) -> None:
+    # Rounding can leave a covariance a hair from positive definite: the kernel then takes its eigen square root
+    # (negative eigenvalues as 0) instead of Cholesky's; both give 2n points with the covariance's mean and spread.
+    from controlled_islanding.core import dse_kernel
+
+    rng = np.random.default_rng(5)
+    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    cov = q @ np.diag(diagonal) @ q.T
+    x = np.array([0.3, 1.0, 0.8])
+    pts = np.empty((6, 3))
+    dse_kernel._sigma_points(x, cov, np.empty((3, 3)), pts)
+    dev = pts - x
+    assert pts.mean(axis=0) == pytest.approx(x, abs=1e-15)
+    assert dev.T @ dev / len(pts) == pytest.approx(q @ np.diag(np.maximum(diagonal, 0.0)) @ q.T, abs=1e-15)
