@@ -6,9 +6,10 @@ two thirds in the prediction's RK4 derivatives and sigma points, a third in the 
 predict and correct are scalar loops with the formulas and operation order of that numpy version, on one core.
 The equations and the filter design are in core/dse.py's docstring.
 
-A module of its own so that importing core.dse (pmu_ingestion does, whatever its estimator) does not load numba;
-RotorAngleDSE.fit imports it. Importing it compiles the kernel, or loads it from numba's cache (tools/setup.sh
-imports it once, so that the cache exists for every later process).
+A module of its own so that importing core.dse (pmu_ingestion does, whatever its estimator) does not load numba:
+RotorAngleDSE.fit imports it, and pmu_ingestion at start when its estimator is dse. Importing it compiles the
+kernel, or loads it from numba's cache (tools/setup.sh imports it once, so that the cache exists for every later
+process).
 """
 
 from __future__ import annotations
