@@ -1,6 +1,6 @@
-"""An islanding decision in the forms other grid tools take to apply it: MATPOWER cases and ANDES events.
+"""An islanding decision in the forms other grid tools take to apply it: MATPOWER cases, pandapower nets, ANDES events.
 
-Both start from the ANDES case the decision's network came from (ANDES reads MATPOWER, PSS/E and its own
+All start from the ANDES case the decision's network came from (ANDES reads MATPOWER, PSS/E and its own
 formats), so branch ids are matched in either orientation: ANDES names transformer 6-31 "31-6".
 
 - MATPOWER: the whole case with the cut branches (and any outages the decision saw) at status 0, one
@@ -8,6 +8,9 @@ formats), so branch ids are matched in either orientation: ANDES names transform
   and each island's load scaled down by the decision's load to shed, so every island solves on its own.
   `island_cases` splits it into one case per island, which MATPOWER, PYPOWER or pandapower's MATPOWER
   converter run as they are.
+- pandapower: that MATPOWER case through pandapower's own converter, every line, transformer and impedance
+  named by its branch id, the cut ones (and the outages) out of service, one ext_grid per island: `pp.runpp`
+  solves every island of it at once, and `pp.from_json` reads it back from `pandapower_json`.
 - ANDES: one Toggle per cut branch at a time given, as the rows `System.add('Toggle', row)` takes.
 """
 
@@ -22,9 +25,9 @@ from typing import Any
 import numpy as np
 
 # MATPOWER columns (0-based), from the MATPOWER case format documentation.
-_BUS_I, _BUS_TYPE, _BUS_PD, _BUS_QD = 0, 1, 2, 3
+_BUS_I, _BUS_TYPE, _BUS_PD, _BUS_QD, _BUS_BS, _BUS_BASE_KV = 0, 1, 2, 3, 5, 9
 _GEN_BUS, _GEN_PG, _GEN_STATUS = 0, 1, 7
-_BR_F, _BR_T, _BR_STATUS = 0, 1, 10
+_BR_F, _BR_T, _BR_R, _BR_X, _BR_B, _BR_TAP, _BR_SHIFT, _BR_STATUS = 0, 1, 2, 3, 4, 8, 9, 10
 _REF, _PV, _PQ = 3, 2, 1
 
 
@@ -160,6 +163,79 @@ def matpower_case(ss: Any, decision: Decision) -> dict[str, Any]:
             bus[rows, _BUS_PD] *= scale
             bus[rows, _BUS_QD] *= scale
     return ppc
+
+
+def pandapower_net(ss: Any, decision: Decision) -> Any:
+    """Return the case as a pandapower net with the decision applied (see the module docstring).
+
+    Raises:
+        ExportError: As `matpower_case`.
+
+    """
+    import warnings
+
+    from pandapower.converter.pypower import from_ppc
+
+    from controlled_islanding.sim.andes_sim import branch_ids
+
+    ppc = matpower_case(ss, decision)
+    ppc = _transformers_for_pandapower(ppc)
+    names = branch_ids([(int(a), int(b)) for a, b in zip(ss.Line.bus1.v, ss.Line.bus2.v, strict=True)])
+    ppc['branch_name'] = np.array(names, dtype=object)
+    with warnings.catch_warnings():
+        # pandas' deprecation notices from inside the converter say nothing about the case.
+        warnings.simplefilter('ignore', FutureWarning)
+        net = from_ppc(ppc, f_hz=float(ss.config.freq), validate_conversion=False)
+    # The converter leaves a branch it makes an impedance (ends at different base kV, no tap) in service and
+    # unnamed, so status and name are set on every element the branch rows became.
+    lookup = net._from_ppc_lookups['branch']
+    for row, (element, kind) in enumerate(zip(lookup['element'], lookup['element_type'], strict=True)):
+        net[kind].at[int(element), 'in_service'] = bool(ppc['branch'][row, _BR_STATUS] > 0)
+        net[kind].at[int(element), 'name'] = names[row]
+    return net
+
+
+def _transformers_for_pandapower(ppc: Mapping[str, Any]) -> dict[str, Any]:
+    """Return the ppc with its transformers written as pandapower's converter (3.5.6) models them faithfully.
+
+    The converter puts a MATPOWER tap on the higher-voltage end whichever end the case gives it at (IEEE 39's
+    31-6, 12-11 and 12-13 then moved the solved voltages by up to 0.09 pu), and makes a transformer's charging
+    susceptance an inductive magnetising current at the middle of a T (GBnetwork: 0.007 pu). A tap t at one end
+    with admittance y and charging b behind it is the tap 1/t at the other end with y/t**2 and b/t**2, a phase
+    shift changing sign; an in-service transformer's charging, b/2/t**2 at the tap end and b/2 at the other, goes
+    to the buses' shunts.
+    """
+    bus, branch = ppc['bus'].copy(), ppc['branch'].copy()
+    row_of = {int(b): i for i, b in enumerate(bus[:, _BUS_I])}
+    tap = np.where(branch[:, _BR_TAP] == 0, 1.0, branch[:, _BR_TAP])
+    transformer = (tap != 1.0) | (branch[:, _BR_SHIFT] != 0)
+    low_first = np.array([bus[row_of[int(f)], _BUS_BASE_KV] < bus[row_of[int(t)], _BUS_BASE_KV]
+                          for f, t in branch[:, [_BR_F, _BR_T]]], dtype=bool)
+    flip = transformer & low_first
+    t = tap[flip]
+    branch[flip, _BR_F], branch[flip, _BR_T] = branch[flip, _BR_T], branch[flip, _BR_F]
+    branch[flip, _BR_TAP] = 1.0 / t
+    branch[flip, _BR_R] *= t ** 2
+    branch[flip, _BR_X] *= t ** 2
+    branch[flip, _BR_B] /= t ** 2
+    branch[flip, _BR_SHIFT] *= -1.0
+    tap = np.where(branch[:, _BR_TAP] == 0, 1.0, branch[:, _BR_TAP])
+    for k in np.flatnonzero(transformer & (branch[:, _BR_B] != 0) & (branch[:, _BR_STATUS] > 0)):
+        half_mvar = branch[k, _BR_B] / 2.0 * ppc['baseMVA']
+        bus[row_of[int(branch[k, _BR_F])], _BUS_BS] += half_mvar / tap[k] ** 2
+        bus[row_of[int(branch[k, _BR_T])], _BUS_BS] += half_mvar
+        branch[k, _BR_B] = 0.0
+    return {**ppc, 'bus': bus, 'branch': branch}
+
+
+def pandapower_json(net: Any, path: Path) -> Path:
+    """Write a pandapower net as the JSON `pandapower.from_json` reads, atomically."""
+    import pandapower as pp
+
+    tmp = path.with_name(f'.{path.name}.partial-{os.getpid()}')
+    tmp.write_text(pp.to_json(net))
+    os.replace(tmp, path)
+    return path
 
 
 def island_cases(ppc: Mapping[str, Any], islands: Sequence[Sequence[int]]) -> list[dict[str, Any]]:

@@ -45,7 +45,7 @@ ROSDEP_KEY = {'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'sklearn': 'py
               'networkx': 'python3-networkx', 'matplotlib': 'python3-matplotlib', 'yaml': 'python3-yaml',
               'cryptography': 'python3-cryptography', 'rosbags': 'python3-rosbags-pip', 'numba': 'python3-numba'}
 # No rosdep key exists for these: package.xml names them in a comment, and the README installs them with pip.
-PIP_ONLY = {'pypower', 'dtaidistance', 'kmedoids', 'andes'}
+PIP_ONLY = {'pypower', 'dtaidistance', 'kmedoids', 'andes', 'pandapower'}
 
 
 def imported_modules() -> set[str]:

@@ -1,4 +1,4 @@
-"""`controlled-islanding export`: write an islanding decision in a form MATPOWER or ANDES applies."""
+"""`controlled-islanding export`: write an islanding decision in a form MATPOWER, pandapower or ANDES applies."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 
 from controlled_islanding.cli import CliError
 
-HELP = 'write a decision as a MATPOWER case with the cut applied, or as ANDES Toggle events'
+HELP = 'write a decision as a MATPOWER case or a pandapower net with the cut applied, or as ANDES Toggle events'
 DESCRIPTION = """\
 Take the decision of a replay or demo (its summary.json) and write what another tool needs to apply it,
 starting from the ANDES case the network came from (branch ids match in either orientation):
@@ -17,6 +17,9 @@ starting from the ANDES case the network came from (branch ids match in either o
   --to matpower   NAME.m: the case with the cut branches (and the outages the decision saw) at status 0,
                   one reference bus per island and each island's load cut by its load to shed, so that
                   each island's power flow solves on its own (MATPOWER, PYPOWER, pandapower's converter)
+  --to pandapower a pandapower net as JSON (pandapower.from_json): that case through pandapower's converter,
+                  lines, transformers and impedances named by branch id, the cut ones in_service False,
+                  one ext_grid per island, so pandapower.runpp solves every island
   --to andes      a JSON list of Toggle rows, one per cut branch at --at-s: for each row,
                   system.add('Toggle', row) before setup opens the line in a time-domain run
 
@@ -25,6 +28,7 @@ manifest bag; otherwise give --case (a file, or a case bundled with ANDES) and a
 
 Examples:
   controlled-islanding export results/demo-<UTC>/summary.json --to matpower -o islanded.m
+  controlled-islanding export summary.json --to pandapower -o islanded.json
   controlled-islanding export summary.json --to andes --at-s 7.05 -o toggles.json
   controlled-islanding export summary.json --to matpower --case ieee14/ieee14_full.xlsx --outage 2-4 -o cut.m
 """
@@ -35,7 +39,7 @@ REPO = Path(__file__).resolve().parents[2]
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the export options."""
     parser.add_argument('decision', type=Path, help='summary.json written by replay or demo')
-    parser.add_argument('--to', required=True, choices=('matpower', 'andes'), help='the target tool')
+    parser.add_argument('--to', required=True, choices=('matpower', 'pandapower', 'andes'), help='the target tool')
     parser.add_argument('-o', '--output', type=Path, required=True, help='file to write (NAME.m, or a .json)')
     parser.add_argument('--case', default=None,
                         help='case file, or a case bundled with ANDES such as ieee39/ieee39_full.xlsx')
@@ -88,6 +92,8 @@ def run(args: argparse.Namespace) -> int:
         if args.to == 'matpower':
             ppc = export.matpower_case(ss, decision)
             export.write_matpower(ppc, args.output)
+        elif args.to == 'pandapower':
+            export.pandapower_json(export.pandapower_net(ss, decision), args.output)
         else:
             rows = export.andes_toggles(ss, decision, args.at_s)
             tmp = args.output.with_name(f'.{args.output.name}.partial-{os.getpid()}')
