@@ -125,7 +125,7 @@ def flow_weights(grid: Grid) -> sparse.csr_array:
     if grid.p_from_mw is None or grid.p_to_mw is None:
         raise SpectralError(f'grid {grid.name!r} has no branch flows; call Grid.with_flows() first')
     on = [k for k, b in enumerate(grid.branches) if b.in_service and b.from_bus != b.to_bus]
-    w = np.array([(abs(grid.p_from_mw[k]) + abs(grid.p_to_mw[k])) / 2.0 for k in on])
+    w = (np.abs(np.asarray(grid.p_from_mw, dtype=float)[on]) + np.abs(np.asarray(grid.p_to_mw, dtype=float)[on])) / 2.0
     if len(w):
         w = np.maximum(w, _MIN_WEIGHT_FRACTION * max(float(w.mean()), 1e-12))
     return _symmetric(grid, [grid.branches[k] for k in on], w)
