@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -647,13 +648,15 @@ def _replay_on_hosts(bag: Path, results: Path, hosts: dict[str, tuple[str, ...]]
                     time.sleep(0.2)
                 status = child.returncode
             finally:
-                if child.poll() is None:  # interrupted: let it stop its graph, as Ctrl-C would
-                    child.send_signal(signal.SIGINT)
-                    try:
-                        child.wait(timeout=20.0)
-                    except subprocess.TimeoutExpired:
-                        child.kill()
-                        child.wait()
+                # Interrupted: a terminal's Ctrl-C reached the child too, and a second SIGINT could cut its clean-up
+                # short, so it gets a moment first; a SIGTERM or an emulator failure reached only us.
+                for action in (None, signal.SIGINT, signal.SIGKILL):
+                    if child.poll() is not None:
+                        break
+                    if action is not None:
+                        child.send_signal(action)
+                    with contextlib.suppress(subprocess.TimeoutExpired):
+                        child.wait(timeout=2.0 if action is None else 20.0)
             info = {'hosts': {h: list(r) for h, r in hosts.items()}, 'link': asdict(link),
                     'addresses': net.addresses, 'namespaces': net.namespaces, 'views': net.views}
             net_stats = net.stats  # filled when the network is taken down, below
