@@ -207,6 +207,8 @@ class FuzzReport:
         failures: One line per check that did not hold; empty = pass.
         results_dir: Node logs, the breaker audit log and report.json.
         wall_s: Wall time of the whole run, s.
+        namespace: The graph's ROS namespace ('' = the root one).
+        graph_topics: Every topic name in the graph once it was wired, sorted.
 
     """
 
@@ -221,6 +223,8 @@ class FuzzReport:
     failures: list[str] = field(default_factory=list)
     results_dir: str = ''
     wall_s: float = 0.0
+    namespace: str = ''
+    graph_topics: list[str] = field(default_factory=list)
 
     @property
     def passed(self) -> bool:
@@ -776,7 +780,7 @@ def _counters(diag: dict[str, str]) -> dict[str, int]:
 
 def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, key_dir: Path,
              progress: Callable[[str], None] = lambda _line: None, topic_names: tuple[str, ...] = FUZZ_TOPICS,
-             warm_rounds: int = WARM_ROUNDS) -> FuzzReport:
+             warm_rounds: int = WARM_ROUNDS, namespace: str = '') -> FuzzReport:
     """Start the graph, fuzz every topic, replay the bag through the same graph, and judge.
 
     Args:
@@ -789,6 +793,8 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
         progress: Called with one line per step.
         topic_names: The topics to fuzz, in order.
         warm_rounds: Most rounds of the largest messages before the RSS baseline (see LARGEST_KINDS).
+        namespace: The graph's ROS namespace, e.g. '/area1' ('' = the root one); its /clock is <namespace>/clock,
+            as with `replay --namespace`.
 
     Raises:
         FuzzError: The graph or the bag could not be brought up.
@@ -813,7 +819,9 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
     signing.init_keys(key_dir)
     operator_key = signing.load_private_key(signing.key_paths(key_dir, 'operator').private)
     seeds = load_seeds(bag, entry)
-    report = FuzzReport(seed=seed, per_topic=per_topic, results_dir=str(results))
+    report = FuzzReport(seed=seed, per_topic=per_topic, results_dir=str(results), namespace=namespace)
+    clock_topic = f'{namespace}{topics.CLOCK}'
+    remaps = {topics.CLOCK: clock_topic} if namespace else {}
     names = [spec.executable for spec in GRAPH]
     fuzz_t0_s = seeds.bag_start_s - FUZZ_CLOCK_LEAD_S
     clock_origin = time.monotonic()
@@ -832,13 +840,13 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
         context = rclpy.Context()
         rclpy.init(context=context, domain_id=int(env['ROS_DOMAIN_ID']),
                    signal_handler_options=SignalHandlerOptions.NO)
-        node = rclpy.create_node('fuzz_soak', context=context)
+        node = rclpy.create_node('fuzz_soak', context=context, namespace=namespace or None)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
 
         def on_diag(msg: DiagnosticArray) -> None:
             for status in msg.status:
-                name = status.name.lstrip('/')
+                name = status.name.removeprefix(namespace).lstrip('/')
                 diagnostics[name] = {kv.key: kv.value for kv in status.values}
                 heartbeats[name] = time.monotonic()
 
@@ -849,21 +857,27 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
             decisions.setdefault(msg.request_id, msg)
 
         node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, on_diag, qos_for(topics.DIAGNOSTICS))
-        node.create_subscription(BreakerCommand, topics.BREAKER_COMMANDS, on_command, qos_for(topics.BREAKER_COMMANDS))
-        node.create_subscription(IslandingDecision, topics.ISLANDING_DECISION, on_decision,
+        node.create_subscription(BreakerCommand, topics.relative(topics.BREAKER_COMMANDS), on_command,
+                                 qos_for(topics.BREAKER_COMMANDS))
+        node.create_subscription(IslandingDecision, topics.relative(topics.ISLANDING_DECISION), on_decision,
                                  qos_for(topics.ISLANDING_DECISION))
-        clock_pub = node.create_publisher(Clock, topics.CLOCK, qos_for(topics.CLOCK))
+        clock_pub = node.create_publisher(Clock, clock_topic, qos_for(topics.CLOCK))
         pubs = {}
         for topic in FUZZ_TOPICS:
             qos = qos_for(topic)
-            # A deep writer history: the adversary's own backlog is never what limits what the nodes see.
+            # A deep writer history: the adversary's own backlog is never what limits what the nodes see. The rest
+            # is the topic's own QoS: a writer offering less (e.g. no liveliness lease on /islanding/decision) is
+            # not matched, and its messages test nothing.
             deep = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=max(qos.depth, 1000),
-                              reliability=qos.reliability, durability=qos.durability)
+                              reliability=qos.reliability, durability=qos.durability, deadline=qos.deadline,
+                              lifespan=qos.lifespan, liveliness=qos.liveliness,
+                              liveliness_lease_duration=qos.liveliness_lease_duration)
             cls = {topics.PMU_FRAMES: 'PmuFrame', topics.NETWORK_SNAPSHOT: 'NetworkSnapshot',
                    topics.BRANCH_STATUS: 'BranchStatus', topics.ISLANDING_REQUEST: 'IslandingRequest',
                    topics.ROTOR_ANGLES: 'RotorAngles', topics.COHERENT_GROUPS: 'CoherentGroups',
                    topics.ISLANDING_DECISION: 'IslandingDecision'}[topic]
-            pubs[topic] = node.create_publisher(message_class(f'controlled_islanding_msgs/msg/{cls}'), topic, deep)
+            pubs[topic] = node.create_publisher(message_class(f'controlled_islanding_msgs/msg/{cls}'),
+                                                topics.relative(topic), deep)
         last_clock = [0.0]
 
         def tick(sup: Supervisor) -> None:
@@ -884,7 +898,7 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
             # The start-up grace of the soak's own machine, which other work may load: a node killed for a slow
             # start before any fuzz message only delays the run (and is reported, not judged).
             policy = replace(PIPELINE_POLICY, startup_grace_s=STARTUP_S)
-            with Supervisor(env, results / 'logs', policy) as sup:
+            with Supervisor(env, results / 'logs', policy, namespace=namespace, remaps=remaps) as sup:
                 extra = {'breaker_command': {'audit_log': results / 'breaker_audit.jsonl', 'key_dir': key_dir},
                          'partitioning': {'key_dir': key_dir}}
                 for spec in GRAPH:
@@ -894,16 +908,17 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
                     sup.check_alive()
                     silent = [n for n in names if n not in heartbeats]
                     raise FuzzError(f'no diagnostics within {STARTUP_S:.0f} s from {silent}')
-                arm_client = node.create_client(SetArmed, '/breaker_command/set_armed')
+                arm_client = node.create_client(SetArmed, 'breaker_command/set_armed')
                 if not arm_client.wait_for_service(timeout_sec=20.0):
-                    raise FuzzError('breaker_command did not offer /breaker_command/set_armed within 20 s')
+                    raise FuzzError(f'breaker_command did not offer {namespace}/breaker_command/set_armed within 20 s')
                 future = arm_client.call_async(signing.signed_arm_request(
-                    SetArmed.Request(), operator_key, '/breaker_command', True, time.time()))
+                    SetArmed.Request(), operator_key, f'{namespace}/breaker_command', True, time.time()))
                 if not spin(sup, 10.0, future.done) or not future.result().accepted:
                     why = future.result().message if future.done() else 'no answer within 10 s'
                     raise FuzzError(f'breaker_command refused to arm: {why}')
                 for topic in FUZZ_TOPICS:
                     spin(sup, 20.0, lambda t=topic: pubs[t].get_subscription_count() >= len(RECEIVERS[t]))
+                report.graph_topics = sorted(name for name, _ in node.get_topic_names_and_types())
                 # One honest snapshot first: every later defect is judged against a network the nodes hold.
                 good = _copy(seeds.snapshot)
                 good.header.stamp = _time(sim_now_s())
@@ -949,7 +964,7 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
                     report.nodes.append(nr)
                 report.commands_during_fuzz = sum(1 for during_replay, _ in commands if not during_replay)
                 report.replay = _replay(sup, node, spin, bag, entry, seeds, results, decisions, commands,
-                                        replaying, PLAYER, progress)
+                                        replaying, PLAYER, progress, clock_topic)
                 for nr in report.nodes:
                     nr.startup_restarts = sum(1 for r in sup.restarts[:restarts_at_start] if r.name == nr.name)
                     nr.deaths = sum(1 for r in sup.restarts[restarts_at_start:] if r.name == nr.name)
@@ -1127,7 +1142,7 @@ def _fuzz_topic(topic: str, n: int, adversary: Adversary, pub: object, diagnosti
 
 def _replay(sup: object, node: object, spin: Callable, bag: Path, entry: dict, seeds: Seeds, results: Path,
             decisions: dict, commands: list, replaying: list, player_spec: object,
-            progress: Callable[[str], None]) -> ReplayResult:
+            progress: Callable[[str], None], clock_topic: str = topics.CLOCK) -> ReplayResult:
     """Play the bag as fast as possible (lockstep at the request) into the graph that took the fuzz."""
     expected = entry.get('expected_decision', {})
     out = ReplayResult(bag=entry.get('name', bag.name), expected_split=expected.get('split'),
@@ -1135,7 +1150,7 @@ def _replay(sup: object, node: object, spin: Callable, bag: Path, entry: dict, s
     replaying[0] = True  # the bag's /clock takes over; the fuzz clock stops
     played = [topics.NETWORK_SNAPSHOT, topics.PMU_FRAMES, topics.BRANCH_STATUS, topics.ISLANDING_REQUEST,
               topics.CLOCK]
-    counts = {t: node.count_subscribers(t) for t in played}
+    counts = {t: node.count_subscribers(clock_topic if t == topics.CLOCK else topics.relative(t)) for t in played}
     report_file = results / 'player_report.json'
     progress(f'fuzz: replaying {out.bag} as fast as possible through the same graph')
     player = sup.start(player_spec, {'bag': bag.resolve(), 'as_fast_as_possible': True,

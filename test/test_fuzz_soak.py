@@ -1,8 +1,8 @@
 """The fuzz soak on the real node processes: `controlled-islanding fuzz` run as a user runs it, with a small N.
 
-CI runs 30 messages per topic; the full soak (`--per-topic 10000`) is a benchmark whose figures are in
-docs/nodes.md, "Fuzz soak". The checks read the command's own JSON report, so a table that says PASS while a
-topic went uncounted, a node died or the replay disagreed cannot slip through.
+CI runs 30 messages per topic, in a namespace; the full soak (`--per-topic 10000`) is a benchmark whose figures
+are in docs/nodes.md, "Fuzz soak". The checks read the command's own JSON report, so a table that says PASS while
+a topic went uncounted, a node died or the replay disagreed cannot slip through.
 """
 
 from __future__ import annotations
@@ -34,17 +34,22 @@ def test_help_teaches_the_checks() -> None:
         assert words in out
 
 
-def test_fuzz_soak_counts_every_topic_and_keeps_the_manifest_decision() -> None:
+def test_fuzz_soak_in_a_namespace_counts_every_topic_and_keeps_the_manifest_decision() -> None:
     results = REPO / 'build' / 'test_fuzz' / uuid.uuid4().hex[:8]
     keys = REPO / 'build' / 'test_keys'
     proc = subprocess.run(
         [sys.executable, '-m', 'controlled_islanding.cli', 'fuzz', '--per-topic', str(PER_TOPIC), '--seed', '11',
-         '--warm-rounds', '1', '--json', '--results', str(results), '--keys', str(keys)],
+         '--warm-rounds', '1', '--json', '--results', str(results), '--keys', str(keys), '--namespace', 'fuzz'],
         capture_output=True, text=True, timeout=170)
     assert proc.stdout.strip(), proc.stderr[-3000:]
     report = json.loads(proc.stdout)
     # One progress line per topic on stderr with --json: long work shows it is alive.
     assert sum(1 for line in proc.stderr.splitlines() if line.startswith('fuzz: /')) == len(fuzzing.FUZZ_TOPICS)
+    # The whole graph, its clock included, is in the namespace; only the global topics are outside it.
+    assert report['namespace'] == '/fuzz'
+    outside = [t for t in report['graph_topics'] if not t.startswith('/fuzz/') and t not in topics.GLOBAL - {'/clock'}]
+    assert not outside, outside
+    assert {'/fuzz/clock', *(f'/fuzz{t}' for t in fuzzing.FUZZ_TOPICS)} <= set(report['graph_topics'])
 
     by_topic = {t['topic']: t for t in report['topics']}
     assert set(by_topic) == set(fuzzing.FUZZ_TOPICS)

@@ -33,6 +33,9 @@ Checks (exit status 0 only if all hold):
 Keys are made for the run under build/ (never your own); node logs, the breaker audit log and
 report.json go to the results folder. Exit status 1: a check failed; 2: the soak could not run.
 
+With --namespace /area1 the graph, the adversary and the replay run in /area1 (/area1/pmu/frames, ...,
+/area1/clock), as with `replay --namespace`; report.json lists the graph's topic names.
+
 With --breaker-trials N, breaker_command alone gets N seeded adversarial decisions and signed arm and
 disarm requests (duplicates, other spellings, stale and future stamps, forged and foreign signatures,
 inconsistent cuts, resends, recloses, and kill -9 restarts); its audit log is then replayed against every
@@ -42,6 +45,7 @@ Examples:
   controlled-islanding fuzz --per-topic 30            a quick check (about a minute)
   controlled-islanding fuzz --breaker-trials 20000    the breaker soak
   controlled-islanding fuzz --per-topic 10000 --seed 7 --json
+  controlled-islanding fuzz --per-topic 30 --namespace /area1
 """
 
 REPO = Path(__file__).resolve().parents[2]
@@ -65,6 +69,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "once two in a row raise no node's RSS 1 MB above its high so far (default 12)")
     parser.add_argument('--keys', type=Path, default=None,
                         help='signing key directory, made if missing (default build/fuzz/keys)')
+    parser.add_argument('--namespace', default='', metavar='NS',
+                        help='run the graph in this ROS namespace, e.g. /area1 (default: the root one; not with '
+                             '--breaker-trials)')
 
 
 def _manifest_entry(bag: Path | None) -> tuple[Path, dict]:
@@ -82,8 +89,12 @@ def _manifest_entry(bag: Path | None) -> tuple[Path, dict]:
 def run(args: argparse.Namespace) -> int:
     """Run the soak and print its tables (or JSON)."""
     from controlled_islanding import fuzzing
+    from controlled_islanding.commands.replay import namespace_name
 
+    namespace = namespace_name(args.namespace)
     if args.breaker_trials:
+        if namespace:
+            raise CliError('--namespace applies to the graph soak, not to --breaker-trials')
         return _run_breaker_soak(args)
     if args.per_topic < 1:
         raise CliError(f'--per-topic {args.per_topic} must be at least 1')
@@ -103,7 +114,8 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         report = fuzzing.run_soak(args.per_topic, args.seed, bag, entry, results, keys, progress,
-                                  warm_rounds=fuzzing.WARM_ROUNDS if args.warm_rounds is None else args.warm_rounds)
+                                  warm_rounds=fuzzing.WARM_ROUNDS if args.warm_rounds is None else args.warm_rounds,
+                                  namespace=namespace)
     except fuzzing.FuzzError as exc:
         raise CliError(str(exc)) from exc
     if args.json:
