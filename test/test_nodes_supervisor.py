@@ -61,7 +61,13 @@ def test_launch_file_starts_the_supervisor_table():
             files = [n.value for n in ast.walk(kw['parameters']) if isinstance(n, ast.Constant)
                      and str(n.value).endswith('.yaml')]
             launched.append((kw['executable'].value, tuple(files)))
+            # Every node in the launch's namespace, following its clock topic, as a namespaced replay's graph.
+            assert getattr(kw.get('namespace'), 'id', None) == 'namespace', kw['executable'].value
+            assert getattr(kw.get('remappings'), 'id', None) == 'clock', kw['executable'].value
     assert launched == [(s.executable, (s.params_file,)) for s in GRAPH]
+    declared = {call.args[0].value for call in ast.walk(tree) if isinstance(call, ast.Call)
+                and getattr(call.func, 'id', None) == 'DeclareLaunchArgument'}
+    assert {'use_sim_time', 'namespace', 'clock'} <= declared
     for spec in GRAPH:
         assert (config_dir() / spec.params_file).is_file()
 
