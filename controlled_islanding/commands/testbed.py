@@ -34,6 +34,9 @@ island that did not survive), frequency nadir and peak, lowest voltage, request-
 A figure per scenario shows the rotor angles coloured by the decision's islands and the bus voltages, for no
 action and for the closed loop (as the paper's Figs. 6 and 11).
 
+With --namespace /area1 the four nodes and grid_sim run in /area1 (/area1/pmu/frames, ..., /area1/clock), as
+with `replay --namespace`; each result lists the graph's topic names.
+
 Lockstep (default): the simulation does not step past the request until the decision and its commands came
 (bounded waits); the graph's wall-clock latency is then charged to sim time. --rate R paces the simulation at R
 times real time instead (ANDES may be slower than that on a busy machine).
@@ -76,6 +79,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="where the islanding request comes from: the scenario's time (default), or grid_sim's "
                              'out-of-step trigger on the measured rotor angles (sim/closed_loop.out_of_step)')
     parser.add_argument('--timeout', type=float, default=900.0, help='give up on one closed-loop run after this, s')
+    parser.add_argument('--namespace', default='', metavar='NS',
+                        help='run the graph and grid_sim in this ROS namespace, e.g. /area1 (default: the root one)')
 
 
 @dataclass
@@ -90,6 +95,7 @@ class LoopObservation:
     heartbeats_s: dict[str, float] = field(default_factory=dict)
     restarts: list = field(default_factory=list)
     hangs: list = field(default_factory=list)
+    graph_topics: list[str] = field(default_factory=list)
 
 
 def _say(quiet: bool, text: str) -> None:
@@ -108,8 +114,10 @@ def unstable_scenarios() -> list[Path]:
 
 
 def run_closed_loop(scenario: Path, results: Path, *, rate: float, params: dict[str, float], timeout_s: float,
-                    quiet: bool) -> tuple[LoopObservation, dict]:
+                    quiet: bool, namespace: str = '') -> tuple[LoopObservation, dict]:
     """Run the four nodes and grid_sim on one scenario; return what the observer saw and grid_sim's report.
+
+    The graph runs in `namespace` ('' = the root one, else e.g. '/area1'), its clock on <namespace>/clock.
 
     Raises:
         CliError: A node died, or grid_sim gave no report within timeout_s.
@@ -132,12 +140,14 @@ def run_closed_loop(scenario: Path, results: Path, *, rate: float, params: dict[
     obs = LoopObservation()
     logs = results / 'logs'
     report_file = results / 'grid_sim.json'
+    clock_topic = f'{namespace}{topics.CLOCK}'
+    remaps = {topics.CLOCK: clock_topic} if namespace else {}
     with graph_environment(results / 'ros_log', True) as env:
         saved = dict(os.environ)
         os.environ.update(env)
         context = rclpy.Context()
         rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
-        node = rclpy.create_node('testbed_observer', context=context)
+        node = rclpy.create_node('testbed_observer', context=context, namespace=namespace or None)
         executor = rclpy.executors.SingleThreadedExecutor(context=context)
         executor.add_node(node)
 
@@ -149,22 +159,23 @@ def run_closed_loop(scenario: Path, results: Path, *, rate: float, params: dict[
 
         def on_diag(msg: DiagnosticArray) -> None:
             for status in msg.status:
-                obs.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
-                obs.heartbeats_s[status.name] = time.monotonic()
+                name = status.name.removeprefix(namespace)
+                obs.diagnostics[name] = {kv.key: kv.value for kv in status.values}
+                obs.heartbeats_s[name] = time.monotonic()
 
-        node.create_subscription(IslandingRequest, topics.ISLANDING_REQUEST,
+        node.create_subscription(IslandingRequest, topics.relative(topics.ISLANDING_REQUEST),
                                  lambda m: obs.requests.setdefault(m.request_id, time.monotonic()),
                                  qos_for(topics.ISLANDING_REQUEST))
-        node.create_subscription(IslandingDecision, topics.ISLANDING_DECISION,
+        node.create_subscription(IslandingDecision, topics.relative(topics.ISLANDING_DECISION),
                                  lambda m: obs.decisions.setdefault(m.request_id, (time.monotonic(), m)),
                                  qos_for(topics.ISLANDING_DECISION))
-        node.create_subscription(BreakerCommand, topics.BREAKER_COMMANDS,
+        node.create_subscription(BreakerCommand, topics.relative(topics.BREAKER_COMMANDS),
                                  lambda m: obs.commands.append((time.monotonic(), m)), qos_for(topics.BREAKER_COMMANDS))
-        node.create_subscription(CoherentGroups, topics.COHERENT_GROUPS, obs.groups.append,
+        node.create_subscription(CoherentGroups, topics.relative(topics.COHERENT_GROUPS), obs.groups.append,
                                  qos_for(topics.COHERENT_GROUPS))
         node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, on_diag, qos_for(topics.DIAGNOSTICS))
         try:
-            with Supervisor(env, logs, PIPELINE_POLICY) as sup:
+            with Supervisor(env, logs, PIPELINE_POLICY, namespace=namespace, remaps=remaps) as sup:
                 obs.restarts, obs.hangs = sup.restarts, sup.hangs
                 sim = {'use_sim_time': True}
                 extra = {'breaker_command': {'audit_log': results / 'breaker_audit.jsonl', 'key_dir': key_dir},
@@ -172,14 +183,14 @@ def run_closed_loop(scenario: Path, results: Path, *, rate: float, params: dict[
                 for spec in GRAPH:
                     sup.start(spec, {**sim, **extra.get(spec.executable, {})})
                 _say(quiet, f'testbed: started {len(GRAPH)} nodes (logs in {logs})')
-                arm_client = node.create_client(SetArmed, '/breaker_command/set_armed')
+                arm_client = node.create_client(SetArmed, 'breaker_command/set_armed')
                 if not arm_client.wait_for_service(timeout_sec=30.0):
                     sup.check_alive()
-                    raise CliError('breaker_command did not offer /breaker_command/set_armed within 30 s')
+                    raise CliError(f'breaker_command did not offer {namespace}/breaker_command/set_armed within 30 s')
                 future = None
                 for _attempt in range(3):  # a response can be dropped before it matched our reader (replay.py)
-                    request = signing.signed_arm_request(SetArmed.Request(), operator_key, '/breaker_command', True,
-                                                         time.time())
+                    request = signing.signed_arm_request(SetArmed.Request(), operator_key,
+                                                         f'{namespace}/breaker_command', True, time.time())
                     future = arm_client.call_async(request)
                     if spin_for(5.0, future.done):
                         break
@@ -192,14 +203,19 @@ def run_closed_loop(scenario: Path, results: Path, *, rate: float, params: dict[
                 counts: dict[str, int] = {}
                 wiring: dict[str, tuple[int, int]] = {}
                 stable_since = begun = time.monotonic()
+                def graph_name(t: str) -> str:
+                    return clock_topic if t == topics.CLOCK else topics.relative(t)
+
                 while time.monotonic() < begun + 30.0:  # wired once nothing changed for a second (replay.py)
-                    now_counts = {t: node.count_subscribers(t) for t in played}
-                    now_wiring = {t: (node.count_publishers(t), node.count_subscribers(t)) for t in internal}
+                    now_counts = {t: node.count_subscribers(graph_name(t)) for t in played}
+                    now_wiring = {t: (node.count_publishers(graph_name(t)), node.count_subscribers(graph_name(t)))
+                                  for t in internal}
                     if now_counts != counts or now_wiring != wiring:
                         counts, wiring, stable_since = now_counts, now_wiring, time.monotonic()
                     elif time.monotonic() - stable_since >= 1.0 and all(min(w) > 0 for w in wiring.values()):
                         break
                     spin_for(0.1)
+                obs.graph_topics = sorted(name for name, _ in node.get_topic_names_and_types())
                 # grid_sim's own subscriptions (decision, commands, angles) add one subscriber to none of these.
                 grid = sup.start(NodeSpec('grid_sim', 'grid_sim.yaml'), {
                     **sim, 'use_sim_time': False, 'scenario': scenario.resolve(), 'rate': rate,
@@ -257,6 +273,7 @@ def run_scenario(path: Path, results: Path, args: argparse.Namespace, quiet: boo
     """Run one scenario closed-loop, then the baselines; return its result (figures go under results)."""
     import numpy as np
 
+    from controlled_islanding.commands.replay import namespace_name
     from controlled_islanding.sim.closed_loop import LoopConfig, run_offline
     from controlled_islanding.sim.scenario import ScenarioError, load_scenario
 
@@ -271,7 +288,8 @@ def run_scenario(path: Path, results: Path, args: argparse.Namespace, quiet: boo
     params = {'breaker_operating_s': args.breaker_operating_s, 'shed_delay_s': args.shed_delay_s,
               'run_after_s': args.run_after_s, 'trigger': args.trigger.replace('-', '_')}
     _say(quiet, f'testbed {scenario.name}: closed loop')
-    obs, report = run_closed_loop(path, out, rate=args.rate, params=params, timeout_s=args.timeout, quiet=quiet)
+    obs, report = run_closed_loop(path, out, rate=args.rate, params=params, timeout_s=args.timeout, quiet=quiet,
+                                  namespace=namespace_name(args.namespace))
     decision = _decision(obs, report['request_id'])
     loop = report['outcome']
     if args.trigger != 'scenario':
@@ -280,7 +298,8 @@ def run_scenario(path: Path, results: Path, args: argparse.Namespace, quiet: boo
                            end_s=max(scenario.end_s, loop['request_s'] + args.run_after_s))
     result: dict[str, Any] = {'scenario': scenario.name, 'path': str(path), 'decision': decision,
                               'closed_loop': loop, 'events': report['events'],
-                              'restarts': [r.__dict__ for r in obs.restarts], 'runs': {'dtw': loop}}
+                              'restarts': [r.__dict__ for r in obs.restarts], 'runs': {'dtw': loop},
+                              'graph_topics': obs.graph_topics}
     traj = dict(np.load(f'{out / "grid_sim.json"}.npz'))
     trajectories = {'dtw': traj}
     if not args.no_baselines:
