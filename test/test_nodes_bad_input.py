@@ -18,6 +18,7 @@ from controlled_islanding_msgs.msg import (
     IslandingRequest,
     NetworkSnapshot,
     PmuFrame,
+    PmuMeasurement,
     RotorAngles,
 )
 from nodes_harness import graph
@@ -116,6 +117,15 @@ def test_pmu_ingestion_drops_bad_frames_and_keeps_going(pipeline):
     before = len(out['angles'])
     publish(probe, topics.PMU_FRAMES, good)
     assert probe.spin_until(lambda: len(out['angles']) > before), 'pmu_ingestion stopped answering'
+    # A PMU out of sync with UTC (STAT bit 13) has finite values, but no common angle reference: not used.
+    unsynced = copy.deepcopy(frames[63])
+    unsynced.measurements[0].stat = PmuMeasurement.STAT_SYNC_ERROR
+    publish(probe, topics.PMU_FRAMES, unsynced)
+    assert probe.spin_until(lambda: any(a.header.stamp == unsynced.header.stamp for a in out['angles']))
+    sample = next(a for a in out['angles'] if a.header.stamp == unsynced.header.stamp)
+    valid = dict(zip(sample.generator_buses, sample.valid, strict=True))
+    assert not valid[unsynced.measurements[0].bus] and sum(valid.values()) == len(valid) - 1, valid
+    assert probe.spin_until(lambda: probe.diagnostics['pmu_ingestion'].get('unsynced_measurements') == '1')
     sup.check_alive()
 
 

@@ -3,8 +3,11 @@
 Frames are published as soon as they arrive, stamped with their time tag, so a frame never waits for a late
 one; the coherency node orders its window by time tag. A frame repeating a time tag already seen is a
 duplicate; one older than the newest by more than `max_delay_s` is too late. A PMU whose STAT says "do not
-use", or that is absent from the frame, gives `valid = false` for its generator. Rotor angles come from the
-core estimator with the generator reactances of the latest /network/snapshot. A generator's PMU is the channel
+use" (bit 15) or "not synchronised to UTC" (bit 13, whose angles then have no common reference: pdc_client
+also sets it where the message or PMU time quality claims more than its `max_time_error_s`, or lock was lost
+10 s or more before), or that is absent from the frame, gives `valid = false` for its generator; bit 13 is
+counted in `unsynced_measurements`. Rotor angles come from the core estimator with the generator reactances of
+the latest /network/snapshot. A generator's PMU is the channel
 whose station id ends in '/<generator name>' (where machines share a bus, each has its own current), else the
 one at its bus.
 
@@ -119,6 +122,7 @@ class PmuIngestionNode(Node):
         # station id -> (bus, last time tag with usable data, s), least recently heard first
         self.stations: OrderedDict[str, tuple[int, float]] = OrderedDict()
         self.stations_forgotten = 0
+        self.unsynced = 0
         self.last_angle_rad: dict[str, float] = {}
         self.inputs = ClockGate(self, self.diag, future_tolerance_s, max_held, self._use, _RELEASE_PERIOD_S)
         self.pub = self.create_publisher(RotorAngles, topics.relative(topics.ROTOR_ANGLES),
@@ -196,6 +200,10 @@ class PmuIngestionNode(Node):
             self.diag.reject('unknown_id', f'PMU {m.station_id} reports bus {m.bus}, not in the network')
             return 'rejected'
         if m.stat & _UNUSABLE:
+            return 'unusable'
+        if m.stat & PmuMeasurement.STAT_SYNC_ERROR:
+            self.unsynced += 1
+            self.diag.values['unsynced_measurements'] = str(self.unsynced)
             return 'unusable'
         if not all(math.isfinite(getattr(m, f)) for f in _FIELDS):
             self.diag.reject('nan_value', f'PMU {m.station_id}: NaN or inf phasor with a good STAT')
