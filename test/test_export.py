@@ -91,8 +91,8 @@ def _pair(branch_id: str) -> tuple[tuple[str, ...], str]:
     return tuple(sorted(ends.split('-'))), n
 
 
-# A 3-island cut with an outage (through the command), low-side transformer taps, parallel lines and impedances.
-PANDAPOWER_BAGS = ('pjm5bus_three_groups', 'ieee39_case2_g3_unstable', 'kundur_bus9_unstable')
+# A 3-island cut with an outage (through the command); IEEE 39's transformers with their taps at the low side.
+PANDAPOWER_BAGS = ('pjm5bus_three_groups', 'ieee39_case2_g3_unstable')
 
 
 @pytest.mark.slow
@@ -151,17 +151,22 @@ def test_pandapower_net_has_the_admittances_of_the_matpower_export(name: str) ->
 
 
 @pytest.mark.slow
-def test_a_cut_branch_the_converter_makes_an_impedance_is_out_of_service() -> None:
-    # Kundur's step-up transformers have no off-nominal tap, so pandapower's converter makes them impedances,
-    # which it would leave in service. Opening 2-6 leaves G2 on its own.
+def test_pandapower_export_opens_parallel_lines_and_branches_the_converter_makes_impedances() -> None:
+    # Kundur's cut is its three parallel 7-8 lines. Its step-up transformers have no off-nominal tap, so
+    # pandapower's converter makes them impedances, which it would leave in service: opening 2-6 too leaves G2
+    # on its own.
     import pandapower.topology as top
 
-    ss = system('kundur/kundur_full.xlsx')
-    buses = [int(b) for b in ss.Bus.idx.v]
-    net = export.pandapower_net(ss, export.Decision(('6-2',), ((2,), tuple(b for b in buses if b != 2)), (0.0, 0.0)))
-    assert list(net.impedance.name[~net.impedance.in_service.astype(bool)]) == ['2-6']
+    entry = next(e for e in SPLITS if e['name'] == 'kundur_bus9_unstable')
+    d = decision(entry)
+    (g2_side,) = [isl for isl in d.islands if 2 in isl]
+    islands = (*[isl for isl in d.islands if 2 not in isl], (2,), tuple(b for b in g2_side if b != 2))
+    net = export.pandapower_net(system(case_of(entry)), export.Decision((*d.cut_branch_ids, '6-2'), islands,
+                                                                        (0.0,) * len(islands)))
+    opened = [n for kind in ('line', 'impedance') for n in net[kind].name[~net[kind].in_service.astype(bool)]]
+    assert sorted(opened) == ['2-6', '7-8', '7-8#2', '7-8#3']
     assert {frozenset(map(int, c)) for c in top.connected_components(top.create_nxgraph(net))} == \
-        {frozenset({2}), frozenset(buses) - {2}}
+        {frozenset(isl) for isl in islands}
 
 
 def test_branch_ids_match_in_either_orientation() -> None:
