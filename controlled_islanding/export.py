@@ -6,8 +6,8 @@ formats), so branch ids are matched in either orientation: ANDES names transform
 - MATPOWER: the whole case with the cut branches (and any outages the decision saw) at status 0, one
   reference bus per island (the island's largest in-service generator, unless it holds the case's own),
   and each island's load scaled down by the decision's load to shed, so every island solves on its own.
-  `island_cases` splits it into one case per island, which MATPOWER, PYPOWER or pandapower's MATPOWER
-  converter run as they are.
+  `island_cases` splits it into one case per island, which MATPOWER or PYPOWER run as they are
+  (pandapower's converter misreads some transformers of it: use `pandapower_net`).
 - pandapower: that MATPOWER case through pandapower's own converter, every line, transformer and impedance
   named by its branch id, the cut ones (and the outages) out of service, one ext_grid per island: `pp.runpp`
   solves every island of it at once, and `pp.from_json` reads it back from `pandapower_json`.

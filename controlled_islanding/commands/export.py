@@ -16,7 +16,7 @@ starting from the ANDES case the network came from (branch ids match in either o
 
   --to matpower   NAME.m: the case with the cut branches (and the outages the decision saw) at status 0,
                   one reference bus per island and each island's load cut by its load to shed, so that
-                  each island's power flow solves on its own (MATPOWER, PYPOWER, pandapower's converter)
+                  each island's power flow solves on its own (MATPOWER, PYPOWER; for pandapower, --to pandapower)
   --to pandapower a pandapower net as JSON (pandapower.from_json): that case through pandapower's converter,
                   lines, transformers and impedances named by branch id, the cut ones in_service False,
                   one ext_grid per island, so pandapower.runpp solves every island
