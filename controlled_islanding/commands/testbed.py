@@ -495,7 +495,8 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
             "still left at 0 V next to a live one from that neighbour's voltage (listed as 'solver reseed' among "
             "the actions); only the starting point changes, not the equations. A bus left with no in-service "
             "branch (an island of one bus) is outside ANDES' network equations: its voltage, and the machine on "
-            'it, are not physical (IEEE 14: G1 alone on bus 1 has shown -60 pu and 35 pu), and such an island is '
+            'it, are not physical (IEEE 14: G1 alone on bus 1 has shown -60, 35 and -708042 pu, and ANDES once '
+            'stopped converging 2 s after such a cut), and such an island is '
             'lost by definition once its machine is rejected. '
             "Per-island figures are in each scenario's result.json in the results folder.",
             "- The lockstep opening time is request + the graph's wall latency + the breaker time, so it varies "
@@ -504,24 +505,29 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
             '- Why islands were lost (diagnosed 2026-12-01 from the per-island timings below and, for IEEE 39 G6-G7 '
             "and case 2 G3, the exciter outputs recorded through GridRun.run's hook): (1) the machines of the island "
             'were already outside the frequency band at the cut, accelerated by the fault or slipping poles since '
-            'before the request, so nothing done after the cut caused it (Kundur area 2 above 61.8 Hz from 1.53 s, '
-            'before the 1.567 s request; IEEE 39 G6 and G7 from about 5.9 s, before the 7.0 s request and after '
-            'the 5.37 s first slip). '
+            'before the request, so nothing done after the cut caused it (IEEE 39 G6 and G7 from about 5.9 s, '
+            'before the 7.0 s request and after the 5.37 s first slip; Kundur area 2 from 1.53 s, before its '
+            '1.567 s request, in a run with the steady-state rotor angles that split it). '
             "(2) After a late cut the slip's voltage dips have driven the exciters up (G6 and G7 at 3.5-3.9 pu "
             'field at the 7.08 s cut, G3 of case 2 at its 6.0 pu ceiling at 8.09 s), and the field winds down over '
             "2 s or more: the island's voltage rises to 1.30 pu (G6-G7, G7 alone after G6's rejection) and 1.80 pu "
             '(G3). The load, constant impedance in ANDES, grows with the square of that voltage: about 840 MW '
             "from G7's 580 MW, so that island's frequency falls to 58.2 Hz. The out-of-step trigger "
-            '(docs/testbed_out_of_step.md) cuts G6-G7 at 5.6 s and avoids most of it. (3) A surplus no machine fits '
+            '(docs/testbed_out_of_step.md) requests at about 5.40 s, on the edge of what coherency separates: one '
+            'run split there and kept both islands in band (request 5.408 s), another found one group (5.400 s) '
+            'and cut nothing. (3) A surplus no machine fits '
             'in stays (case 2: G3, 725 MW, on 120 MW of load, about 340 MW at 1.7 pu), and that island speeds up '
             'past the band 2.5 s after the cut. (4) An island with no load whose machines the rejection rule trips '
-            '(IEEE 14 G1 alone on bus 1, GBnetwork bus 73, IEEE 39 G3 multitrip, PJM bus 4) is counted as lost by '
-            'definition, at 0 MW of load lost. (5) The groups were wrong (PJM 5-bus: an island whose machines slip '
-            'apart) or the graph did not split (Nordic 44). (6) EI 33: GENROU_53 and 54 have no turbine governor in '
-            'EI_33.xlsx, so their island keeps the speed it had at the cut, and whether that is inside the band '
-            "depends on where in the swing the graph's latency puts the cut (lost at 62.3 Hz in a run that cut "
-            '0.41 s after the request, survived at 0.17 s). (7) IEEE 14 (both): the main island is above 1.2 pu '
-            'for the first 17-50 ms of its voltage window, which starts 0.5 s after the cut but only '
+            '(IEEE 14 G1 alone on bus 1, IEEE 39 G3 multitrip, PJM bus 4, Nordic 44 bus 6000 with its four '
+            'machines) is counted as lost by definition, at 0 MW of load lost. (5) The groups were wrong (PJM 5-bus '
+            'and Nordic 44: an island whose machines slip apart) or the graph did not split (Kundur: one group at '
+            'its request on the Kalman-filter rotor angles; GBnetwork: no coherent groups reached its request '
+            'within groups_wait_s, so partitioning refused it). (6) EI 33: GENROU_53 and 54 have no turbine '
+            'governor in EI_33.xlsx, so their island keeps the speed it had at the cut, and whether that is '
+            "inside the band depends on where in the swing the graph's latency puts the cut (lost at 62.3 Hz in a "
+            'run that cut 0.41 s after the request, survived at 0.17 s). (7) IEEE 14 (both): the main island is '
+            'above 1.2 pu '
+            'for the first 35-60 ms of its voltage window, which starts 0.5 s after the cut but only '
             "0.3 s after its 35 % load shed. The decision's load shed and the generation rejection ran as "
             'documented in every split.', '',
             "What failed, island by island (times in s after the cut; frequency is the machines' speed, judged from "
