@@ -43,6 +43,9 @@ def check_decision(summary: dict, entry: dict) -> None:
     assert got_islands == {frozenset(i) for i in expected['islands']}
     assert sorted(summary['cut_branch_ids']) == sorted(expected['cut_branches'])
     assert summary['disrupted_mw'] == pytest.approx(expected['disrupted_mw'], abs=1e-2)
+    # The manifest's decision comes from the paper's method; the node's portfolio must say it kept it.
+    assert summary['partitioner'].startswith('portfolio: spectral kept'), summary['partitioner']
+    assert summary['constraint_fallback'] == expected.get('constraint_fallback', '')
 
 
 def check_breaker_rules(summary: dict, armed: bool) -> None:

@@ -356,6 +356,7 @@ def _decision_dict(request_id: str, obs: Observation) -> dict:
         'disrupted_mw': msg.disrupted_mw,
         'unobserved_generators': dict(zip(msg.unobserved_generator_names,
                                           (int(i) for i in msg.unobserved_generator_island), strict=False)),
+        'partitioner': msg.partitioner, 'constraint_fallback': msg.constraint_fallback,
         'breaker_commands': [{'command_id': c.command_id, 'breaker_id': c.breaker_id, 'branch_id': c.branch_id,
                               'action': 'open' if c.action == c.ACTION_OPEN else 'close'} for _, c in commands],
         'latency_request_to_command_ms': latency_cmd,

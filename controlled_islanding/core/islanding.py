@@ -41,8 +41,9 @@ class IslandingDecision:
         unobserved_generators: Generators decided without a group (no PMU); their island is their bus's.
         constraint_fallback: Empty when the partitioner used eq. 6 as written; else why it departed from it (the
             spectral partitioner's group-balanced constraint weights when no beta exists, core/spectral.py).
-        partitioner_summary: Empty for a single method; the portfolio's line on which member's islands were kept,
-            both disruptions and the exact member's status and gap (core/portfolio.py).
+        partitioner_summary: Empty when nothing was split; else the partitioner's own line (`summary_`: the
+            portfolio's says which member's islands were kept, both disruptions and the exact member's status and
+            gap, core/portfolio.py), or its class name when it has none.
 
     """
 
@@ -205,7 +206,7 @@ def decide(grid: Grid, generator_groups: Mapping[str, int],
             partitioner = ConstrainedSpectralPartition()
         labels = partitioner.fit(grid, groups).labels_
         fallback = str(getattr(partitioner, 'fallback_', ''))
-        summary = str(getattr(partitioner, 'summary_', ''))
+        summary = str(getattr(partitioner, 'summary_', '') or type(partitioner).__name__)
         decision = evaluate_partition(grid, {b: int(i) for b, i in zip(grid.buses, labels, strict=True)})
     return replace(decision, unobserved_generators=tuple(sorted(unobserved)), constraint_fallback=fallback,
                    partitioner_summary=summary)

@@ -88,7 +88,8 @@ def decision_to_msg(decision: Decision, request: IslandingRequest, method: str, 
         island_imbalance_mw=list(decision.island_imbalance_mw), island_shed_mw=list(decision.island_shed_mw),
         disrupted_mw=decision.disrupted_mw, compute_time_s=compute_time_s,
         unobserved_generator_names=unobserved,
-        unobserved_generator_island=[decision.bus_island[(generator_bus or {})[n]] for n in unobserved])
+        unobserved_generator_island=[decision.bus_island[(generator_bus or {})[n]] for n in unobserved],
+        partitioner=decision.partitioner_summary, constraint_fallback=decision.constraint_fallback)
 
 
 class PartitioningNode(Node):
@@ -364,10 +365,10 @@ class PartitioningNode(Node):
         else:
             try:
                 decision, _ = self._decide(groups, req_s)
-                if decision.constraint_fallback:  # IslandingDecision has no field for it yet: said in the log
+                if decision.constraint_fallback:
                     self.get_logger().warning(f'request {request.request_id}: {decision.constraint_fallback}; '
                                               'split with group-balanced constraint weights')
-                if decision.partitioner_summary:  # no message field for it either: the log and diagnostics say it
+                if decision.partitioner_summary:
                     self.get_logger().info(f'request {request.request_id}: {decision.partitioner_summary}')
                     self.diag.values['last_partition'] = decision.partitioner_summary[:200]
                 grid = self.topology.snapshot_at(req_s)[1]
