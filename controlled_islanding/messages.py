@@ -89,6 +89,8 @@ _GENERATOR_FIELDS = ('generator_names', 'generator_bus', 'generator_p_mw', 'gene
                      'generator_ra_pu', 'generator_model') + _DYNAMIC_MSG_FIELDS
 # Longest model name accepted; real ones (GENROU, GENCLS, REGCA1) are a few characters.
 MAX_MODEL_NAME = 64
+# Longest islanding request id accepted (partitioning refuses longer requests).
+MAX_REQUEST_ID = 128
 
 
 def dynamic_data_fields(generators: tuple[Generator, ...]) -> dict[str, object]:
@@ -212,6 +214,7 @@ class Groups:
         stamp_s: Time tag of the newest sample in the window, s.
         method: Coherency method.
         unobserved: Generators in no group because they had no usable data (partial observability).
+        request_id: The islanding request coherency computed these groups for ('' for a periodic grouping).
 
     """
 
@@ -221,6 +224,7 @@ class Groups:
     stamp_s: float
     method: str
     unobserved: tuple[str, ...] = ()
+    request_id: str = ''
 
     def as_mapping(self) -> dict[str, int]:
         """Return generator name -> group."""
@@ -236,7 +240,8 @@ def groups_from_msg(msg: object, limits: Limits = Limits()) -> Groups:
 
     Raises:
         MessageError: Too large, empty, arrays of unequal length, duplicate names (a generator both grouped and
-            unobserved included), NaN/inf or negative distances, or k not matching the labels.
+            unobserved included), NaN/inf or negative distances, k not matching the labels, or a request id
+            longer than MAX_REQUEST_ID.
 
     """
     _at_most(msg, 'coherent groups', ('generator_names', 'generator_buses', 'group', 'unobserved_generator_names'),
@@ -259,5 +264,8 @@ def groups_from_msg(msg: object, limits: Limits = Limits()) -> Groups:
     stamp = stamp_s(msg.header.stamp)
     if stamp <= 0:
         raise MessageError('missing_stamp', 'coherent groups header.stamp is zero')
+    request_id = str(getattr(msg, 'request_id', ''))
+    if len(request_id) > MAX_REQUEST_ID:
+        raise MessageError('bad_value', f'coherent groups request_id is longer than {MAX_REQUEST_ID} characters')
     return Groups(names=names, labels=labels, k=len(order), stamp_s=stamp, method=str(msg.method),
-                  unobserved=tuple(sorted(unobserved)))
+                  unobserved=tuple(sorted(unobserved)), request_id=request_id)

@@ -53,6 +53,7 @@ AHEAD_S = 0.5  # within both nodes' future_tolerance_s (1.0), so these poisons a
 STEP_S = 0.3
 GROUPS_WAIT_S = 0.5
 GROUPS_TOLERANCE_S = 0.05  # partitioning's groups_tolerance_s (config/partitioning.yaml)
+FRAME_S = 1 / 30  # a frame period at 30 frames/s (GBnetwork's bag): further from a request than groups_exact_s
 READERS = {topics.NETWORK_SNAPSHOT: ('partitioning', 'breaker_command'),
            topics.BRANCH_STATUS: ('partitioning', 'breaker_command'),
            topics.COHERENT_GROUPS: ('partitioning',), topics.ISLANDING_REQUEST: ('partitioning',)}
@@ -419,6 +420,51 @@ def test_groups_half_a_second_ahead_are_never_used_before_the_honest_groups_come
                                                                 f'honest groups after the request')
     finally:
         g.past(t + AHEAD_S)
+    g.healthy()
+
+
+def test_a_periodic_grouping_a_frame_before_the_request_never_answers_it_before_its_own(graph_under_test):
+    """A periodic grouping a frame before the request that reaches partitioning after the request is no answer.
+
+    Found on GBnetwork in a suite run: coherency's periodic grouping of the frame before the request, which saw
+    no separation yet, reached partitioning after the request and was taken; the request's own came later.
+    """
+    g = graph_under_test
+    last = g.bag['groups'].generator_names[-1]
+    t = g.step()
+    request = g.request(t)
+    g.publish(topics.ISLANDING_REQUEST, request)
+    g.probe.spin_for(0.2)  # loopback delivers in milliseconds; the request must be in before the groups
+    g.publish(topics.COHERENT_GROUPS, g.groups(t - FRAME_S, alone=last))
+    answer = g.groups(t)
+    answer.request_id = request.request_id
+    g.publish(topics.COHERENT_GROUPS, answer)  # within groups_wait_s: both are held (depth 16), in this order
+    decision = g.decision_for(request)
+    g.assert_baseline(decision, g.breaker_record(decision), f'periodic groups {FRAME_S} s before the request '
+                                                            f'with {last} alone, after the request')
+    g.healthy()
+
+
+def test_the_requests_own_grouping_a_frame_before_it_answers_it_before_the_wait_ends(graph_under_test):
+    """Where the request's own frame is missing, coherency's answer ends a frame earlier and carries its id.
+
+    A periodic grouping further before, within the tolerance, with one generator alone, is also held: at the end
+    of the wait the earliest within the tolerance would be taken, so only the answer taken at once gives the
+    baseline.
+    """
+    g = graph_under_test
+    last = g.bag['groups'].generator_names[-1]
+    t = g.step()
+    g.publish(topics.COHERENT_GROUPS, g.groups(t - 0.9 * GROUPS_TOLERANCE_S, alone=last))
+    g.taken('partitioning')
+    request = g.request(t)
+    g.publish(topics.ISLANDING_REQUEST, request)
+    g.probe.spin_for(0.2)
+    answer = g.groups(t - FRAME_S)
+    answer.request_id = request.request_id
+    g.publish(topics.COHERENT_GROUPS, answer)
+    decision = g.decision_for(request)
+    g.assert_baseline(decision, g.breaker_record(decision), "the request's own groups a frame before it")
     g.healthy()
 
 

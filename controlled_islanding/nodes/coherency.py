@@ -4,8 +4,9 @@ Samples are kept ordered by time tag (late ones are inserted, not appended), so 
 `window_s` of time tags, whatever order frames arrived in. Periodic recomputation runs on the wall (steady)
 clock every `period_s` when new samples came in: its cost stays bounded in an as-fast-as-possible replay, and
 the groups stay warm for the next request. On a request stamped T the node waits (at most `request_wait_s`
-wall) for a sample at T or later, then groups the window ending at T and publishes at once; the groups are
-latched (transient local) for late joiners.
+wall) for a sample at T or later, then groups the window ending at T and publishes at once, with the request's
+id, so partitioning can tell that answer from a periodic grouping that reaches it later; the groups are latched
+(transient local) for late joiners.
 
 The generators are those of the latched /network/snapshot: a sample naming any other generator is refused
 (unknown_id), and a snapshot with a different generator set starts a new window. Stamps are bounded by the
@@ -266,7 +267,7 @@ class CoherencyNode(Node):
                 continue  # the latched groups end at this request: nothing new to compute
             # Groups ending later than the request are no answer to it: partitioning takes only groups whose
             # samples end at the request, so that a grouping stamped ahead of it can never be the one used.
-            self._compute(t)
+            self._compute(t, request.request_id)
 
     def _changed_before(self, t: float) -> bool:
         return self.late_inserts_before_s >= 0 and self.late_inserts_before_s <= t
@@ -276,7 +277,7 @@ class CoherencyNode(Node):
         if self.dirty and not self.pending:
             self._compute(self.t_s[-1])
 
-    def _compute(self, end_s: float) -> None:
+    def _compute(self, end_s: float, request_id: str = '') -> None:
         hi = bisect.bisect_right(self.t_s, end_s)
         lo = bisect.bisect_left(self.t_s, end_s - self.window_s)
         if hi - lo < self.min_samples:
@@ -307,7 +308,7 @@ class CoherencyNode(Node):
         msg = CoherentGroups(generator_names=[self.names[j] for j in seen],
                              generator_buses=[self.buses[j] for j in seen], group=labels, k=k, method='dtw',
                              distance=distance, window_s=float(self.t_s[hi - 1] - self.t_s[lo]),
-                             unobserved_generator_names=unobserved)
+                             unobserved_generator_names=unobserved, request_id=request_id)
         newest = self.t_s[hi - 1]
         self.computed_end_s, self.late_inserts_before_s = newest, -1.0
         msg.header.stamp.sec, msg.header.stamp.nanosec = split_stamp(newest)

@@ -8,11 +8,12 @@ a trip stamped just before the request can arrive after it.
 
 Freshness is a precondition: a request stamped T is decided only on groups computed from samples ending at T
 (stamped within `groups_tolerance_s` of T, on either side; the coherency node computes them on every request).
-A grouping within `groups_exact_s` of T answers at once; one further from T (say a frame period before it) only
-once it came after the request, since coherency, holding no grouping that close, computes a fresh one for it
-over every sample up to T (at 30 frames/s the grouping of the frame before a request at a frame's time split
-nothing where the request's own frame showed the separation). The node waits at most `groups_wait_s` of wall
-time, then takes any grouping within `groups_tolerance_s`, or refuses. The network is the newest snapshot
+A grouping within `groups_exact_s` of T answers at once; one further before T (say a frame period) only when
+coherency computed it for this request (its `request_id`), over every sample up to T: at 30 frames/s the grouping
+of the frame before a request at a frame's time split nothing where the request's own frame showed the
+separation, and a periodic grouping can reach this node after the request while the request's own is still
+being computed. The node waits at most `groups_wait_s` of wall time, then takes any grouping within
+`groups_tolerance_s`, or refuses. The network is the newest snapshot
 stamped at or before T with every branch status change stamped after it and at or before T
 (`controlled_islanding.topology`).
 Every stamp from the wire is bounded by the node clock (`future_tolerance_s`), so no single message can become
@@ -66,7 +67,6 @@ PARTITIONERS = {'spectral': ConstrainedSpectralPartition, 'portfolio': Portfolio
 class _Pending:
     request: IslandingRequest
     deadline: float
-    arrived: float  # time.monotonic() when queued
 
 
 def decision_to_msg(decision: Decision, request: IslandingRequest, method: str, compute_time_s: float,
@@ -103,7 +103,7 @@ class PartitioningNode(Node):
         self.exact_s = float(declare_bounded(
             self, 'groups_exact_s', 0.02, 0.0, 10.0,
             "groups whose newest sample is within this of the request stamp answer it at once; others within "
-            "groups_tolerance_s only once computed after the request (coherency's sample_tolerance_s), s", True))
+            "groups_tolerance_s only when computed for the request (coherency's sample_tolerance_s), s", True))
         self.wait_s = float(declare_bounded(
             self, 'groups_wait_s', 0.5, 0.0, 60.0,
             "wait at most this long (wall) for the request's groups, then refuse as stale, s", True))
@@ -135,7 +135,6 @@ class PartitioningNode(Node):
         self.key_id = signing.fingerprint(self.key)
         self.topology = Topology(future_tolerance_s=self.future_tolerance_s)
         self.groups: list[Groups] = []  # recent groups, ordered by stamp
-        self.groups_arrived: dict[float, float] = {}  # stamp -> time.monotonic() when that grouping last came
         self.cache: OrderedDict[tuple, Decision] = OrderedDict()
         self.pending: list[_Pending] = []
         self.answered: deque[str] = deque(maxlen=_KEEP_ANSWERED)
@@ -233,12 +232,11 @@ class PartitioningNode(Node):
         stamps = [g.stamp_s for g in self.groups]
         i = bisect.bisect_left(stamps, groups.stamp_s)
         if i < len(stamps) and stamps[i] == groups.stamp_s:
-            self.groups[i] = groups
+            if groups.request_id or not self.groups[i].request_id:  # a periodic repeat keeps the request's answer
+                self.groups[i] = groups
         else:
             self.groups.insert(i, groups)
         del self.groups[:-_KEEP_GROUPS]
-        self.groups_arrived = {g.stamp_s: self.groups_arrived.get(g.stamp_s, 0.0) for g in self.groups}
-        self.groups_arrived[groups.stamp_s] = time.monotonic()
         self.diag.values['k'] = str(groups.k)
         self._serve_pending()
         self._warm()
@@ -260,7 +258,7 @@ class PartitioningNode(Node):
             self.diag.reject('overloaded', f'request {msg.request_id}: {len(self.pending)} requests already wait '
                                            f'(max_pending_requests)')
             return
-        self.pending.append(_Pending(msg, time.monotonic() + self.wait_s, time.monotonic()))
+        self.pending.append(_Pending(msg, time.monotonic() + self.wait_s))
         self.pending_timer.reset()
         self._serve_pending()
 
@@ -280,20 +278,20 @@ class PartitioningNode(Node):
         return response
 
     # --- deciding -----------------------------------------------------------------------------------------------
-    def _groups_for(self, t_s: float, since: float | None = None) -> Groups | None:
+    def _groups_for(self, t_s: float, request_id: str | None = None) -> Groups | None:
         """Return the groups whose samples end at t_s (stamped within groups_tolerance_s of it), if any.
 
         The earliest such grouping is taken, and never one ending more than the tolerance after t_s: a grouping
         stamped further ahead could otherwise be served before the honest one arrives. The tolerance is two-sided
         because coherency answers a request with groups it already holds when they end within its own
-        sample_tolerance_s of the stamp, which can be just after it. With `since` (when the request came,
-        time.monotonic()), a grouping further than groups_exact_s before t_s counts only if it came after then
-        (coherency's answer to the request), and one further than groups_exact_s after t_s not at all: a grouping
-        stamped ahead that arrives first must not win over the honest one held.
+        sample_tolerance_s of the stamp, which can be just after it. With `request_id` (before the wait ends), a
+        grouping further than groups_exact_s before t_s counts only if coherency computed it for that request,
+        and one further than groups_exact_s after t_s not at all: a grouping stamped ahead that arrives first
+        must not win over the honest one held.
         """
         return next((g for g in self.groups if abs(g.stamp_s - t_s) <= self.tolerance_s and (
-            since is None or (g.stamp_s - t_s <= self.exact_s and (
-                t_s - g.stamp_s <= self.exact_s or self.groups_arrived.get(g.stamp_s, 0.0) > since)))), None)
+            request_id is None or (g.stamp_s - t_s <= self.exact_s and (
+                t_s - g.stamp_s <= self.exact_s or g.request_id == request_id)))), None)
 
     def _decide(self, groups: Groups, t_s: float) -> tuple[Decision, float]:
         grid, out = self.topology.grid_at(t_s)
@@ -323,7 +321,7 @@ class PartitioningNode(Node):
         now = time.monotonic()
         for item in list(self.pending):
             t_s = stamp_s(item.request.header.stamp)
-            groups = self._groups_for(t_s, item.arrived)
+            groups = self._groups_for(t_s, item.request.request_id)
             if (groups is None or self._topology_pending(item.request)) and now < item.deadline:
                 continue
             groups = groups or self._groups_for(t_s)

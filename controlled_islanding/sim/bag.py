@@ -199,7 +199,7 @@ def run_scenario(scenario: Scenario, out: Path, *, force: bool = False, progress
                     m.new('CoherentGroups', header=m.header(_tag_ns(last_tag, scenario.rate_fps), 'andes'),
                           generator_names=names, generator_buses=gen_buses, group=groups.astype(np.uint32),
                           k=int(groups.max()) + 1, method='truth', distance=sep.ravel().astype(np.float64),
-                          window_s=float(pmu.tag_s[-1]), unobserved_generator_names=[])))
+                          window_s=float(pmu.tag_s[-1]), unobserved_generator_names=[], request_id='')))
     records.sort(key=lambda r: (r[0], r[1]))
 
     # rosbags names the .mcap after the bag directory, so the partial bag gets the final name in a scratch dir.
