@@ -27,7 +27,7 @@ from pathlib import Path
 
 from controlled_islanding import topics
 from controlled_islanding.core.grid import DYNAMIC_FIELDS
-from controlled_islanding.messages import MAX_MODEL_NAME
+from controlled_islanding.messages import MAX_MODEL_NAME, MAX_REQUEST_ID
 
 # Nodes under test and the input topics each one subscribes to.
 RECEIVERS: dict[str, tuple[str, ...]] = {
@@ -644,7 +644,7 @@ class Adversary:
         kind = self._choose([('k_mismatch', 10), ('duplicate_names', 8), ('renamed_generators', 10),
                              ('unknown_ids', 8), ('empty', 6), ('array_length', 10), ('distance_length', 6),
                              ('negative_distance', 6), ('nan_distance', 6), ('zero_stamp', 8), ('future_stamp', 12),
-                             ('wrong_method', 6), ('past_stamp', 4), ('over_cap', 0.5)])
+                             ('wrong_method', 6), ('long_request_id', 4), ('past_stamp', 4), ('over_cap', 0.5)])
         names, buses = list(self.s.generator_names), list(self.s.generator_buses)
         n = len(names)
         group = [0] * n
@@ -680,6 +680,8 @@ class Adversary:
             msg.distance = d
         elif kind == 'wrong_method':
             msg.method = rng.choice(['', 'truth', 'correlation', 'DTW'])
+        elif kind == 'long_request_id':
+            msg.request_id = 'R' * (MAX_REQUEST_ID + 1 + rng.randrange(1000))
         elif kind == 'over_cap':
             key = f'groups:{kind}'
             if key not in self._big:
