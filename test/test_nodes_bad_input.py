@@ -28,6 +28,7 @@ from rosbags.highlevel import AnyReader
 from controlled_islanding import topics
 from controlled_islanding.commands.demo import default_bag, manifest_entries
 from controlled_islanding.interfaces import typestore
+from controlled_islanding.messages import MAX_REQUEST_ID
 from controlled_islanding.supervisor import GRAPH
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
@@ -161,8 +162,13 @@ def test_coherency_drops_bad_rotor_angles_and_still_groups(pipeline):
     before = len(out['groups'])
     for frame in frames[63:100]:
         publish(probe, topics.PMU_FRAMES, frame)
+    # An id partitioning would refuse must not reach the groups either (their decoder would drop them).
+    refused = probe.counter('coherency', 'rejected.empty_message')
+    publish(probe, topics.ISLANDING_REQUEST, request(frames[99], 'R' * (MAX_REQUEST_ID + 1)))
+    assert probe.wait_counter('coherency', 'rejected.empty_message', refused + 1) >= refused + 1
     publish(probe, topics.ISLANDING_REQUEST, request(frames[99], 'coherency-ok'))
     assert probe.spin_until(lambda: len(out['groups']) > before), 'coherency stopped grouping'
+    assert all(len(g.request_id) <= MAX_REQUEST_ID for g in out['groups'])
     assert out['groups'][-1].generator_names == good.generator_names
     sup.check_alive()
 

@@ -31,7 +31,7 @@ from rclpy.node import Node
 from controlled_islanding import topics
 from controlled_islanding.core.coherency import DTWCoherency
 from controlled_islanding.core.k_rules import DEFAULT_RULE, RULES
-from controlled_islanding.messages import MessageError, grid_from_snapshot, split_stamp, stamp_s
+from controlled_islanding.messages import MAX_REQUEST_ID, MessageError, grid_from_snapshot, split_stamp, stamp_s
 from controlled_islanding.node_common import (
     ClockGate,
     Diagnostics,
@@ -238,8 +238,11 @@ class CoherencyNode(Node):
     def on_request(self, msg: IslandingRequest) -> None:
         """Check a request's stamp; queue it, hold it, or refuse it."""
         t = stamp_s(msg.header.stamp)
-        if not msg.request_id or t <= 0:
-            self.diag.reject('empty_message', 'islanding request without request_id or stamp')
+        # An id partitioning refuses would put it on groups partitioning's decoder drops, and those groups would
+        # still count as computed here for the next, honest request of that time.
+        if not 0 < len(msg.request_id) <= MAX_REQUEST_ID or t <= 0:
+            self.diag.reject('empty_message', f'islanding request without request_id (or longer than '
+                                              f'{MAX_REQUEST_ID} characters) or stamp')
             return
         self.inputs.admit('islanding request', t, ('request', msg))
 

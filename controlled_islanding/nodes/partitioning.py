@@ -45,7 +45,15 @@ from controlled_islanding.core.islanding import IslandingDecision as Decision
 from controlled_islanding.core.islanding import decide, warm_up
 from controlled_islanding.core.portfolio import PortfolioPartition
 from controlled_islanding.core.spectral import ConstrainedSpectralPartition
-from controlled_islanding.messages import Groups, Limits, MessageError, grid_from_snapshot, groups_from_msg, stamp_s
+from controlled_islanding.messages import (
+    MAX_REQUEST_ID,
+    Groups,
+    Limits,
+    MessageError,
+    grid_from_snapshot,
+    groups_from_msg,
+    stamp_s,
+)
 from controlled_islanding.node_common import (
     ClockGate,
     Diagnostics,
@@ -243,8 +251,9 @@ class PartitioningNode(Node):
 
     def on_request(self, msg: IslandingRequest) -> None:
         """Queue a request until its groups arrive (or the wait ends)."""
-        if not 0 < len(msg.request_id) <= 128:
-            self.diag.reject('empty_message', 'islanding request without request_id (or longer than 128 characters)')
+        if not 0 < len(msg.request_id) <= MAX_REQUEST_ID:
+            self.diag.reject('empty_message', f'islanding request without request_id (or longer than {MAX_REQUEST_ID} '
+                                              'characters)')
             return
         if stamp_s(msg.header.stamp) <= 0:
             self.diag.reject('missing_stamp', f'request {msg.request_id}: header.stamp is zero')
