@@ -49,17 +49,26 @@ def write_bag(path) -> None:
             put(topics.PMU_FRAMES, frame, frame_ns(k))
 
 
-def test_request_waits_for_groups_up_to_the_newest_frame_while_clock_keeps_coming():
-    run = BUILD / 'test_nodes' / f'lockstep_{uuid.uuid4().hex}'
+def fresh_bag(prefix: str):
+    """Return a new run directory under build/ and the test bag written in it."""
+    run = BUILD / 'test_nodes' / f'{prefix}_{uuid.uuid4().hex}'
     run.mkdir(parents=True)
-    bag = run / 'in_bag'
-    write_bag(bag)
+    write_bag(run / 'in_bag')
+    return run, run / 'in_bag'
+
+
+def pipeline_publishers(node):
+    """Return the probe's publishers that play the graph's part: rotor angles, coherent groups, decisions."""
+    return (node.create_publisher(RotorAngles, topics.ROTOR_ANGLES, qos_for(topics.ROTOR_ANGLES)),
+            node.create_publisher(CoherentGroups, topics.COHERENT_GROUPS, qos_for(topics.COHERENT_GROUPS)),
+            node.create_publisher(IslandingDecision, topics.ISLANDING_DECISION, qos_for(topics.ISLANDING_DECISION)))
+
+
+def test_request_waits_for_groups_up_to_the_newest_frame_while_clock_keeps_coming():
+    run, bag = fresh_bag('lockstep')
     with graph('test_nodes_player_lockstep', []) as (sup, probe):
         node = probe.node
-        angles_pub = node.create_publisher(RotorAngles, topics.ROTOR_ANGLES, qos_for(topics.ROTOR_ANGLES))
-        groups_pub = node.create_publisher(CoherentGroups, topics.COHERENT_GROUPS, qos_for(topics.COHERENT_GROUPS))
-        decision_pub = node.create_publisher(IslandingDecision, topics.ISLANDING_DECISION,
-                                             qos_for(topics.ISLANDING_DECISION))
+        angles_pub, groups_pub, decision_pub = pipeline_publishers(node)
         seen: dict[str, float] = {}  # event -> wall time
         clocks: list[tuple[float, int]] = []  # (wall time, bag time ns)
 
@@ -111,16 +120,10 @@ def test_request_waits_for_groups_up_to_the_newest_frame_while_clock_keeps_comin
 
 
 def test_a_request_lost_by_a_restarted_partitioning_is_sent_again_with_the_same_id():
-    run = BUILD / 'test_nodes' / f'resend_{uuid.uuid4().hex}'
-    run.mkdir(parents=True)
-    bag = run / 'in_bag'
-    write_bag(bag)
+    run, bag = fresh_bag('resend')
     with graph('test_nodes_player_resend', []) as (sup, probe):
         node = probe.node
-        angles_pub = node.create_publisher(RotorAngles, topics.ROTOR_ANGLES, qos_for(topics.ROTOR_ANGLES))
-        groups_pub = node.create_publisher(CoherentGroups, topics.COHERENT_GROUPS, qos_for(topics.COHERENT_GROUPS))
-        decision_pub = node.create_publisher(IslandingDecision, topics.ISLANDING_DECISION,
-                                             qos_for(topics.ISLANDING_DECISION))
+        angles_pub, groups_pub, decision_pub = pipeline_publishers(node)
         requests: list[str] = []
 
         def on_frame(frame: PmuFrame) -> None:
