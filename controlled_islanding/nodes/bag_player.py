@@ -24,6 +24,13 @@ While it waits (lockstep, or between messages), the player publishes the current
 `clock_heartbeat_s` of wall time: rclpy's time source reads /clock best effort, so a node can lose the last
 /clock sample before a wait, and its clock would then stand still for the whole wait, holding every stamp more
 than its `future_tolerance_s` ahead (a lockstep wait for data held that way could only time out).
+
+As fast as possible, after each message of a latched (transient-local) topic - the network snapshot, a branch
+status - the player waits until every matched reader has acknowledged it (`Publisher.wait_for_all_acked`, at most
+`latched_ack_timeout_s`, logged) before it plays on. Such a message is sent once: a reader that misses its first
+delivery gets it again only on the writer's next heartbeat (Fast DDS: every 3 s), and its fragments (270 kB for
+the 2224-bus snapshot) share the player's shared-memory segment with the PMU frames that follow at full speed, so
+a slow reader can lose them to the flood. Once acknowledged, it is in the reader's history and cannot be lost.
 """
 
 from __future__ import annotations
@@ -37,8 +44,10 @@ from pathlib import Path
 
 from builtin_interfaces.msg import Time
 from controlled_islanding_msgs.msg import CoherentGroups, IslandingDecision, RotorAngles
+from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy
 from rosbags.highlevel import AnyReader
 from rosgraph_msgs.msg import Clock
 
@@ -69,6 +78,7 @@ class BagPlayerNode(Node):
         self.declare_parameter('report_file', '')
         self.declare_parameter('clock_min_step_s', 0.0)
         self.declare_parameter('clock_heartbeat_s', 0.05)
+        self.declare_parameter('latched_ack_timeout_s', 5.0)
         # Topics another source feeds live (e.g. /pmu/frames from pdc_client): the bag's copy is not played.
         self.declare_parameter('withhold_topics', [''])
         bag = self.get_parameter('bag').value
@@ -87,6 +97,7 @@ class BagPlayerNode(Node):
         self.clock_heartbeat_s = float(self.get_parameter('clock_heartbeat_s').value)
         if self.clock_heartbeat_s <= 0.0:
             raise NodeSetupError(f'parameter clock_heartbeat_s={self.clock_heartbeat_s} must be positive')
+        self.latched_ack_timeout_s = float(self.get_parameter('latched_ack_timeout_s').value)
         publish_truth = bool(self.get_parameter('publish_truth').value)
         self.messages: list[tuple[str, int, bytes]] = []
         self.pubs = {}
@@ -110,6 +121,10 @@ class BagPlayerNode(Node):
                           if self.get_parameter('publish_clock').value else None)
         self.decisions = 0
         self.held_s: dict[str, float] = {}  # wall time spent in each lockstep wait
+        self.ack_waits_s: list[float] = []  # wall time each latched message took to be acknowledged by every reader
+        self.unacked: list[str] = []  # latched topics whose message some reader had not acknowledged in time
+        self.latched = {t for t in self.pubs
+                        if qos_for(t).durability == DurabilityPolicy.TRANSIENT_LOCAL}
         self.newest_angle_ns = -1
         self.newest_groups_ns = -1
         self.clock_ns: int | None = None  # the bag time last published on /clock
@@ -168,6 +183,22 @@ class BagPlayerNode(Node):
             self._hold(executor, 'decision', lambda: self.decisions >= waiting_for)
             if self.decisions >= waiting_for:
                 return
+
+    def _await_acks(self, executor: SingleThreadedExecutor, topic: str) -> None:
+        """Spin until every matched reader acknowledged what `topic`'s writer sent, or latched_ack_timeout_s."""
+        t0 = time.monotonic()
+        deadline = t0 + self.latched_ack_timeout_s
+        poll = Duration(nanoseconds=10_000_000)
+        while not (acked := self.pubs[topic].wait_for_all_acked(poll)) and time.monotonic() < deadline:
+            self._spin_until(executor, time.monotonic() + 0.001)
+        waited_s = time.monotonic() - t0
+        self.ack_waits_s.append(waited_s)
+        if not acked:
+            self.unacked.append(topic)
+            self.get_logger().warning(f'{topic}: not acknowledged by every reader within latched_ack_timeout_s='
+                                      f'{self.latched_ack_timeout_s}; playing on')
+        elif waited_s > 0.5:
+            self.get_logger().info(f'{topic}: acknowledged by every reader after {waited_s:.2f} s')
 
     @staticmethod
     def _frame_stamp_ns(raw: bytes, t_ns: int) -> int:
@@ -248,6 +279,8 @@ class BagPlayerNode(Node):
                 self._publish_clock(clock_ns)
             self.pubs[topic].publish(raw)
             self.diag.arrived()
+            if self.afap and topic in self.latched:
+                self._await_acks(executor, topic)
             if topic == topics.PMU_FRAMES:
                 last_frame_ns = max(last_frame_ns, self._frame_stamp_ns(raw, t_ns))
             if self.lockstep and request:
@@ -263,7 +296,8 @@ class BagPlayerNode(Node):
         bag_s = (self.messages[-1][1] - t0_ns) * 1e-9
         report = {'messages': len(self.messages), 'bag_duration_s': bag_s, 'wall_s': wall_s,
                   'speed_vs_real_time': bag_s / wall_s if wall_s > 0 else float('inf'),
-                  'as_fast_as_possible': self.afap, 'rate': self.rate, 'lockstep_waits_s': self.held_s}
+                  'as_fast_as_possible': self.afap, 'rate': self.rate, 'lockstep_waits_s': self.held_s,
+                  'latched_ack_waits_s': self.ack_waits_s, 'latched_unacked': self.unacked}
         self.get_logger().info(f'played {len(self.messages)} messages: {bag_s:.2f} s of bag in {wall_s:.2f} s '
                                f'({report["speed_vs_real_time"]:.1f}x real time)')
         if self.report_file:
