@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controlled_islanding.sim.closed_loop import LoopConfig, assess, generation_to_reject, out_of_step
+from controlled_islanding.sim.closed_loop import LoopConfig, Sample, assess, generation_to_reject, out_of_step
 from controlled_islanding.topics import GLOBAL
 
 REPO = Path(__file__).resolve().parents[1]
@@ -194,3 +194,29 @@ def test_one_scenario_closed_loop_commands_opens_and_judges_every_island():
     assert not none['all_survived'] and none['islands'][0]['max_pair_swing_rad'] > math.pi
     assert Path(result['figure']).is_file()
     print(f'closed loop on {SCENARIO.name}: cut {sorted(cut)}, opened at {opened}, wall {wall:.0f} s')
+
+
+
+def test_overspeed_protection_records_a_trip_above_110_percent_speed_on_two_grids():
+    """A machine past 1.10 pu speed is tripped by its overspeed protection (recorded), once; 1.10 exactly is not."""
+    from dataclasses import replace
+
+    from controlled_islanding.sim.closed_loop import GridRun
+    from controlled_islanding.sim.scenario import load_scenario
+
+    for name in ('pjm5bus_three_groups', 'ieee14_g1_unstable'):
+        run = GridRun(load_scenario(REPO / 'bags' / f'{name}.yaml'))
+        names, n = run.generator_names, len(run.generator_names)
+        omega = np.ones(n)
+        omega[0], omega[-1] = 1.10, 1.12
+        zeros = np.zeros(n)
+        volts = np.ones(len(run.bus_numbers))
+        sample = Sample(2.0, volts, volts * 0, zeros, omega, zeros, zeros)
+        run._overspeed_trips(sample)
+        assert run.overspeed == {names[-1]: (2.0, 1.12)} and run.machines_tripped() == (names[-1],), name
+        run._overspeed_trips(replace(sample, t_s=2.5, omega_pu=np.full(n, 1.2)))  # the first trip stands
+        assert run.overspeed[names[-1]] == (2.0, 1.12) and run.overspeed[names[0]] == (2.5, 1.2), name
+        run.config = replace(run.config, overspeed_trip_pu=None)  # no protection modelled: nothing recorded
+        run.overspeed.clear()
+        run._overspeed_trips(replace(sample, omega_pu=np.full(n, 1.5)))
+        assert run.overspeed == {} and run.machines_tripped() == (), name
