@@ -81,6 +81,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--timeout', type=float, default=900.0, help='give up on one closed-loop run after this, s')
     parser.add_argument('--namespace', default='', metavar='NS',
                         help='run the graph and grid_sim in this ROS namespace, e.g. /area1 (default: the root one)')
+    parser.add_argument('--estimator', choices=('steady_state', 'dse'), default=None,
+                        help="pmu_ingestion's rotor angle estimator, as replay --estimator (default: "
+                             'config/pmu_ingestion.yaml)')
 
 
 @dataclass
@@ -114,10 +117,11 @@ def unstable_scenarios() -> list[Path]:
 
 
 def run_closed_loop(scenario: Path, results: Path, *, rate: float, params: dict[str, float], timeout_s: float,
-                    quiet: bool, namespace: str = '') -> tuple[LoopObservation, dict]:
+                    quiet: bool, namespace: str = '', estimator: str | None = None) -> tuple[LoopObservation, dict]:
     """Run the four nodes and grid_sim on one scenario; return what the observer saw and grid_sim's report.
 
     The graph runs in `namespace` ('' = the root one, else e.g. '/area1'), its clock on <namespace>/clock.
+    `estimator` overrides pmu_ingestion's (None: its parameter file's).
 
     Raises:
         CliError: A node died, or grid_sim gave no report within timeout_s.
@@ -180,6 +184,8 @@ def run_closed_loop(scenario: Path, results: Path, *, rate: float, params: dict[
                 sim = {'use_sim_time': True}
                 extra = {'breaker_command': {'audit_log': results / 'breaker_audit.jsonl', 'key_dir': key_dir},
                          'partitioning': {'key_dir': key_dir}}
+                if estimator is not None:
+                    extra['pmu_ingestion'] = {'estimator': estimator}
                 for spec in GRAPH:
                     sup.start(spec, {**sim, **extra.get(spec.executable, {})})
                 _say(quiet, f'testbed: started {len(GRAPH)} nodes (logs in {logs})')
@@ -289,7 +295,7 @@ def run_scenario(path: Path, results: Path, args: argparse.Namespace, quiet: boo
               'run_after_s': args.run_after_s, 'trigger': args.trigger.replace('-', '_')}
     _say(quiet, f'testbed {scenario.name}: closed loop')
     obs, report = run_closed_loop(path, out, rate=args.rate, params=params, timeout_s=args.timeout, quiet=quiet,
-                                  namespace=namespace_name(args.namespace))
+                                  namespace=namespace_name(args.namespace), estimator=args.estimator)
     decision = _decision(obs, report['request_id'])
     loop = report['outcome']
     if args.trigger != 'scenario':
@@ -299,7 +305,9 @@ def run_scenario(path: Path, results: Path, args: argparse.Namespace, quiet: boo
     result: dict[str, Any] = {'scenario': scenario.name, 'path': str(path), 'decision': decision,
                               'closed_loop': loop, 'events': report['events'],
                               'restarts': [r.__dict__ for r in obs.restarts], 'runs': {'dtw': loop},
-                              'graph_topics': obs.graph_topics}
+                              'graph_topics': obs.graph_topics,
+                              'estimator': next((d['estimator'] for name, d in obs.diagnostics.items()
+                                                 if name.endswith('pmu_ingestion') and 'estimator' in d), None)}
     traj = dict(np.load(f'{out / "grid_sim.json"}.npz'))
     trajectories = {'dtw': traj}
     if not args.no_baselines:
