@@ -178,3 +178,25 @@ def test_coherency_finds_the_groups_on_the_filter_angles_exactly_when_on_andes_o
                        for end in np.arange(5.4, 5.91, 0.05)]
     assert found['dse'] == found['andes']
     assert any(found['dse']) and not all(found['dse'])  # the sweep spans the moment the groups are first found
+
+
+def test_a_stream_at_a_divisor_of_rate_fps_has_no_missing_tags_until_it_shows_the_finer_grid(bag):
+    # pmu_ingestion's rate_fps (60) is the finest grid; a 30 frames/s stream on it used to have every odd tag
+    # "missing": stepped as lost, its answers from copies of the filter (the closed-loop testbed's 30 fps runs).
+    gens = bag.grid.generators
+    v, va, i, ia = phasors(bag, gens)
+    keys = np.flatnonzero(bag.frame_present[:150])
+    assert np.array_equal(keys, np.arange(150)), 'the first 2.5 s of the bag are complete'
+    even = keys[keys % 2 == 0][:40]  # 1.33 s at 30 frames/s
+    later = keys[(keys > even[-1]) & (keys != 101)]  # then every tag at 60 frames/s, but one lost
+    on_60 = StreamingDSE(MachineData.of_generators(gens), 60.0, 0.1)
+    on_30 = StreamingDSE(MachineData.of_generators(gens), 30.0, 0.1)
+    for k in even:
+        t = bag.t0_s + bag.frame_t_s[k]
+        a60 = on_60.offer(t, v[k], va[k], i[k], ia[k], np.isfinite(v[k]))
+        a30 = on_30.offer(t, v[k], va[k], i[k], ia[k], np.isfinite(v[k]))
+        assert np.array_equal(a60, a30, equal_nan=True), k
+    assert on_60.lost_frames == 0 and on_60.ahead_frames == 0
+    for k in later:  # in tag order: the tag after the lost one is ahead of it until reorder_s has passed
+        on_60.offer(bag.t0_s + bag.frame_t_s[k], v[k], va[k], i[k], ia[k], np.isfinite(v[k]))
+    assert on_60.lost_frames == 1 and on_60.ahead_frames == 6

@@ -54,6 +54,7 @@ core/dse_kernel.py (numpy call overhead made the batched numpy version cost 2 to
 from __future__ import annotations
 
 import copy
+import math
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -597,9 +598,21 @@ class StreamingDSE:
     frames the filter uses, at the cost of the copies' work while it waits (never of latency). Gaps longer
     than the filter's ``max_gap_s`` are not stepped through: the filter re-initialises after them.
 
+    Which tags are missing: a stream at R frames/s tags its frames at multiples of 1/R s (C37.118.2 FRACSEC).
+    The standard rates at 60 Hz (10, 12, 15, 20, 30 per second) divide 60, those at 50 Hz (10, 25) divide 50,
+    so a stream at any of them has its tags on the grid of ``rate_fps`` = 60 (or 50), every 60/R-th point. The
+    stream's own grid is the coarsest one every tag seen so far lies on: the gcd of their distances on the
+    rate_fps grid. Only a tag on it is waited for and stepped as lost. Without this, a 30 frames/s stream under
+    pmu_ingestion's default rate_fps of 60 had every other tag missing: each a prediction-only step taking the
+    electrical torque equal to the mechanical one (wrong during a fault), the frame after it blind, every
+    answer a copy of the filter, at twice the work (found in the closed-loop testbed on the Kundur and
+    GBnetwork streams). A 60 frames/s stream that lost every odd tag since it started is, until an odd one
+    comes, the 30 frames/s stream it looks like; from then on the finer grid holds.
+
     Args:
         machines: The machines' data, in the column order of the frames.
-        rate_fps: Reporting rate, frames per second (the time-tag grid).
+        rate_fps: The finest time-tag grid, frames per second: the configured reporting rate, or any multiple
+            of the stream's.
         reorder_s: Longest wait for a missing time tag before the filter counts it as lost, s.
         history_s: How far back a late frame still gets an interpolated estimate, s.
         **settings: RotorAngleDSE settings (model, freq_hz, max_gap_s, ...).
@@ -619,7 +632,9 @@ class StreamingDSE:
                            f'{history_s}')
         self.dse = RotorAngleDSE(**settings).fit(machines)
         self.rate_fps, self.reorder_s, self.history_s = float(rate_fps), float(reorder_s), float(history_s)
-        self._done: int | None = None  # newest time tag (in frame periods) the filter has taken
+        self._done: int | None = None  # newest time tag (in periods of rate_fps) the filter has taken
+        self._first: int | None = None  # the first tag seen, in periods of rate_fps
+        self._step = 0  # the stream's grid in periods of rate_fps: gcd of the tags' distances (0: one tag so far)
         self._pending: dict[int, tuple] = {}  # key -> (t, v_mag, v_ang, i_mag, i_ang, valid)
         self._history: deque[tuple[float, np.ndarray]] = deque()
         self.lost_frames = 0
@@ -647,18 +662,22 @@ class StreamingDSE:
 
         """
         key = int(round(t_s * self.rate_fps))
+        if self._first is None:
+            self._first = key
+        self._step = math.gcd(self._step, abs(key - self._first))
+        step = max(self._step, 1)
         if (self._done is not None and key <= self._done) or key in self._pending:
             self.late_frames += 1
             return self._interpolate(t_s)
         frame = (t_s, v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, valid)
         self._pending[key] = frame
         if self._done is None:
-            self._done = key - 1
+            self._done = key - step
         answer = None
         newest = max(self._pending)
         period = 1.0 / self.rate_fps
         while self._pending:
-            nxt = self._done + 1
+            nxt = self._done + step
             if nxt in self._pending:
                 angles = self._take(*self._pending.pop(nxt))
                 if nxt == key:
@@ -666,8 +685,8 @@ class StreamingDSE:
             elif (newest - nxt) * period > self.reorder_s + 1e-9:
                 first = min(self._pending)
                 if (first - nxt) * period > self.dse.max_gap_s:
-                    self.lost_frames += first - nxt
-                    nxt = first - 1  # the filter re-initialises after so long; no need to step through it
+                    self.lost_frames += (first - nxt) // step
+                    nxt = first - step  # the filter re-initialises after so long; no need to step through it
                 else:
                     self._take(*self._lost(nxt, t_s, key))
                     self.lost_frames += 1
