@@ -24,6 +24,12 @@ Time. Stamps are sim time plus sim/bag.START_TIME_UNIX_S, as in the bags, and /c
   90 deg apart while no delivered PMU voltage is below 0.5 pu (sim/closed_loop.out_of_step); the run is then
   extended to run_after_s past it. In lockstep each step waits (at most `trigger_wait_s` wall) until
   /rotor_angles has answered every frame sent, so the trigger time does not depend on how busy the machine is.
+  An answer that does not split re-arms the trigger: it requests again (a new request id) at the next step
+  with new angles on which the condition still holds, at most `trigger_max_requests` times in all. Why: 90 deg
+  is visible separation, not yet loss of synchronism; stable swings pass it (Nordic 44, the bus-6000 fault
+  cleared in 270 ms: 131 deg) and coherency's separation rule rightly keeps one group until the pair runs away
+  (IEEE 39 G6-G7: the trigger at 5.39 s, two groups from 5.55 s), so a one-shot trigger asked once, too early,
+  and never again. A relay is not disabled by a request that was answered; the operator-side bound is the cap.
 - `rate: R > 0`: paced at R times real time, nothing waits; a command opens its branch at max(its stamp, the sim
   time it arrived) + breaker_operating_s. If ANDES is slower than R x real time, the pace is ANDES'.
 """
@@ -141,6 +147,7 @@ class GridSimNode(Node):
         self.declare_parameter('progress', False)
         self.declare_parameter('trigger', 'scenario')
         self.declare_parameter('trigger_wait_s', 0.5)
+        self.declare_parameter('trigger_max_requests', 20)
         path = self.get_parameter('scenario').value
         if not path:
             raise NodeSetupError('parameter scenario is empty; it must name a scenario YAML (see bags/*.yaml)')
@@ -166,6 +173,7 @@ class GridSimNode(Node):
         if self.trigger == 'out_of_step':  # the request comes when the angles say so, not at the scenario's time
             self.scenario = replace(self.scenario, request_s=math.inf)
         self.angle_ref: dict[str, float] = {}
+        self.answered_s = -math.inf  # sim time of the last request answered without a split (trigger re-arm)
         self.angle_now: dict[str, float] = {}
         self.frame_v_pu = np.zeros(0)
         pub = {t: self.create_publisher(cls, topics.relative(t), qos_for(t)) for t, cls in (
@@ -182,6 +190,7 @@ class GridSimNode(Node):
         self.create_subscription(RotorAngles, topics.relative(topics.ROTOR_ANGLES), self._on_angles,
                                  qos_for(topics.ROTOR_ANGLES))
         self.diag = Diagnostics(self)
+        self.requests_made = 1
         self.request_id = f'{self.scenario.name}/closed-loop-request-1'
         self.decisions: dict[str, IslandingDecision] = {}
         self.commands: list[tuple[float, float, BreakerCommand]] = []  # (wall s, sim s at receipt, msg)
@@ -299,7 +308,8 @@ class GridSimNode(Node):
             # (IEEE 39 G6-G7: 5.625 s under load, 5.433 s with less).
             self._spin(float(self.get_parameter('trigger_wait_s').value),
                        lambda: self.newest_angle_s >= self.newest_frame_s - 1e-6)
-        if self.trigger == 'out_of_step' and not self.request_sent and self._separated():
+        if (self.trigger == 'out_of_step' and not self.request_sent and self.newest_angle_s > self.answered_s
+                and self._separated()):
             self.scenario = replace(self.scenario, request_s=t)
             run.scenario = self.scenario  # its outcome reports the request it answered
             run.run_until_s = max(run.run_until_s, t + run.config.run_after_s)
@@ -363,6 +373,16 @@ class GridSimNode(Node):
             self._spin(float(self.get_parameter('command_wait_s').value),
                        lambda: sum(1 for _, _, c in self.commands if c.decision_id == decision.decision_id) >= want)
         self.held_wall_s += time.monotonic() - t0
+        if (self.trigger == 'out_of_step' and got and decision is not None and not decision.split
+                and self.requests_made < int(self.get_parameter('trigger_max_requests').value)):
+            # Re-arm: only angles newer than this request can fire it again (see the module docstring).
+            self.answered_s = request_s
+            self.requests_made += 1
+            self.request_id = f'{self.scenario.name}/closed-loop-request-{self.requests_made}'
+            self.scenario = replace(self.scenario, request_s=math.inf)
+            self.request_sent = False
+            self.events.append({'what': 'trigger re-armed', 'after_request_s': request_s,
+                                'status': int(decision.status)})
 
     def simulate(self, executor: SingleThreadedExecutor) -> None:
         """Publish the snapshot, wait for subscribers, run the simulation in the loop, report, linger."""
@@ -407,7 +427,7 @@ class GridSimNode(Node):
             shed = {int(k): v for e in self.events if e['what'] == 'shed scheduled'
                     for k, v in e['shed_mw_by_island'].items()}
         outcome = run.outcome('closed loop', cut, bus_island, opened_s,
-                              opened_s if opened_s is not None else self.scenario.request_s, shed)
+                              opened_s if opened_s is not None else run.scenario.request_s, shed)
         array = DiagnosticArray()
         array.header.stamp = _stamp(self.t_now)
         for isl in outcome.islands:
