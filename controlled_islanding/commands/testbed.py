@@ -487,14 +487,18 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
            + ('' if getattr(args, 'trigger', 'scenario') == 'scenario' else
               " The request is not the scenario's: grid_sim's out-of-step trigger made it, at the first step where "
               "the measured rotor angles (the graph's /rotor_angles, against the first received) showed two machines "
-              'more than 90 deg apart with no PMU voltage below 0.5 pu (closed_loop.out_of_step); the baselines '
-              'answer the same request.'), '',
+              'more than 90 deg apart with no PMU voltage below 0.5 pu (closed_loop.out_of_step); an answer that '
+              'does not split re-arms it, and it asks again on newer angles while that holds (at most 20 requests); '
+              'the baselines answer the last request.'), '',
            '| ' + ' | '.join(HEADER) + ' |', '|' + '---|' * len(HEADER)]
     out += ['| ' + ' | '.join(row) + ' |' for row in table_rows(results)]
     out += ['', 'Reading the table:',
             '- An island with a surplus no machine fits in (each is larger than the surplus) keeps it: tripping one '
-            'would leave a deficit nobody sheds. No overspeed protection is modelled, so such an island can speed '
-            "up past the band's top (61.8 Hz at 60 Hz) and count as lost.",
+            "would leave a deficit nobody sheds, so such an island can speed up past the band's top (61.8 Hz at "
+            '60 Hz) and count as lost. Overspeed protection is modelled at 1.10 pu speed (66 Hz at 60 Hz, '
+            "closed_loop.py): a machine past it is listed among the machines tripped, its time among the run's "
+            'actions. It is recorded, not switched off in ANDES (which stopped converging when it was, on PJM 5-bus '
+            "and Kundur), and it decides no verdict: the band's top is lower.",
             '- "V min" is ANDES\' voltage variable. Zero or negative voltages in islands right after an opening '
             'were a solver artefact, not a collapse: ANDES solves the network in polar power-balance form, where '
             'V = 0 (or V < 0 with the angle off by pi) satisfies a bus trivially, and Newton started from the '
@@ -521,16 +525,24 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
             "2 s or more: the island's voltage rises to 1.30 pu (G6-G7, G7 alone after G6's rejection) and 1.80 pu "
             '(G3). The load, constant impedance in ANDES, grows with the square of that voltage: about 840 MW '
             "from G7's 580 MW, so that island's frequency falls to 58.2 Hz. The out-of-step trigger "
-            '(docs/testbed_out_of_step.md) requests at about 5.40 s, on the edge of what coherency separates: one '
-            'run split there and kept both islands in band (request 5.408 s), another found one group (5.400 s) '
-            'and cut nothing. (3) A surplus no machine fits '
+            '(docs/testbed_out_of_step.md) first fires at 90 deg (about 5.39 s), which can come before coherency '
+            'separates the pair: its separation rule waits until the pair stops decelerating (measured on '
+            "grid_sim's frames with the rule of commit 19fcf7e: two groups from 5.55 s). A trigger answered with "
+            'no split used to never ask again, so that run cut nothing; it now re-arms and asks again on newer '
+            'angles until an answer splits (the line under its table lists the requests). (3) A surplus no machine '
+            'fits '
             'in stays (case 2: G3, 725 MW, on 120 MW of load, about 340 MW at 1.7 pu), and that island speeds up '
             'past the band 2.5 s after the cut. (4) An island with no load whose machines the rejection rule trips '
             '(IEEE 14 G1 alone on bus 1, IEEE 39 G3 multitrip, PJM bus 4, Nordic 44 bus 6000 with its four '
-            'machines) is counted as lost by definition, at 0 MW of load lost. (5) The groups were wrong (PJM 5-bus '
-            'and Nordic 44: an island whose machines slip apart) or the graph did not split (Kundur: one group at '
-            'its request on the Kalman-filter rotor angles; GBnetwork: no coherent groups reached its request '
-            'within groups_wait_s, so partitioning refused it). (6) EI 33: GENROU_53 and 54 have no turbine '
+            'machines) is counted as lost by definition, at 0 MW of load lost. (5) The groups were wrong (PJM 5-bus: '
+            'an island whose machines slip apart) or the graph did not split. Nordic 44 asks at the clearing '
+            "instant (1.3 s), before anything can tell its final groups (measured 2026-12-01): grid_sim's frames "
+            "agree with the recorded bag's within 0.08 rad of rotor angle (both interpolate ANDES; a replay of the "
+            'bag finds one group too); in the 3 s window ending at 1.3 s the separation rule finds no separating '
+            'pair (the largest runaway from rest 1.51 rad, below its pi/2; the largest drift 0.43 rad); and the '
+            'same fault cleared 30 ms earlier, which stays synchronous, looks the same: the rule splits that one '
+            'too 30 ms after its clearing. One frame later (1.333 s) the rule splits off bus 6000, and the three '
+            'final groups appear from 1.60 s. (6) EI 33: GENROU_53 and 54 have no turbine '
             'governor in EI_33.xlsx, so their island keeps the speed it had at the cut, and whether that is '
             "inside the band depends on where in the swing the graph's latency puts the cut (lost at 62.3 Hz in a "
             'run that cut 0.41 s after the request, survived at 0.17 s). (7) IEEE 14 (both): the main island is '
@@ -544,10 +556,14 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
     out += failure_lines(results) or ['- nothing: every island of every closed-loop run survived.']
     out += ['']
     for r in results:
-        fired = next((e for e in r['events'] if e['what'] == 'out-of-step trigger'), None)
-        if fired is not None:
-            out += [f'- {r["scenario"]}: the out-of-step trigger requested islanding at {fired["at_s"]:.3f} s, the '
-                    f'measured angles {math.degrees(fired["separation_rad"]):.0f} deg apart.']
+        fired = [e for e in r['events'] if e['what'] == 'out-of-step trigger']
+        if fired:
+            first, last = fired[0], fired[-1]
+            out += [f'- {r["scenario"]}: the out-of-step trigger requested islanding at {first["at_s"]:.3f} s, the '
+                    f'measured angles {math.degrees(first["separation_rad"]):.0f} deg apart'
+                    + ('.' if len(fired) == 1 else
+                       f'; answered with no split, it re-armed and asked {len(fired)} times in all, the last at '
+                       f'{last["at_s"]:.3f} s ({math.degrees(last["separation_rad"]):.0f} deg).')]
     out += ['']
     for fig in figures:
         out += [f'![{fig.stem}]({os.path.relpath(fig, page.parent)})', '']
