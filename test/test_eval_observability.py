@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from controlled_islanding import coherency_rules as study
@@ -49,3 +51,25 @@ def test_bad_sweep_settings_are_named():
         obs.sweep(scenario, bag.grid, coverages=(0.0,), k_rule='separation')
     with pytest.raises(obs.SweepError, match='draws'):
         obs.sweep(scenario, bag.grid, draws=0, k_rule='separation')
+
+
+def test_half_the_pmus_on_the_two_borderline_requests():
+    # PSS/E IEEE 14: G1 and G2 observed, G1 107 deg from G2 and accelerating since clearing 150 ms before the
+    # request: a runaway, which the runaway test read as slowing down while it compared with the fault-on motion.
+    bag = load_bag(BAGS / 'ieee14_psse_g1_borderline')
+    scenario = study.scenario_from_bag(bag, _manifest_entry(bag))
+    observed = obs.largest_first(bag.grid_at(scenario.request_s + 1e-9), 0.5)
+    row = {n: i for i, n in enumerate(scenario.generator_names)}
+    seen = replace(scenario, generator_names=observed, angles_rad=scenario.angles_rad[[row[n] for n in observed]])
+    groups = study.groups_at(seen, scenario.request_s, rule='separation', window_s=3.0, max_groups=8, dtw_band=30)
+    assert study.blocks(groups) == study.blocks({n: scenario.truth[n] for n in observed})
+    assert len(set(groups.values())) == 2
+    # Kundur: G1 and G4 observed, 86 deg apart at the request (the frame at which the farthest pair, G1 and G3,
+    # first passes 90 deg), below the runaway test's pi / 2; right one frame later, well before the slip.
+    bag = load_bag(BAGS / 'kundur_bus9_unstable')
+    scenario = study.scenario_from_bag(bag, _manifest_entry(bag))
+    observed = obs.largest_first(bag.grid_at(scenario.request_s + 1e-9), 0.5)
+    assert observed == ['GENROU_1', 'GENROU_4']
+    later = obs.first_right_s(scenario, observed, window_s=3.0, max_groups=8, k_rule='separation', dtw_band=30)
+    frame_s = float(np.median(np.diff(scenario.t_s)))
+    assert later == pytest.approx(scenario.request_s + frame_s, abs=1e-3) and later < scenario.first_pole_slip_s
