@@ -323,6 +323,8 @@ class GridSimNode(Node):
             self._request(run, t)
         self._deliver(t)
         self._spin()
+        if self.rate > 0 and self.request_sent and self.request_id in self.decisions:  # lockstep re-arms in _request
+            self._rearm(self.decisions[self.request_id])
         for wall, sim_at, msg in list(self.commands):
             self._execute(run, wall, sim_at, msg)
         self.commands.clear()
@@ -373,16 +375,21 @@ class GridSimNode(Node):
             self._spin(float(self.get_parameter('command_wait_s').value),
                        lambda: sum(1 for _, _, c in self.commands if c.decision_id == decision.decision_id) >= want)
         self.held_wall_s += time.monotonic() - t0
-        if (self.trigger == 'out_of_step' and got and decision is not None and not decision.split
-                and self.requests_made < int(self.get_parameter('trigger_max_requests').value)):
-            # Re-arm: only angles newer than this request can fire it again (see the module docstring).
-            self.answered_s = request_s
-            self.requests_made += 1
-            self.request_id = f'{self.scenario.name}/closed-loop-request-{self.requests_made}'
-            self.scenario = replace(self.scenario, request_s=math.inf)
-            self.request_sent = False
-            self.events.append({'what': 'trigger re-armed', 'after_request_s': request_s,
-                                'status': int(decision.status)})
+        if got and decision is not None:
+            self._rearm(decision)
+
+    def _rearm(self, decision: IslandingDecision) -> None:
+        """Re-arm the out-of-step trigger after an answer that does not split (see the module docstring)."""
+        if (self.trigger != 'out_of_step' or decision.split
+                or self.requests_made >= int(self.get_parameter('trigger_max_requests').value)):
+            return
+        request_s = self.scenario.request_s
+        self.answered_s = request_s  # only angles newer than this request can fire it again
+        self.requests_made += 1
+        self.request_id = f'{self.scenario.name}/closed-loop-request-{self.requests_made}'
+        self.scenario = replace(self.scenario, request_s=math.inf)
+        self.request_sent = False
+        self.events.append({'what': 'trigger re-armed', 'after_request_s': request_s, 'status': int(decision.status)})
 
     def simulate(self, executor: SingleThreadedExecutor) -> None:
         """Publish the snapshot, wait for subscribers, run the simulation in the loop, report, linger."""
