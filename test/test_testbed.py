@@ -220,3 +220,25 @@ def test_overspeed_protection_records_a_trip_above_110_percent_speed_on_two_grid
         run.overspeed.clear()
         run._overspeed_trips(replace(sample, omega_pu=np.full(n, 1.5)))
         assert run.overspeed == {} and run.machines_tripped() == (), name
+
+
+def test_each_sample_holds_the_andes_solution_at_its_own_time():
+    """ANDES calls the step hook before solving the step to t: a sample labelled t held the step before it."""
+    from dataclasses import replace
+
+    from controlled_islanding.sim.closed_loop import GridRun
+    from controlled_islanding.sim.scenario import load_scenario
+
+    scenario = load_scenario(REPO / 'bags' / 'pjm5bus_three_groups.yaml')
+    # Its fault moved to 0.05..0.1 s, so that the machines move within a short run.
+    scenario = replace(scenario, faults=(replace(scenario.faults[0], start_s=0.05, clear_s=0.1),), trips=(),
+                       end_s=0.15, request_s=0.1)
+    run = GridRun(scenario, LoopConfig(run_after_s=0.05))
+    run.run()
+    ss = run.ss
+    stored = {round(float(t), 9): x for t, x in zip(ss.dae.ts.t, ss.dae.ts.x, strict=True)}
+    delta = ss.GENCLS.delta.a[np.asarray(ss.GENCLS.u.v, dtype=bool)]
+    assert ss.GENCLS.n == len(run.generator_names) and len(run.samples) > 15
+    for s in run.samples:
+        assert np.array_equal(s.delta_rad, stored[round(s.t_s, 9)][delta]), s.t_s
+    assert np.ptp([s.delta_rad for s in run.samples], axis=0).max() > 0.01  # they moved: a step late would show

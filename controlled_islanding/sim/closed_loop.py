@@ -546,13 +546,17 @@ class GridRun:
 
         def pert(t: Any, system: Any) -> None:
             t_s = float(t)  # ANDES advances dae.t in place: keep a copy, not the array
+            # ANDES calls pert before it solves the step to t: dae still holds the last solved step, t - h (at the
+            # first call the initial point, t = 0). Labelled t, every sample, PMU frame and trajectory point was
+            # one step late (measured against dae.ts: Kundur's angles 2.5 deg behind the bag's at its request).
+            solved_s = max(t_s - float(tds.h), 0.0)
             dae = system.dae
             if self._flat is None:
                 self._flat = (_var(dae, ss.Bus.v).copy(), _var(dae, ss.Bus.a).copy(),
                               [(m, k, int(ss.Bus.idx2uid(m.bus.v[k])), float(dae.x[m.delta.a[k]]))
                                for m, on in syn for k in range(m.n) if on[k]])
             sample = Sample(
-                t_s=t_s, bus_v_pu=_var(dae, ss.Bus.v)[:len(self.bus_numbers)].copy(),
+                t_s=solved_s, bus_v_pu=_var(dae, ss.Bus.v)[:len(self.bus_numbers)].copy(),
                 bus_angle_rad=_var(dae, ss.Bus.a)[:len(self.bus_numbers)].copy(),
                 delta_rad=np.concatenate([_var(dae, m.delta)[on] for m, on in syn]),
                 omega_pu=np.concatenate([_var(dae, m.omega)[on] for m, on in syn]),
@@ -560,7 +564,7 @@ class GridRun:
                 q_pu=np.concatenate([_var(dae, m.Qe)[on] for m, on in syn]))
             # Both sides of a switching instant come at one time (keep the later); after a step that failed to
             # converge ANDES retries from an earlier time with a shorter step (drop what it took back).
-            while self.samples and t_s <= self.samples[-1].t_s:
+            while self.samples and solved_s <= self.samples[-1].t_s:
                 self.samples.pop()
             self.samples.append(sample)
             if hook is not None:
