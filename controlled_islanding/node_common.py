@@ -20,6 +20,12 @@ Readers and writers allocate each DDS sample's buffer when it arrives and free i
 (Fast DDS history memory policy DYNAMIC, see `_dds_memory_profile`): under rmw_fastrtps' default
 (PREALLOCATED_WITH_REALLOC) every pooled buffer keeps the largest size it ever held, so a KEEP_LAST 1000
 reader that now and then gets a frame of 10,000 PMUs grows towards 1000 x 720 kB.
+
+Reliable writers send a heartbeat every 0.1 s while a reader has not acknowledged a sample (same profile; Fast
+DDS's default is 3 s). A reader that misses a sample's first delivery asks for it again only after a heartbeat:
+in three IEEE 14 fast replays, each of the 6 branch statuses played was acknowledged by every reader only after
+0.6-3.0 s with 3 s (bag_player's acknowledgement wait), after 0.04-0.17 s with 0.1 s; a request, decision or
+command lost live would be as late.
 """
 
 from __future__ import annotations
@@ -231,6 +237,9 @@ class TopicStatus:
         self._delays_s = []
 
 
+_INFRASTRUCTURE_TOPICS = ('/rosout', '/parameter_events')
+
+
 class Diagnostics:
     """Counts inputs, rejects, compute time and extra figures, and publishes them on /diagnostics.
 
@@ -418,6 +427,10 @@ class Diagnostics:
         pairs.update({f'fault.{k}': v for k, v in sorted(self.faults.items())})
         pairs.update({f'warn.{k}': v for k, v in sorted(self.warnings.items())})
         pairs.update(self.values)
+        # How many readers each writer has matched: another process can tell from it that this node's output
+        # reaches its readers (the graph it sees only says that both ends exist).
+        pairs.update({f'matched.{p.topic_name}': str(p.get_subscription_count()) for p in self._node.publishers
+                      if p is not self._pub and p.topic_name not in _INFRASTRUCTURE_TOPICS})
         statuses = [DiagnosticStatus(
             level=level, name=self._node.get_fully_qualified_name(), hardware_id='controlled_islanding',
             message=message, values=[KeyValue(key=k, value=v) for k, v in pairs.items()])]
@@ -533,6 +546,9 @@ _DDS_MEMORY_XML = """<?xml version="1.0" encoding="UTF-8" ?>
   </data_reader>
   <data_writer profile_name="controlled_islanding_writer" is_default_profile="true">
     <historyMemoryPolicy>DYNAMIC</historyMemoryPolicy>
+    <times>
+      <heartbeatPeriod><sec>0</sec><nanosec>100000000</nanosec></heartbeatPeriod>
+    </times>
   </data_writer>
 </profiles>
 """

@@ -182,6 +182,7 @@ class Supervisor:
         self.restarts: list[RestartRecord] = []
         self.hangs: list[HangRecord] = []
         self._launch: dict[str, tuple[NodeSpec, dict[str, object], str, list[str]]] = {}
+        self.cpu_s: dict[str, float] = {}  # CPU time (user + system) of each child that ran to stop_all, s
         self._t0_s = time.monotonic()
 
     def __enter__(self) -> Supervisor:
@@ -322,6 +323,9 @@ class Supervisor:
         if self.watchdog is not None:
             for name in self.children:
                 self.watchdog.stopped(name)
+        for name, child in self.children.items():
+            if child.poll() is None:
+                self.cpu_s[name] = _cpu_s(child.pid)
         for child in self.children.values():
             if child.poll() is None:
                 try:
@@ -333,6 +337,15 @@ class Supervisor:
             time.sleep(0.05)
         for name in list(self.children):
             self.stop(name, timeout_s=2.0)
+
+
+def _cpu_s(pid: int) -> float:
+    """Return a live process's CPU time so far (user + system), s; 0 if it cannot be read."""
+    try:
+        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+    except (OSError, IndexError, ValueError):
+        return 0.0
 
 
 def _utc_now() -> str:

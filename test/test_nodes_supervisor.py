@@ -288,7 +288,8 @@ def test_the_replay_cli_fails_loudly_when_a_node_died_during_it():
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         end = time.monotonic() + 60.0
-        while 'bag_player' not in children_of(cli.pid) and cli.poll() is None and time.monotonic() < end:
+        # The player starts with the graph; the replay tells it to play through this file once the graph is wired.
+        while not (results / 'player_go.json').exists() and cli.poll() is None and time.monotonic() < end:
             time.sleep(0.05)
         victim = children_of(cli.pid).get('breaker_command')
         assert victim is not None, 'the replay did not get as far as playing the bag'

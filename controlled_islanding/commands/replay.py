@@ -48,9 +48,18 @@ hosts; DDS discovers by multicast across it. Roles joined by '+' share a host (p
 observer and the recorder are a fourth host, the operator's, whose view is a tap without delay or loss. Needs
 root; without it, says so and exits 2. docs/deployment.md describes the emulation and a real deployment.
 
+Several bags (bags/*/): a regression run. Each bag gets a fresh graph of its own (the nodes keep state a
+bag must not inherit: the breaker node's commanded breakers, the time of the last input) on a private
+domain, in a child process, one after another. --jobs 2 runs two graphs at once, so that one graph's start-up
+overlaps another's play; on a loaded 2-core machine (load average 10) it made one graph's coherency miss every
+rotor angle before the request (Kundur, twice in two runs; never in serial runs at the same load), so it is not
+the default. One report with a row per bag (decision, agreement with bags/index.yaml, speed, wall time) and the overall
+speed against real time, start-up included, with the load average. Exit status 1 if any bag went wrong.
+
 Examples (bag names from bags/index.yaml):
   controlled-islanding replay bags/ieee39_g6g7_unstable            real time
   controlled-islanding replay bags/ieee39_g6g7_unstable --fast --json
+  controlled-islanding replay bags/*/ --fast --json            every bag, one report
   controlled-islanding replay bags/ieee39_g6g7_unstable --probe-hz 20   extra requests: a latency benchmark
   controlled-islanding replay bags/ieee39_g6g7_unstable --fast --namespace /area1   one area of several
   controlled-islanding replay bags/ieee39_case2_g3_unstable --fast --hosts pdc,control,substation \
@@ -65,8 +74,11 @@ SETTLE_S = 8.0
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the replay options."""
-    parser.add_argument('bag', type=Path, help='rosbag2 bag directory (see bags/index.yaml)')
+    parser.add_argument('bag', type=Path, nargs='+',
+                        help='rosbag2 bag directory (see bags/index.yaml); several (bags/*/) make a regression run')
     parser.add_argument('--json', action='store_true', help='print one JSON decision on stdout and nothing else')
+    parser.add_argument('--jobs', type=int, default=1,
+                        help='with several bags: graphs running at once (default 1; see "Several bags" above)')
     parser.add_argument('--fast', action='store_true', help='play as fast as possible (lockstep at requests)')
     parser.add_argument('--rate', type=float, default=1.0, help='playback speed factor (default 1 = real time)')
     parser.add_argument('--results', type=Path, default=None,
@@ -114,6 +126,8 @@ class Observation:
     restarts: list = field(default_factory=list)  # supervisor.RestartRecord, as the supervisor records them
     hangs: list = field(default_factory=list)  # supervisor.HangRecord
     wan: dict = field(default_factory=dict)  # with hosts: the emulated network, its namespaces and its statistics
+    phases_unix: dict[str, float] = field(default_factory=dict)  # milestone -> wall time (time.time, s)
+    cpu_s: dict[str, float] = field(default_factory=dict)  # child process -> its CPU time, s (the player: none)
 
 
 def _say(quiet: bool, text: str) -> None:
@@ -191,6 +205,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
         return remaps.get(topic, topics.in_namespace(topic, ns))
 
     obs = Observation()
+    obs.phases_unix['begun'] = time.time()
     logs = results / 'logs'
     with graph_environment(results / 'ros_log', isolate) as env:
         if hosts:
@@ -253,6 +268,12 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                     sup.start(spec, {**sim, **extra.get(spec.executable, {})}, prefix=on_host(spec.executable))
                 if record:
                     sup.start(RECORDER, {**sim, 'output': results / 'output_bag'}, prefix=on_host(RECORDER.executable))
+                # The player loads its bag and is discovered while the nodes start; it plays once told to.
+                go_file = results / 'player_go.json'
+                player = sup.start(PLAYER, {'bag': bag.resolve(), 'as_fast_as_possible': fast, 'rate': rate,
+                                            'report_file': report_file, 'clock_min_step_s': 0.05 if fast else 0.0,
+                                            'go_file': go_file}, prefix=on_host(PLAYER.executable))
+                obs.phases_unix['nodes_started'] = time.time()
                 _say(quiet, f'replay: started {len(GRAPH)} nodes{" and the recorder" if record else ""} '
                             f'(logs in {logs})')
                 arm_client = node.create_client(SetArmed, 'breaker_command/set_armed')
@@ -270,6 +291,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 if not future.done() or not future.result().accepted or future.result().armed != arm:
                     why = future.result().message if future.done() else 'no answer to 3 requests within 15 s'
                     raise CliError(f'breaker_command did not switch to armed={arm}: {why}')
+                obs.phases_unix['armed'] = time.time()
                 _say(quiet, f'replay: breaker_command {"armed" if arm else "left disarmed"}; playing the bag')
                 # The player starts once every subscriber now in the graph (this observer included) matches it.
                 # The graph is wired once every internal topic has a writer and a reader, and nothing changed
@@ -278,20 +300,36 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                             topics.BREAKER_COMMANDS)
                 counts: dict[str, int] = {}
                 wiring: dict[str, tuple[int, int]] = {}
+
+                def matched() -> bool:
+                    # That both ends of a topic exist in this observer's view does not mean that the writer has
+                    # matched the reader: under load, two nodes found each other seconds later, and pmu_ingestion's
+                    # volatile rotor angles before the request never reached coherency (Kundur, load 9). Each node
+                    # says in /diagnostics how many readers its writers match.
+                    for spec in GRAPH:
+                        values = obs.diagnostics.get(f'/{spec.executable}', {})
+                        found = [(k[len('matched.'):], int(v)) for k, v in values.items() if k.startswith('matched.')]
+                        if not found or any(n < node.count_subscribers(t) for t, n in found):
+                            return False
+                    return True
+
                 stable_since = begun = time.monotonic()
                 while time.monotonic() < begun + 20.0:
+                    if player.poll() is not None:
+                        raise CliError(f'bag_player failed:\n{sup.log_tail("bag_player")}')
                     now_counts = {t: node.count_subscribers(graph_topic(t)) for t in played}
                     now_wiring = {t: (node.count_publishers(graph_topic(t)), node.count_subscribers(graph_topic(t)))
                                   for t in internal}
                     if now_counts != counts or now_wiring != wiring:
                         counts, wiring, stable_since = now_counts, now_wiring, time.monotonic()
-                    elif time.monotonic() - stable_since >= 1.0 and all(min(w) > 0 for w in wiring.values()):
+                    elif (time.monotonic() - stable_since >= 1.0 and all(min(w) > 0 for w in wiring.values())
+                          and matched()):
                         break
                     spin_for(0.1)
-                player = sup.start(PLAYER, {'bag': bag.resolve(), 'as_fast_as_possible': fast, 'rate': rate,
-                                            'report_file': report_file, 'clock_min_step_s': 0.05 if fast else 0.0,
-                                            'min_subscribers': str([f'{t}={n}' for t, n in counts.items()])},
-                                   prefix=on_host(PLAYER.executable))
+                obs.phases_unix['wired'] = time.time()
+                go_tmp = go_file.with_suffix('.tmp')
+                go_tmp.write_text(json.dumps({'min_subscribers': [f'{t}={n}' for t, n in counts.items()]}))
+                os.replace(go_tmp, go_file)
                 settle_heap()  # this observer's timestamps must not wait on a full garbage collection either
                 deadline = time.monotonic() + timeout_s
                 probe_period = 1.0 / probe_hz if probe_hz > 0 else None
@@ -301,6 +339,8 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                     spin_for(0.01)
                     sup.supervise(obs.heartbeats_s)
                     bag_done = player.poll() is not None
+                    if bag_done:
+                        obs.phases_unix.setdefault('player_exited', time.time())
                     if bag_done and player.returncode != 0:
                         raise CliError(f'bag_player failed:\n{sup.log_tail("bag_player")}')
                     answered = sum(1 for r in obs.requests if r in obs.decisions)
@@ -317,6 +357,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                             next_probe += probe_period
                     if bag_done and answered >= n_requests and all(r in obs.decisions for r in obs.requests):
                         spin_for(0.3)  # let the last commands and diagnostics arrive
+                        obs.phases_unix['decided'] = time.time()
                         break
                     if bag_done:
                         done_at = done_at or time.monotonic()
@@ -326,6 +367,8 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 else:
                     raise CliError(f'no decision for every request within --timeout {timeout_s} s; '
                                    f'logs in {logs}')
+            obs.phases_unix['stopped'] = time.time()
+            obs.cpu_s = sup.cpu_s
         except SupervisorError as exc:
             raise CliError(str(exc)) from exc
         finally:
@@ -424,10 +467,30 @@ def summarize(bag: Path, results: Path, obs: Observation, report: dict) -> dict:
             'n': len(latencies), 'median': statistics.median(latencies) if latencies else None,
             'p99': percentile(latencies, 99) if latencies else None, 'max': max(latencies) if latencies else None,
             'samples': latencies},
-        'replay': report,
+        'replay': report, 'phases_s': phases(obs.phases_unix, report), 'cpu_s': obs.cpu_s,
         'diagnostics_rejects': {k: v for k, v in rejects.items() if any(x != '0' for x in v.values())},
+        'diagnostics': obs.diagnostics,  # each node's last /diagnostics values, for a failure's post-mortem
         'restarts': [asdict(r) for r in obs.restarts], 'hangs': [asdict(h) for h in obs.hangs],
     })
+    return out
+
+
+def phases(marks_unix: dict[str, float], report: dict) -> dict[str, float]:
+    """Return where one replay's wall time went, s, phase by phase, from the observer's and the player's marks."""
+    marks = dict(marks_unix)
+    marks.update({k: report[f'{k}_unix'] for k in ('play_begun', 'play_ended') if f'{k}_unix' in report})
+    order = [('nodes_started', 'set-up and node processes spawned'), ('armed', 'breaker_command up and armed'),
+             ('wired', 'every node up, discovery unchanged for 1 s, every writer matched'),
+             ('play_begun', 'player told to go, waited for its subscribers'),
+             ('play_ended', 'play, lockstep waits included'),
+             ('decided', 'linger, last decisions and diagnostics'), ('stopped', 'every process stopped')]
+    out, last = {}, marks.get('begun')
+    for key, what in order:
+        if key in marks and last is not None:
+            out[what] = marks[key] - last
+            last = marks[key]
+    if 'begun' in marks and last is not None:
+        out['total'] = last - marks['begun']
     return out
 
 
@@ -702,6 +765,9 @@ def _link(args: argparse.Namespace) -> wan.LinkModel | None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the replay subcommand."""
+    if len(args.bag) > 1:
+        return _run_suite(args)
+    args.bag = args.bag[0]
     if args.repeat < 1:
         raise CliError(f'--repeat {args.repeat} must be at least 1')
     if args.repeat > 1:
@@ -760,3 +826,166 @@ def _run_repeated(args: argparse.Namespace) -> int:
         if failure:
             print(f'replay {i + 1}/{args.repeat}: FAILED: {failure}', file=sys.stderr)
     return 0 if len(outcomes) == 1 and not any(failures) else 1
+
+
+@dataclass(frozen=True)
+class SuiteRun:
+    """One replay of a regression run: its name (its results folder), its bag, and replay options for it."""
+
+    name: str
+    bag: Path
+    options: tuple[str, ...] = ('--fast', '--no-figures')
+
+
+def replay_suite(runs: list[SuiteRun], base: Path, jobs: int = 1, quiet: bool = True,
+                 hard_timeout_s: float = 600.0) -> dict:
+    """Replay each run on a fresh graph, in a child process on a private domain, `jobs` at a time; return one report.
+
+    A child runs `controlled-islanding replay BAG --json --isolate --results base/<name> <options>`; its summary is
+    base/<name>/summary.json. A child still running after hard_timeout_s is interrupted (it then stops its nodes).
+
+    Returns:
+        {'rows': one per run, in the given order, 'overall': speed, wall time, load average}.
+
+    """
+    base.mkdir(parents=True, exist_ok=True)
+    load_before = os.getloadavg()
+    begun = time.monotonic()
+    waiting = list(runs)
+    running: dict[str, tuple[subprocess.Popen, float]] = {}
+    finished: dict[str, dict] = {}
+    try:
+        while waiting or running:
+            while waiting and len(running) < max(1, jobs):
+                run = waiting.pop(0)
+                # Not through controlled_islanding.cli, which imports every subcommand: a second of CPU a bag.
+                argv = [sys.executable, '-c', 'import sys; from controlled_islanding.commands.replay import '
+                        'child_main; sys.exit(child_main(sys.argv[1:]))', str(run.bag), '--json', '--isolate',
+                        '--results', str(base / run.name), *run.options]
+                with open(base / f'{run.name}.json', 'wb') as out, open(base / f'{run.name}.stderr', 'wb') as err:
+                    running[run.name] = (subprocess.Popen(argv, stdout=out, stderr=err, stdin=subprocess.DEVNULL),
+                                         time.monotonic())
+            for name, (child, started) in list(running.items()):
+                if child.poll() is None and time.monotonic() - started > hard_timeout_s:
+                    _interrupt(child)
+                if child.poll() is not None:
+                    del running[name]
+                    finished[name] = {'status': child.returncode, 'wall_s': time.monotonic() - started}
+                    _say(quiet, f'replay: {name} done ({len(finished)} of {len(runs)})')
+            time.sleep(0.05)
+    finally:
+        for child, _ in running.values():
+            _interrupt(child)
+    wall_s = time.monotonic() - begun
+    rows = [_suite_row(run, base, finished.get(run.name, {})) for run in runs]
+    bag_s = sum(r['bag_duration_s'] or 0.0 for r in rows)
+    overall = {'runs': len(rows), 'ok': sum(1 for r in rows if r['ok']), 'jobs': jobs, 'wall_s': wall_s,
+               'bag_duration_s': bag_s, 'speed_vs_real_time': bag_s / wall_s if wall_s > 0 else None,
+               'serial_wall_s': sum(r['wall_s'] or 0.0 for r in rows), 'cpu_count': os.cpu_count(),
+               'load_average_before': load_before, 'load_average_after': os.getloadavg(), 'results_dir': str(base)}
+    return {'rows': rows, 'overall': overall}
+
+
+def child_main(argv: list[str]) -> int:
+    """Run one replay of a regression run: `replay` with these arguments, as the command line would."""
+    parser = argparse.ArgumentParser(prog='controlled-islanding replay')
+    add_arguments(parser)
+    from controlled_islanding.rosenv import RosEnvError
+
+    try:
+        return run(parser.parse_args(argv))
+    except (CliError, RosEnvError) as exc:
+        print(f'controlled-islanding replay: error: {exc}', file=sys.stderr)
+        return 2
+
+
+def _interrupt(child: subprocess.Popen) -> None:
+    # SIGINT first: the child then stops its own nodes; SIGKILL only if it does not end.
+    for action in (signal.SIGINT, signal.SIGKILL):
+        if child.poll() is not None:
+            return
+        child.send_signal(action)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            child.wait(timeout=20.0)
+
+
+def _manifest_entry(bag: Path) -> dict | None:
+    from controlled_islanding.commands.demo import INDEX, manifest_entries
+
+    return next((e for e in manifest_entries() if (INDEX.parent / e['bag']).resolve() == bag.resolve()), None)
+
+
+def _suite_row(run: SuiteRun, base: Path, done: dict) -> dict:
+    """Return one run's row: decision, agreement with the manifest, speed and wall time, or what went wrong."""
+    row = {'name': run.name, 'bag': str(run.bag), 'results_dir': str(base / run.name),
+           'exit_status': done.get('status'), 'wall_s': done.get('wall_s'), 'split': None, 'status': None,
+           'cut_branch_ids': [], 'manifest': None,
+           'bag_duration_s': None, 'play_wall_s': None, 'phases_s': {}, 'error': None, 'ok': False}
+    summary_file = base / run.name / 'summary.json'
+    if not summary_file.exists():
+        err = base / f'{run.name}.stderr'
+        tail = err.read_text(errors='replace').strip().splitlines()[-5:] if err.exists() else []
+        row['error'] = '; '.join(tail) or ('not run' if not done else f'exit status {done.get("status")}')
+        return row
+    summary = json.loads(summary_file.read_text())
+    rep = summary.get('replay') or {}
+    row.update({'split': summary.get('split'), 'status': summary.get('status'),
+                'cut_branch_ids': sorted(summary.get('cut_branch_ids', [])), 'phases_s': summary.get('phases_s', {}),
+                'bag_duration_s': rep.get('bag_duration_s'), 'play_wall_s': rep.get('wall_s'),
+                'error': graph_failure(summary) or (f'undecided requests {summary["undecided_requests"]}'
+                                                    if summary.get('undecided_requests') else None)})
+    entry = _manifest_entry(run.bag)
+    if entry is not None and 'split' in entry.get('expected_decision', {}):
+        expected = entry['expected_decision']
+        row['manifest'] = ('agrees' if row['split'] == expected['split']
+                           and row['cut_branch_ids'] == sorted(expected.get('cut_branches', [])) else 'DIFFERS')
+    row['ok'] = (row['error'] is None and row['split'] is not None and not refused(summary)
+                 and row['manifest'] != 'DIFFERS')
+    return row
+
+
+def render_suite(report: dict) -> str:
+    """Return the regression run as a table, a row per bag, and its overall speed."""
+    lines = [f'{"bag":<34} {"decision":<22} {"manifest":<8} {"bag s":>6} {"play s":>6} {"wall s":>6}  cut / error']
+    for r in report['rows']:
+        decision = r['status'] or ('no decision' if r['error'] is None else 'FAILED')
+        cut = ', '.join(r['cut_branch_ids']) if r['split'] else '-'
+        fmt = lambda x: f'{x:6.2f}' if x is not None else '     -'  # noqa: E731
+        lines.append(f'{r["name"]:<34} {decision:<22} {r["manifest"] or "-":<8} {fmt(r["bag_duration_s"])} '
+                     f'{fmt(r["play_wall_s"])} {fmt(r["wall_s"])}  {r["error"] or cut}')
+    o = report['overall']
+    lines.append(f'{o["ok"]} of {o["runs"]} bags ok; {o["bag_duration_s"]:.1f} s of bags in {o["wall_s"]:.1f} s '
+                 f'of wall time, start-up included ({o["speed_vs_real_time"]:.2f}x real time; {o["jobs"]} graphs at '
+                 f'once; {o["serial_wall_s"]:.1f} s one after another); load average {o["load_average_before"][0]:.2f} '
+                 f'before, {o["load_average_after"][0]:.2f} after, {o["cpu_count"]} cores')
+    lines.append(f'results: {o["results_dir"]}')
+    return '\n'.join(lines)
+
+
+def _run_suite(args: argparse.Namespace) -> int:
+    for flag, value in (('--repeat', args.repeat != 1), ('--probe-hz', args.probe_hz), ('--hosts', args.hosts),
+                        ('--namespace', args.namespace)):
+        if value:
+            raise CliError(f'{flag} takes one bag, not {len(args.bag)}')
+    if args.jobs < 1:
+        raise CliError(f'--jobs {args.jobs} must be at least 1')
+    missing = [str(b) for b in args.bag if not b.exists()]
+    if missing:
+        raise CliError(f'bags do not exist: {", ".join(missing)}')
+    options = ['--rate', str(args.rate), '--timeout', str(args.timeout)]
+    options += [flag for flag, on in (('--fast', args.fast), ('--disarmed', args.disarmed),
+                                      ('--no-record', args.no_record), ('--no-figures', args.no_figures)) if on]
+    if args.estimator:
+        options += ['--estimator', args.estimator]
+    names = [b.resolve().name for b in args.bag]
+    if len(set(names)) != len(names):
+        raise CliError('two bags have the same name; each needs a results folder of its own')
+    stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
+    base = (args.results or Path('results') / f'replay-suite-{stamp}').resolve()
+    if base.exists():
+        raise CliError(f'results folder {base} exists; name a new one')
+    report = replay_suite([SuiteRun(n, b, tuple(options)) for n, b in zip(names, args.bag, strict=True)], base,
+                          jobs=args.jobs, quiet=args.json)
+    (base / 'suite.json').write_text(json.dumps(report, indent=2, default=str))
+    print(json.dumps(report, default=str) if args.json else render_suite(report))
+    return 0 if all(r['ok'] for r in report['rows']) else 1

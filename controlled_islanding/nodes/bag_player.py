@@ -56,6 +56,7 @@ from controlled_islanding.interfaces import typestore
 from controlled_islanding.node_common import Diagnostics, NodeSetupError, message_class, qos_for, spin_node
 
 _STAMP_ROUNDING_NS = 1_000
+_POLL_S = 0.02  # longest spin between two looks at a wait's condition, s
 
 
 class BagPlayerNode(Node):
@@ -79,6 +80,11 @@ class BagPlayerNode(Node):
         self.declare_parameter('clock_min_step_s', 0.0)
         self.declare_parameter('clock_heartbeat_s', 0.05)
         self.declare_parameter('latched_ack_timeout_s', 5.0)
+        # A file whose appearance starts the play (JSON {"min_subscribers": [...]}, which then replaces the
+        # parameter): a replay starts the player with the graph, so loading the bag and being discovered overlap
+        # the nodes' start-up, and tells it to go once the graph is wired.
+        self.declare_parameter('go_file', '')
+        self.declare_parameter('go_timeout_s', 300.0)
         # Topics another source feeds live (e.g. /pmu/frames from pdc_client): the bag's copy is not played.
         self.declare_parameter('withhold_topics', [''])
         bag = self.get_parameter('bag').value
@@ -139,6 +145,7 @@ class BagPlayerNode(Node):
                 self.create_subscription(CoherentGroups, topics.relative(topics.COHERENT_GROUPS), self._on_groups,
                                          qos_for(topics.COHERENT_GROUPS))]
         self.diag = Diagnostics(self)
+        self.loaded_unix = time.time()
         self.get_logger().info(f'{len(self.messages)} messages on {len(self.pubs)} topics from {bag}')
 
     def _on_decision(self, _msg: IslandingDecision) -> None:
@@ -220,13 +227,36 @@ class BagPlayerNode(Node):
                     self._publish_clock(self.clock_ns)
                     beat = self.clock_sent_at + self.clock_heartbeat_s
                 left = min(left, beat - now)
-            executor.spin_once(timeout_sec=max(left, 0.0))
+            # done() may turn on without any callback (a subscriber matched, a file appeared): look again often.
+            executor.spin_once(timeout_sec=min(max(left, 0.0), _POLL_S))
 
-    def wait_for_subscribers(self, executor: SingleThreadedExecutor) -> None:
+    def await_go(self, executor: SingleThreadedExecutor) -> list[str] | None:
+        """Spin until `go_file` exists; return its min_subscribers (None without a go_file).
+
+        Raises:
+            NodeSetupError: The file did not appear within go_timeout_s, or is not the expected JSON.
+
+        """
+        go_file = self.get_parameter('go_file').value
+        if not go_file:
+            return None
+        path = Path(go_file)
+        deadline = time.monotonic() + float(self.get_parameter('go_timeout_s').value)
+        self._spin_until(executor, deadline, path.exists)
+        if not path.exists():
+            raise NodeSetupError(f'go_file {go_file} did not appear within go_timeout_s')
+        try:
+            return [str(x) for x in json.loads(path.read_text())['min_subscribers']]
+        except (ValueError, KeyError, TypeError) as exc:
+            raise NodeSetupError(f'go_file {go_file}: not {{"min_subscribers": [...]}}: {exc}') from exc
+
+    def wait_for_subscribers(self, executor: SingleThreadedExecutor, min_subscribers: list[str] | None = None) -> None:
         """Wait for subscribers (`min_subscribers` 'topic=count', else `wait_for_subscriber_count`), or the time."""
         deadline = time.monotonic() + float(self.get_parameter('wait_for_subscribers_s').value)
         want = {t: int(self.get_parameter('wait_for_subscriber_count').value) for t in self.pubs}
-        for item in self.get_parameter('min_subscribers').value:
+        if min_subscribers is None:
+            min_subscribers = self.get_parameter('min_subscribers').value
+        for item in min_subscribers:
             topic, _, count = item.rpartition('=')
             if topic:
                 want[topic] = int(count)
@@ -247,6 +277,7 @@ class BagPlayerNode(Node):
     def play(self, executor: SingleThreadedExecutor) -> dict:
         """Publish every message at its time; return a report with the speed against real time."""
         t0_ns = self.messages[0][1]
+        begun_unix = time.time()
         start = time.monotonic()
         last_frame_ns = -1
         frozen_at_ns = None  # lockstep: bag time stays here from a request until its decision is handled
@@ -297,7 +328,8 @@ class BagPlayerNode(Node):
         report = {'messages': len(self.messages), 'bag_duration_s': bag_s, 'wall_s': wall_s,
                   'speed_vs_real_time': bag_s / wall_s if wall_s > 0 else float('inf'),
                   'as_fast_as_possible': self.afap, 'rate': self.rate, 'lockstep_waits_s': self.held_s,
-                  'latched_ack_waits_s': self.ack_waits_s, 'latched_unacked': self.unacked}
+                  'latched_ack_waits_s': self.ack_waits_s, 'latched_unacked': self.unacked,
+                  'loaded_unix': self.loaded_unix, 'play_begun_unix': begun_unix, 'play_ended_unix': time.time()}
         self.get_logger().info(f'played {len(self.messages)} messages: {bag_s:.2f} s of bag in {wall_s:.2f} s '
                                f'({report["speed_vs_real_time"]:.1f}x real time)')
         if self.report_file:
@@ -308,13 +340,16 @@ class BagPlayerNode(Node):
 
 
 def _play_once(node: BagPlayerNode, executor: SingleThreadedExecutor) -> None:
-    node.wait_for_subscribers(executor)
+    node.wait_for_subscribers(executor, node.await_go(executor))
     node.play(executor)
-    node._spin_until(executor, time.monotonic() + 0.5)
+    # Reliable writers still hold what a reader has not acknowledged; leaving sooner would lose it.
+    deadline = time.monotonic() + 0.5
+    node._spin_until(executor, deadline, lambda: all(
+        p.wait_for_all_acked(Duration(nanoseconds=5_000_000)) for p in node.pubs.values()))
 
 
 def main(args: list[str] | None = None) -> int:
-    """Run the bag_player: wait for subscribers, play the bag once, linger briefly so reliable writers flush."""
+    """Run the bag_player: wait for subscribers, play the bag once, linger until every reader acknowledged it."""
     return spin_node(BagPlayerNode, args, run=_play_once)
 
 if __name__ == '__main__':
