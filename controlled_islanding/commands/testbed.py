@@ -527,8 +527,10 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
             "from G7's 580 MW, so that island's frequency falls to 58.2 Hz. The out-of-step trigger "
             '(docs/testbed_out_of_step.md) first fires at 90 deg (about 5.39 s), which can come before coherency '
             'separates the pair: its separation rule waits until the pair stops decelerating (measured on '
-            "grid_sim's frames with the rule of commit 19fcf7e: two groups from 5.55 s). A trigger answered with "
-            'no split used to never ask again, so that run cut nothing; it now re-arms and asks again on newer '
+            "grid_sim's frames: two groups from 5.55 s with the rule of commit 19fcf7e, from 5.43 s with 63828a7's "
+            'runaway test, with one flicker to two groups at 5.38 s). A trigger answered with '
+            'no split used to never ask again (the page before this change: one request, nothing cut); it now '
+            're-arms and asks again on newer '
             'angles until an answer splits (the line under its table lists the requests). (3) A surplus no machine '
             'fits '
             'in stays (case 2: G3, 725 MW, on 120 MW of load, about 340 MW at 1.7 pu), and that island speeds up '
