@@ -223,7 +223,11 @@ def test_overspeed_protection_records_a_trip_above_110_percent_speed_on_two_grid
 
 
 def test_each_sample_holds_the_andes_solution_at_its_own_time():
-    """ANDES calls the step hook before solving the step to t: a sample labelled t held the step before it."""
+    """A sample is ANDES' solution at its time, also at a switching (where the solver resets its algebraic guess).
+
+    ANDES calls the step hook before it solves the step to t: a sample labelled t used to hold the step before it,
+    and the one after a switching the solver's reset voltages.
+    """
     from dataclasses import replace
 
     from controlled_islanding.sim.closed_loop import GridRun
@@ -236,9 +240,11 @@ def test_each_sample_holds_the_andes_solution_at_its_own_time():
     run = GridRun(scenario, LoopConfig(run_after_s=0.05))
     run.run()
     ss = run.ss
-    stored = {round(float(t), 9): x for t, x in zip(ss.dae.ts.t, ss.dae.ts.x, strict=True)}
+    stored = {round(float(t), 9): (x, y) for t, x, y in zip(ss.dae.ts.t, ss.dae.ts.x, ss.dae.ts.y, strict=True)}
     delta = ss.GENCLS.delta.a[np.asarray(ss.GENCLS.u.v, dtype=bool)]
     assert ss.GENCLS.n == len(run.generator_names) and len(run.samples) > 15
+    assert any(abs(s.t_s - 0.1) < 1e-9 for s in run.samples)  # the clearing instant is a sample
     for s in run.samples:
-        assert np.array_equal(s.delta_rad, stored[round(s.t_s, 9)][delta]), s.t_s
+        x, y = stored[round(s.t_s, 9)]
+        assert np.array_equal(s.delta_rad, x[delta]) and np.array_equal(s.bus_v_pu, y[ss.Bus.v.a]), s.t_s
     assert np.ptp([s.delta_rad for s in run.samples], axis=0).max() > 0.01  # they moved: a step late would show

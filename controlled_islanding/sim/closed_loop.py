@@ -68,6 +68,7 @@ import sys
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -546,11 +547,18 @@ class GridRun:
 
         def pert(t: Any, system: Any) -> None:
             t_s = float(t)  # ANDES advances dae.t in place: keep a copy, not the array
-            # ANDES calls pert before it solves the step to t: dae still holds the last solved step, t - h (at the
-            # first call the initial point, t = 0). Labelled t, every sample, PMU frame and trajectory point was
-            # one step late (measured against dae.ts: Kundur's angles 2.5 deg behind the bag's at its request).
-            solved_s = max(t_s - float(tds.h), 0.0)
-            dae = system.dae
+            # ANDES calls pert before it solves the step to t, so the sample is the last solved step, as ANDES
+            # recorded it (dae.ts; at the first call, the initial point). Labelled t from dae, every sample, PMU
+            # frame and trajectory point was one step late (Kundur's angles 2.5 deg behind the bag's at its
+            # request), and after a switching dae's algebraic variables are the solver's reset guess, not a
+            # solution (the pre-fault voltages at Kundur's fault clearing). ts._xs/_ys (ANDES 2.0, no Output
+            # filter) are read for the last entry only: the public arrays would be rebuilt at every step.
+            ts = system.dae.ts
+            if ts._ys:
+                key = next(reversed(ts._ys))
+                solved_s, dae = float(key), SimpleNamespace(x=ts._xs[key], y=ts._ys[key])
+            else:
+                solved_s, dae = t_s, system.dae
             if self._flat is None:
                 self._flat = (_var(dae, ss.Bus.v).copy(), _var(dae, ss.Bus.a).copy(),
                               [(m, k, int(ss.Bus.idx2uid(m.bus.v[k])), float(dae.x[m.delta.a[k]]))
