@@ -539,9 +539,10 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
             'machines) is counted as lost by definition, at 0 MW of load lost. (5) The groups were wrong (PJM 5-bus: '
             'an island whose machines slip apart) or the graph did not split. Nordic 44 asks at the clearing '
             "instant (1.3 s), before anything can tell its final groups (measured 2026-12-01): grid_sim's frames "
-            "agree with the recorded bag's within 0.08 rad of rotor angle (both interpolate ANDES; a replay of the "
-            'bag finds one group too); in the 3 s window ending at 1.3 s the separation rule finds no separating '
-            'pair (the largest runaway from rest 1.51 rad, below its pi/2; the largest drift 0.43 rad); and the '
+            "agree with the recorded bag's within 0.01 rad of rotor angle (0.08 rad before fbd1a33 labelled each "
+            'sample with the time of its solution; a replay of the bag finds one group too); in the 3 s window '
+            'ending at 1.3 s the separation rule finds no separating pair (the largest runaway from rest 1.51 rad, '
+            'below its pi/2; the largest drift 0.48 rad); and the '
             'same fault cleared 30 ms earlier, which stays synchronous, looks the same: the rule splits that one '
             'too 30 ms after its clearing. One frame later (1.333 s) the rule splits off bus 6000, and the three '
             'final groups appear from 1.60 s. (6) EI 33: GENROU_53 and 54 have no turbine '
