@@ -28,8 +28,9 @@ Time. Stamps are sim time plus sim/bag.START_TIME_UNIX_S, as in the bags, and /c
   with new angles on which the condition still holds, at most `trigger_max_requests` times in all. Why: 90 deg
   is visible separation, not yet loss of synchronism; stable swings pass it (Nordic 44, the bus-6000 fault
   cleared in 270 ms: 131 deg) and coherency's separation rule rightly keeps one group until the pair runs away
-  (IEEE 39 G6-G7: the trigger at 5.39 s, two groups from 5.55 s), so a one-shot trigger asked once, too early,
-  and never again. A relay is not disabled by a request that was answered; the operator-side bound is the cap.
+  (IEEE 39 G6-G7: the trigger at 5.39 s, two groups from 5.55 s, from 5.43 s with the runaway test of 63828a7),
+  so a one-shot trigger asked once, too early, and never again. A relay is not disabled by a request that was
+  answered; the operator-side bound is the cap.
 - `rate: R > 0`: paced at R times real time, nothing waits; a command opens its branch at max(its stamp, the sim
   time it arrived) + breaker_operating_s. If ANDES is slower than R x real time, the pace is ANDES'.
 """
