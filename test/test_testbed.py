@@ -159,20 +159,20 @@ def test_assess_leaves_a_rejected_machine_out_after_its_trip():
 def test_one_scenario_closed_loop_commands_opens_and_judges_every_island():
     """IEEE 14, G1 slipping: the graph decides, breaker_command commands, ANDES opens the cut and keeps going.
 
-    The graph and grid_sim run in a namespace, clock included; pmu_ingestion runs the Kalman filter, not its
-    default (testbed --estimator dse).
+    The graph and grid_sim run in a namespace, clock included; pmu_ingestion runs the steady-state estimate, not
+    its default (testbed --estimator steady_state), so an ignored flag shows.
     """
     results = BUILD / 'test_testbed' / str(time.time_ns())
     env = dict(os.environ, CONTROLLED_ISLANDING_KEYS=str(BUILD / 'test_keys'))
     start = time.monotonic()
     proc = subprocess.run([sys.executable, '-m', 'controlled_islanding.cli', 'testbed', str(SCENARIO), '--json',
                            '--results', str(results), '--run-after-s', '2.5', '--timeout', '300',
-                           '--namespace', 'testbed', '--estimator', 'dse'],
+                           '--namespace', 'testbed', '--estimator', 'steady_state'],
                           capture_output=True, text=True, timeout=420, env=env, cwd=REPO)
     wall = time.monotonic() - start
     assert proc.returncode == 0, proc.stderr[-3000:]
     (result,) = json.loads(proc.stdout)
-    assert result['estimator'] == 'dse'  # as pmu_ingestion reported it: the flag reached the node (not its default)
+    assert result['estimator'] == 'steady_state'  # as pmu_ingestion reported it: the flag reached the node
     outside = [t for t in result['graph_topics'] if not t.startswith('/testbed/') and t not in GLOBAL - {'/clock'}]
     assert not outside, outside
     assert {'/testbed/clock', '/testbed/pmu/frames', '/testbed/breaker/commands'} <= set(result['graph_topics'])

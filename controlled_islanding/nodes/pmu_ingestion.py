@@ -11,13 +11,13 @@ the latest /network/snapshot. A generator's PMU is the channel
 whose station id ends in '/<generator name>' (where machines share a bus, each has its own current), else the
 one at its bus.
 
-`estimator` chooses how: 'steady_state' (default), the angle of V + (ra + j xq) I; or 'dse', core.dse's Kalman
-filter on each machine's model from the snapshot's machine data (core.dse.StreamingDSE: each frame answered on
-arrival, a frame ahead of a missing tag from a copy of the filter, a late one interpolated; the filter itself
-waits `dse_reorder_s` for a missing tag before stepping it as lost). Machines
-without dynamic data fall back to the steady-state estimate; /diagnostics names them (`dse_fallback`). With
-'dse', `valid` still means "this frame had usable data for the generator": where it is false the angle is the
-filter's prediction.
+`estimator` chooses how: 'dse' (default), core.dse's Kalman filter on each machine's model from the snapshot's
+machine data (core.dse.StreamingDSE: each frame answered on arrival, a frame ahead of a missing tag from a copy
+of the filter, a late one interpolated; the filter itself waits `dse_reorder_s` for a missing tag before
+stepping it as lost); or 'steady_state', the angle of V + (ra + j xq) I, which is off by tens of degrees while
+the flux states move after a fault (docs/benchmarks.md). Machines without dynamic data fall back to the
+steady-state estimate; /diagnostics names them (`dse_fallback`). With 'dse', `valid` still means "this frame
+had usable data for the generator": where it is false the angle is the filter's prediction.
 
 Time tags are bounded by the node's own clock (sim time in replay): a frame or snapshot stamped more than
 `future_tolerance_s` ahead of it is refused, so it never becomes "the newest" that every honest frame would
@@ -88,7 +88,7 @@ class PmuIngestionNode(Node):
             self, 'max_stations_remembered', 10_000, 1, 1_000_000,
             'PMU stations remembered for staleness; beyond it the least recently heard is forgotten'))
         self.limits = declare_limits(self)
-        self.declare_parameter('estimator', 'steady_state')
+        self.declare_parameter('estimator', 'dse')
         self.estimator = str(self.get_parameter('estimator').value)
         if self.estimator not in _ESTIMATORS:
             raise NodeSetupError(f'estimator={self.estimator!r} must be one of {_ESTIMATORS}')
