@@ -3,18 +3,23 @@
 Each bag is replayed as fast as possible (lockstep at requests) through pmu_ingestion, coherency,
 partitioning and breaker_command, armed. The default bag is also replayed in real time, disarmed: the same
 decision, and nothing commanded. Breaker rules are checked on the audit log of every run.
+
+The replays the selected tests check run once, as one regression run (replay_suite, `replay BAG BAG ...`), each
+on a fresh graph of its own, two graphs at once (one's start-up overlaps the other's work); each test then
+checks its own replay's summary.
 """
 
 from __future__ import annotations
 
 import json
+import sys
 import uuid
 from pathlib import Path
 
 import pytest
 
 from controlled_islanding.commands.demo import default_bag, manifest_entries
-from controlled_islanding.commands.replay import replay
+from controlled_islanding.commands.replay import SuiteRun, replay_suite
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -22,8 +27,39 @@ REPO = Path(__file__).resolve().parents[1]
 ENTRIES = [e for e in manifest_entries() if (REPO / 'bags' / e['bag']).exists()]
 
 
-def results_dir(name: str) -> Path:
-    return REPO / 'build' / 'test_e2e' / f'{name}-{uuid.uuid4().hex[:8]}'
+MULTITRIP = next((e for e in ENTRIES if len(e['tripped_before_request']) >= 4), None)
+FAST = ('--fast', '--no-figures', '--no-record')  # the recorder's bag is not checked here: one process less a graph
+
+
+@pytest.fixture(scope='module')
+def replays(request) -> dict[str, dict]:
+    """Run the replays the selected tests of this module check; return each one's summary (or {'error': why})."""
+    runs = [SuiteRun('default-realtime', REPO / 'bags' / default_bag()['bag'], ('--disarmed',))] if ENTRIES else []
+    if MULTITRIP is not None:
+        runs.append(SuiteRun('multitrip-realtime', REPO / 'bags' / MULTITRIP['bag'], ('--disarmed', '--no-figures')))
+    runs += [SuiteRun(e['name'], REPO / 'bags' / e['bag'], FAST) for e in ENTRIES]
+    by_test = {
+        'test_default_bag_in_real_time_disarmed_decides_the_same_and_commands_nothing': 'default-realtime',
+        'test_several_trips_just_before_the_request_fast_decides_as_real_time': 'multitrip-realtime'}
+    wanted = set()
+    for item in request.session.items:
+        if item.module is sys.modules[__name__]:
+            entry = getattr(item, 'callspec', None) and item.callspec.params.get('entry')
+            wanted.add(entry['name'] if entry else by_test.get(item.originalname))
+    runs = [r for r in runs if r.name in wanted]
+    report = replay_suite(runs, REPO / 'build' / 'test_e2e' / f'suite-{uuid.uuid4().hex[:8]}', jobs=2)
+    out = {}
+    for row in report['rows']:
+        summary_file = Path(row['results_dir']) / 'summary.json'
+        out[row['name']] = json.loads(summary_file.read_text()) if summary_file.exists() else {'error': row['error']}
+    return out
+
+
+def summary_of(replays: dict[str, dict], name: str) -> dict:
+    summary = replays[name]
+    if 'error' in summary:
+        pytest.fail(f'replay {name} failed: {summary["error"]}')
+    return summary
 
 
 def audit(summary: dict) -> list[dict]:
@@ -84,32 +120,27 @@ def _marked(entry: dict) -> object:
 
 @pytest.mark.skipif(not ENTRIES, reason='no bag of bags/index.yaml is present')
 @pytest.mark.parametrize('entry', [_marked(e) for e in ENTRIES])
-def test_bag_decision_equals_manifest(entry):
-    summary = replay(REPO / 'bags' / entry['bag'], results_dir(entry['name']), fast=True, figures=False, quiet=True)
+def test_bag_decision_equals_manifest(entry, replays):
+    summary = summary_of(replays, entry['name'])
     check_decision(summary, entry)
     check_breaker_rules(summary, armed=True)
     assert summary['decisions'], 'no decision for the bag request'
     assert summary['restarts'] == [] and summary['hangs'] == []
 
 
-MULTITRIP = next((e for e in ENTRIES if len(e['tripped_before_request']) >= 4), None)
-
-
 @pytest.mark.skipif(MULTITRIP is None, reason='no bag with several trips close before its request')
-def test_several_trips_just_before_the_request_fast_decides_as_real_time():
+def test_several_trips_just_before_the_request_fast_decides_as_real_time(replays):
     """Trips stamped before the request but arriving after it (topics are not ordered) are waited for."""
-    bag = REPO / 'bags' / MULTITRIP['bag']
-    real = replay(bag, results_dir('multitrip-realtime'), fast=False, figures=False, quiet=True, arm=False)
+    real = summary_of(replays, 'multitrip-realtime')
     # test_bag_decision_equals_manifest replays the same bag as fast as possible against the same manifest
     # decision, so together they show fast == real time; `replay --fast --repeat 30` under load is in docs/nodes.md.
     check_decision(real, MULTITRIP)
 
 
 @pytest.mark.skipif(not ENTRIES, reason='no bag of bags/index.yaml is present')
-def test_default_bag_in_real_time_disarmed_decides_the_same_and_commands_nothing():
+def test_default_bag_in_real_time_disarmed_decides_the_same_and_commands_nothing(replays):
     entry = default_bag()
-    summary = replay(REPO / 'bags' / entry['bag'], results_dir('default-realtime'), fast=False, figures=True,
-                     quiet=True, arm=False)
+    summary = summary_of(replays, 'default-realtime')
     check_decision(summary, entry)
     check_breaker_rules(summary, armed=False)
     assert summary['replay']['speed_vs_real_time'] == pytest.approx(1.0, abs=0.2)
