@@ -27,6 +27,10 @@ REPO = Path(__file__).resolve().parents[1]
 ENTRIES = [e for e in manifest_entries() if (REPO / 'bags' / e['bag']).exists()]
 
 
+def results_dir(name: str) -> Path:
+    return REPO / 'build' / 'test_e2e' / f'{name}-{uuid.uuid4().hex[:8]}'
+
+
 MULTITRIP = next((e for e in ENTRIES if len(e['tripped_before_request']) >= 4), None)
 FAST = ('--fast', '--no-figures', '--no-record')  # the recorder's bag is not checked here: one process less a graph
 
@@ -47,7 +51,7 @@ def replays(request) -> dict[str, dict]:
             entry = getattr(item, 'callspec', None) and item.callspec.params.get('entry')
             wanted.add(entry['name'] if entry else by_test.get(item.originalname))
     runs = [r for r in runs if r.name in wanted]
-    report = replay_suite(runs, REPO / 'build' / 'test_e2e' / f'suite-{uuid.uuid4().hex[:8]}', jobs=2)
+    report = replay_suite(runs, results_dir('suite'), jobs=2)
     out = {}
     for row in report['rows']:
         summary_file = Path(row['results_dir']) / 'summary.json'
