@@ -540,15 +540,15 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
             'an island whose machines slip apart) or the graph did not split. GBnetwork, in runs on a loaded '
             "machine: coherency's grouping of its 394 machines did not reach partitioning within groups_wait_s "
             '(2 s), so partitioning refused the request (REFUSED_STALE_GROUPS); other runs split it (72-73). '
-            'Nordic 44 asks at the clearing '
-            "instant (1.3 s), before anything can tell its final groups (measured 2026-12-01): grid_sim's frames "
-            "agree with the recorded bag's within 0.01 rad of rotor angle (0.08 rad before fbd1a33 labelled each "
-            'sample with the time of its solution; a replay of the bag finds one group too); in the 3 s window '
-            'ending at 1.3 s the separation rule finds no separating pair (the largest runaway from rest 1.51 rad, '
-            'below its pi/2; the largest drift 0.48 rad); and the '
-            'same fault cleared 30 ms earlier, which stays synchronous, looks the same: the rule splits that one '
-            'too 30 ms after its clearing. One frame later (1.333 s) the rule splits off bus 6000, and the three '
-            'final groups appear from 1.60 s. (6) EI 33: GENROU_53 and 54 have no turbine '
+            'Nordic 44 asks at the clearing instant (1.3 s), before its final groups can be told (measured '
+            "2026-12-01): on ANDES' own rotor angles the separation rule splits off bus 6000's four machines alone "
+            'there (1.80 rad from rest), and the three final groups appear only from 1.60 s; the steady-state '
+            "estimates, whose fault-on error hides part of that lead (1.51 rad, below the rule's pi/2), keep one "
+            "group, on grid_sim's frames and the recorded bag's alike (they agree within 0.01 rad of rotor angle "
+            'since fbd1a33, 0.08 rad before); the same fault cleared 30 ms earlier, which stays synchronous, is split '
+            'the same way 30 ms after its clearing, so a split there is no evidence yet. Cut off alone, bus 6000 '
+            'leaves the main island with the machines of buses 5300 and 6100, which slip later, and it is lost. '
+            '(6) EI 33: GENROU_53 and 54 have no turbine '
             'governor in EI_33.xlsx, so their island keeps the speed it had at the cut, and whether that is '
             "inside the band depends on where in the swing the graph's latency puts the cut (lost at 62.3 Hz in a "
             'run that cut 0.41 s after the request, survived at 0.17 s). (7) IEEE 14 (both): the main island is '
