@@ -200,3 +200,31 @@ def test_a_stream_at_a_divisor_of_rate_fps_has_no_missing_tags_until_it_shows_th
     for k in later:  # in tag order: the tag after the lost one is ahead of it until reorder_s has passed
         on_60.offer(bag.t0_s + bag.frame_t_s[k], v[k], va[k], i[k], ia[k], np.isfinite(v[k]))
     assert on_60.lost_frames == 1 and on_60.ahead_frames == 6
+
+
+def test_pmu_ingestion_counts_missing_frames_on_the_streams_own_tag_grid(rclpy_context):
+    # Kundur's PMUs report 30 frames/s; under the default rate_fps of 60 every odd tag used to count as missing.
+    from rclpy.parameter import Parameter
+
+    from controlled_islanding.nodes.grid_sim import frame_msg, snapshot_msg
+    from controlled_islanding.nodes.pmu_ingestion import PmuIngestionNode
+    from controlled_islanding.sim.closed_loop import Frame
+
+    kundur = load_bag(BAG.parent / 'kundur_bus9_unstable')
+    assert kundur.rate_fps == 30
+    node = PmuIngestionNode(context=rclpy_context, parameter_overrides=[Parameter('estimator', value='steady_state')])
+    try:
+        assert node.rate_fps == 60
+        node.on_snapshot(snapshot_msg(kundur.grid))
+        rows = np.flatnonzero(kundur.frame_present)[:40]
+        for k in np.delete(rows, 20):
+            node.on_frame(frame_msg(Frame(
+                tag_s=float(kundur.frame_t_s[k]), delivery_s=float(kundur.frame_t_s[k]),
+                station_ids=kundur.pmu_station_ids, buses=kundur.pmu_buses, v_mag_pu=kundur.v_mag_pu[k],
+                v_angle_rad=kundur.v_angle_rad[k], i_mag_pu=kundur.i_mag_pu[k], i_angle_rad=kundur.i_angle_rad[k],
+                frequency_hz=kundur.frequency_hz[k], rocof_hz_per_s=kundur.rocof_hz_per_s[k], stat=kundur.stat[k])))
+            if k == rows[19]:
+                assert node.diag.values['missing_frames'] == '0'
+        assert node.diag.values['missing_frames'] == '1'  # the one left out, not 40 more
+    finally:
+        node.destroy_node()

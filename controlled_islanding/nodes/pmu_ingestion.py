@@ -119,6 +119,10 @@ class PmuIngestionNode(Node):
         self.unique_frames = 0
         self.first_s = math.inf
         self.newest_s = -math.inf
+        # A 30 frames/s stream under rate_fps 60 has every other tag of the rate_fps grid empty, not missing: the
+        # stream's own grid is the gcd of its tags' distances on that grid (as core.dse.StreamingDSE steps).
+        self.first_key: int | None = None
+        self.tag_step = 0
         # station id -> (bus, last time tag with usable data, s), least recently heard first
         self.stations: OrderedDict[str, tuple[int, float]] = OrderedDict()
         self.stations_forgotten = 0
@@ -274,6 +278,8 @@ class PmuIngestionNode(Node):
         self.seen_set.add(key)
         self.unique_frames += 1
         self.first_s, self.newest_s = min(self.first_s, t), max(self.newest_s, t)
+        self.first_key = key if self.first_key is None else self.first_key
+        self.tag_step = math.gcd(self.tag_step, abs(key - self.first_key))
         self.pub.publish(angles)
         self._account(t0)
 
@@ -323,7 +329,7 @@ class PmuIngestionNode(Node):
 
     def _account(self, t0: float) -> None:
         self.diag.computed(time.perf_counter() - t0)
-        expected = int(round((self.newest_s - self.first_s) * self.rate_fps)) + 1
+        expected = int(round((self.newest_s - self.first_s) * self.rate_fps / max(self.tag_step, 1))) + 1
         self.diag.values['missing_frames'] = str(max(0, expected - self.unique_frames))
         if self.unique_frames % 30:
             return  # stale PMUs change slowly; refreshing them twice a second at 60 frames/s is plenty
