@@ -1,7 +1,8 @@
 """Run a scenario's time-domain simulation in ANDES and return plain arrays.
 
 ANDES generates code on first use; it goes to `build/andes_pycode` in the source tree (or
-`$CONTROLLED_ISLANDING_BUILD/andes_pycode`), never to the home directory.
+`$CONTROLLED_ISLANDING_BUILD/andes_pycode`), never to the home directory, and `ensure_pycode` generates it in
+one process before any case is loaded (tools/setup.sh calls it).
 
 What is returned, on ANDES' own non-uniform time grid:
 - bus voltage magnitude (pu) and angle (rad, against the nominal-frequency reference) at every case bus;
@@ -97,6 +98,29 @@ def pycode_dir() -> Path:
     return base / 'build' / 'andes_pycode'
 
 
+def ensure_pycode() -> Path:
+    """Generate ANDES' numerical code in this process unless this ANDES version's is there; return its directory.
+
+    andes.load generates missing code itself, in a multiprocessing pool forked from the calling process. Forked
+    from a node whose DDS threads hold locks (grid_sim), the children can deadlock: a closed-loop run from a fresh
+    checkout hung at its first scenario, grid_sim's forked child asleep and the log empty. One process here, under
+    a file lock so that concurrent runs do not write the same files (about 17 s on one core).
+    """
+    import fcntl
+
+    import andes
+
+    pycode = pycode_dir()
+    pycode.mkdir(parents=True, exist_ok=True)
+    stamp = f"__version__ = '{andes.__version__}'"
+    with open(pycode / '.generating.lock', 'w') as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        init = pycode / '__init__.py'  # ANDES writes it last, naming its version
+        if not (init.exists() and init.read_text().startswith(stamp)):
+            andes.prepare(quick=True, incremental=False, nomp=True, pycode_path=str(pycode))
+    return pycode
+
+
 def branch_ids(pairs: list[tuple[int, int]]) -> list[str]:
     """Name branches `"<from>-<to>"`, and `"<from>-<to>#<n>"` for the n-th parallel one (n >= 2).
 
@@ -140,8 +164,7 @@ def _load_case(scenario: Scenario) -> Any:
 
     # ANDES logs 'Time step reduced to zero' at the end of runs that did reach it; real failures are raised below.
     andes.config_logger(stream_level=logging.CRITICAL)
-    pycode = pycode_dir()
-    pycode.mkdir(parents=True, exist_ok=True)
+    pycode = ensure_pycode()
     extra = {} if scenario.addfile is None else {'addfile': str(scenario.addfile)}
     field = 'case' if scenario.addfile is None else 'case/addfile'
     try:
@@ -429,8 +452,7 @@ def load_power_flow(case: str | Path, addfile: str | Path | None = None) -> Any:
 
     andes.config_logger(stream_level=logging.CRITICAL)
     path = Path(case) if Path(case).exists() else Path(andes.get_case(str(case)))
-    pycode = pycode_dir()
-    pycode.mkdir(parents=True, exist_ok=True)
+    pycode = ensure_pycode()
     extra = {'addfile': str(Path(path).parent / addfile)} if addfile else {}
     ss = andes.load(str(path), setup=False, no_output=True, default_config=True, pycode_path=str(pycode), **extra)
     if ss is None:
