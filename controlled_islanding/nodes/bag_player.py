@@ -28,9 +28,10 @@ than its `future_tolerance_s` ahead (a lockstep wait for data held that way coul
 As fast as possible, after each message of a latched (transient-local) topic - the network snapshot, a branch
 status - the player waits until every matched reader has acknowledged it (`Publisher.wait_for_all_acked`, at most
 `latched_ack_timeout_s`, logged) before it plays on. Such a message is sent once: a reader that misses its first
-delivery gets it again only on the writer's next heartbeat (Fast DDS: every 3 s), and its fragments (270 kB for
-the 2224-bus snapshot) share the player's shared-memory segment with the PMU frames that follow at full speed, so
-a slow reader can lose them to the flood. Once acknowledged, it is in the reader's history and cannot be lost.
+delivery gets it again only on the writer's next heartbeat (every 0.1 s in node_common's profile, 3 s by Fast
+DDS's default, which an outside graph may keep), and its fragments (270 kB for the 2224-bus snapshot) share the
+player's shared-memory segment with the PMU frames that follow at full speed, so a slow reader can lose them to
+the flood. Once acknowledged, it is in the reader's history and cannot be lost.
 """
 
 from __future__ import annotations
