@@ -81,19 +81,27 @@ def init_keys(directory: str | Path, force: bool = False) -> dict[str, KeyPaths]
         Role -> key files.
 
     """
+    import fcntl
+
     base = Path(directory)
     base.mkdir(parents=True, exist_ok=True, mode=0o700)
     os.chmod(base, 0o700)
     made = {}
-    for role in ROLES:
-        paths = key_paths(base, role)
-        made[role] = paths
-        if paths.private.exists() and paths.public.exists() and not force:
-            continue
-        key = Ed25519PrivateKey.generate()
-        _write_atomic(paths.private, key.private_bytes(Encoding.PEM, PrivateFormat.PKCS8, NoEncryption()), 0o600)
-        _write_atomic(paths.public, key.public_key().public_bytes(Encoding.PEM, PublicFormat.SubjectPublicKeyInfo),
-                      0o644)
+    # Processes started together on a fresh directory (replay's regression run, two graphs at once) each found a
+    # role's pair missing and wrote their own: one's private key beside the other's public key, a pair that
+    # signs nothing its verifier accepts (a clean-clone CI run: every later arming refused as unknown_key).
+    with open(base / '.init.lock', 'w') as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        for role in ROLES:
+            paths = key_paths(base, role)
+            made[role] = paths
+            if paths.private.exists() and paths.public.exists() and not force:
+                continue
+            key = Ed25519PrivateKey.generate()
+            _write_atomic(paths.private, key.private_bytes(Encoding.PEM, PrivateFormat.PKCS8, NoEncryption()),
+                          0o600)
+            _write_atomic(paths.public,
+                          key.public_key().public_bytes(Encoding.PEM, PublicFormat.SubjectPublicKeyInfo), 0o644)
     return made
 
 

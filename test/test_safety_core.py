@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import os
 import random
+import subprocess
+import sys
 from types import SimpleNamespace
 
 import pytest
@@ -182,3 +184,19 @@ def test_a_clock_that_lags_the_data_delays_a_value_but_never_loses_or_uses_it_ea
     assert used == ['trip-lagging']
     with pytest.raises(StampError):
         gate.offer('poison', 4.3 + 86400.0, 4.3, 'poison')
+
+
+def test_processes_initialising_one_directory_at_once_leave_matching_pairs(tmp_path):
+    # Two replays started together on a fresh key directory once left one's private key beside the other's public.
+    from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
+
+    code = 'import sys; from controlled_islanding import signing; signing.init_keys(sys.argv[1])'
+    for attempt in range(3):
+        directory = tmp_path / str(attempt)
+        children = [subprocess.Popen([sys.executable, '-c', code, str(directory)]) for _ in range(6)]
+        assert [c.wait(timeout=60) for c in children] == [0] * 6
+        for role in signing.ROLES:
+            paths = signing.key_paths(directory, role)
+            derived = signing.load_private_key(paths.private).public_key().public_bytes(
+                Encoding.PEM, PublicFormat.SubjectPublicKeyInfo)
+            assert derived == paths.public.read_bytes(), (attempt, role)
