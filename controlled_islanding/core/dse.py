@@ -584,6 +584,28 @@ class RotorAngleDSE:
         return q
 
 
+@dataclass
+class TagGrid:
+    """The coarsest grid every time tag seen so far lies on, in periods of a finer grid (see StreamingDSE).
+
+    A stream at R frames/s tags its frames at multiples of 1/R s; on the grid of a rate R divides, its tags
+    are every period-th point, period being the gcd of their distances from the first.
+    """
+
+    first: int | None = None  # the first tag seen, in periods of the finer grid
+    gcd: int = 0  # of the tags' distances from the first (0 while only one tag was seen)
+
+    def add(self, key: int) -> None:
+        """Take a tag, in periods of the finer grid."""
+        self.first = key if self.first is None else self.first
+        self.gcd = math.gcd(self.gcd, abs(key - self.first))
+
+    @property
+    def period(self) -> int:
+        """The stream's tag period in periods of the finer grid (1 until two tags were seen)."""
+        return max(self.gcd, 1)
+
+
 class StreamingDSE:
     """RotorAngleDSE fed from frames as a PDC delivers them: on a uniform time-tag grid, some late, some never.
 
@@ -633,8 +655,7 @@ class StreamingDSE:
         self.dse = RotorAngleDSE(**settings).fit(machines)
         self.rate_fps, self.reorder_s, self.history_s = float(rate_fps), float(reorder_s), float(history_s)
         self._done: int | None = None  # newest time tag (in periods of rate_fps) the filter has taken
-        self._first: int | None = None  # the first tag seen, in periods of rate_fps
-        self._step = 0  # the stream's grid in periods of rate_fps: gcd of the tags' distances (0: one tag so far)
+        self._grid = TagGrid()  # the stream's own tag grid, in periods of rate_fps
         self._pending: dict[int, tuple] = {}  # key -> (t, v_mag, v_ang, i_mag, i_ang, valid)
         self._history: deque[tuple[float, np.ndarray]] = deque()
         self.lost_frames = 0
@@ -662,10 +683,8 @@ class StreamingDSE:
 
         """
         key = int(round(t_s * self.rate_fps))
-        if self._first is None:
-            self._first = key
-        self._step = math.gcd(self._step, abs(key - self._first))
-        step = max(self._step, 1)
+        self._grid.add(key)
+        step = self._grid.period
         if (self._done is not None and key <= self._done) or key in self._pending:
             self.late_frames += 1
             return self._interpolate(t_s)

@@ -39,7 +39,7 @@ from controlled_islanding_msgs.msg import NetworkSnapshot, PmuFrame, PmuMeasurem
 from rclpy.node import Node
 
 from controlled_islanding import topics
-from controlled_islanding.core.dse import DSEError, MachineData, StreamingDSE
+from controlled_islanding.core.dse import DSEError, MachineData, StreamingDSE, TagGrid
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.core.rotor_angle import RotorAngleError, estimate_rotor_angle_rad
 from controlled_islanding.messages import MessageError, grid_from_snapshot, stamp_s
@@ -119,10 +119,9 @@ class PmuIngestionNode(Node):
         self.unique_frames = 0
         self.first_s = math.inf
         self.newest_s = -math.inf
-        # A 30 frames/s stream under rate_fps 60 has every other tag of the rate_fps grid empty, not missing: the
-        # stream's own grid is the gcd of its tags' distances on that grid (as core.dse.StreamingDSE steps).
-        self.first_key: int | None = None
-        self.tag_step = 0
+        # A 30 frames/s stream under rate_fps 60 has every other tag of the rate_fps grid empty, not missing: missing
+        # frames are counted on the stream's own grid, the one core.dse.StreamingDSE steps on.
+        self.tag_grid = TagGrid()
         # station id -> (bus, last time tag with usable data, s), least recently heard first
         self.stations: OrderedDict[str, tuple[int, float]] = OrderedDict()
         self.stations_forgotten = 0
@@ -278,8 +277,7 @@ class PmuIngestionNode(Node):
         self.seen_set.add(key)
         self.unique_frames += 1
         self.first_s, self.newest_s = min(self.first_s, t), max(self.newest_s, t)
-        self.first_key = key if self.first_key is None else self.first_key
-        self.tag_step = math.gcd(self.tag_step, abs(key - self.first_key))
+        self.tag_grid.add(key)
         self.pub.publish(angles)
         self._account(t0)
 
@@ -329,7 +327,7 @@ class PmuIngestionNode(Node):
 
     def _account(self, t0: float) -> None:
         self.diag.computed(time.perf_counter() - t0)
-        expected = int(round((self.newest_s - self.first_s) * self.rate_fps / max(self.tag_step, 1))) + 1
+        expected = int(round((self.newest_s - self.first_s) * self.rate_fps / self.tag_grid.period)) + 1
         self.diag.values['missing_frames'] = str(max(0, expected - self.unique_frames))
         if self.unique_frames % 30:
             return  # stale PMUs change slowly; refreshing them twice a second at 60 frames/s is plenty
