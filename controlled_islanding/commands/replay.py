@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import signal
 import statistics
@@ -334,12 +335,14 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 probe_period = 1.0 / probe_hz if probe_hz > 0 else None
                 next_probe = None
                 done_at = None
+                exited_at = math.inf  # when the player was seen to have exited, monotonic s
                 while time.monotonic() < deadline:
                     spin_for(0.01)
                     sup.supervise(obs.heartbeats_s)
                     bag_done = player.poll() is not None
-                    if bag_done:
-                        obs.phases_unix.setdefault('player_exited', time.time())
+                    if bag_done and 'player_exited' not in obs.phases_unix:
+                        obs.phases_unix['player_exited'] = time.time()
+                        exited_at = time.monotonic()
                     if bag_done and player.returncode != 0:
                         raise CliError(f'bag_player failed:\n{sup.log_tail("bag_player")}')
                     answered = sum(1 for r in obs.requests if r in obs.decisions)
@@ -355,7 +358,13 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                                 probe_pub.publish(probe)
                             next_probe += probe_period
                     if bag_done and answered >= n_requests and all(r in obs.decisions for r in obs.requests):
-                        spin_for(0.3)  # let the last commands and diagnostics arrive
+                        spin_for(0.3)  # let the last commands arrive
+                        # The summary gives each node's last /diagnostics (sent every second): wait, at most 1.5 s,
+                        # for one sent after the play, or a short bag's counts can predate its frames.
+                        limit = time.monotonic() + 1.5
+                        while time.monotonic() < limit and any(
+                                obs.heartbeats_s.get(f'/{spec.executable}', -math.inf) < exited_at for spec in GRAPH):
+                            spin_for(0.05)
                         obs.phases_unix['decided'] = time.time()
                         break
                     if bag_done:
