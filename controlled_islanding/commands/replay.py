@@ -87,7 +87,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='run on a free private ROS_DOMAIN_ID on loopback even if ROS_DOMAIN_ID is set')
     parser.add_argument('--probe-hz', type=float, default=0.0,
                         help='also send islanding requests at this rate once the first decision is out, '
-                             'to measure latency over many requests (a benchmark; default 0 = none)')
+                             'to measure latency over many requests (a benchmark; default 0 = none). Once the '
+                             "cut is open the breaker refuses every probe's cut, so probes are timed to their "
+                             'decision')
     parser.add_argument('--disarmed', action='store_true',
                         help='leave breaker_command disarmed: decisions are refused and audited, nothing is commanded')
     parser.add_argument('--repeat', type=int, default=1,
@@ -459,9 +461,11 @@ def summarize(bag: Path, results: Path, obs: Observation, report: dict) -> dict:
     """Return the machine-readable result: the bag's decision(s), groups, latency figures and replay speed."""
     bag_requests = [r for r in obs.requests if not r.startswith('probe-')]
     decisions = [_decision_dict(r, obs) for r in bag_requests if r in obs.decisions]
+    # A request that commanded nothing (a probe after the cut is open) is timed to its decision.
+    answered = [_decision_dict(r, obs) for r in obs.requests if r in obs.decisions]
+    to_command = sum(d['latency_request_to_command_ms'] is not None for d in answered)
     latencies = [d['latency_request_to_command_ms'] if d['latency_request_to_command_ms'] is not None
-                 else d['latency_request_to_decision_ms']
-                 for d in (_decision_dict(r, obs) for r in obs.requests if r in obs.decisions)]
+                 else d['latency_request_to_decision_ms'] for d in answered]
     latencies = [x for x in latencies if x is not None]
     rejects = {name: {k: v for k, v in values.items() if k.startswith('rejected')}
                for name, values in obs.diagnostics.items()}
@@ -474,7 +478,7 @@ def summarize(bag: Path, results: Path, obs: Observation, report: dict) -> dict:
         'decisions': decisions, 'latency_ms': {
             'n': len(latencies), 'median': statistics.median(latencies) if latencies else None,
             'p99': percentile(latencies, 99) if latencies else None, 'max': max(latencies) if latencies else None,
-            'samples': latencies},
+            'samples': latencies, 'to_command': to_command},
         'replay': report, 'phases_s': phases(obs.phases_unix, report), 'cpu_s': obs.cpu_s,
         'diagnostics_rejects': {k: v for k, v in rejects.items() if any(x != '0' for x in v.values())},
         'diagnostics': obs.diagnostics,  # each node's last /diagnostics values, for a failure's post-mortem
@@ -557,7 +561,8 @@ def render(summary: dict) -> str:
                      '(nothing to command)')
     lat = summary['latency_ms']
     if lat['n'] > 1:
-        lines.append(f'latency over {lat["n"]} requests: median {lat["median"]:.1f} ms, p99 {lat["p99"]:.1f} ms')
+        lines.append(f'latency over {lat["n"]} requests, to the breaker command ({lat["to_command"]} of them) or '
+                     f'else to the decision: median {lat["median"]:.1f} ms, p99 {lat["p99"]:.1f} ms')
     rep = summary['replay']
     if rep:
         lines.append(f'replay: {rep["bag_duration_s"]:.2f} s of bag in {rep["wall_s"]:.2f} s '
@@ -798,7 +803,7 @@ def run(args: argparse.Namespace) -> int:
 def _run_repeated(args: argparse.Namespace) -> int:
     stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
     base = (args.results or Path('results') / f'bench-{args.bag.name}-{stamp}').resolve()
-    latencies, speeds, outcomes, failures = [], [], set(), []
+    latencies, speeds, outcomes, failures, to_command = [], [], set(), [], 0
     for i in range(args.repeat):
         summary = replay(args.bag, base / f'run-{i}', fast=args.fast, rate=args.rate, probe_hz=args.probe_hz,
                          timeout_s=args.timeout, figures=False, quiet=True, arm=not args.disarmed,
@@ -807,6 +812,7 @@ def _run_repeated(args: argparse.Namespace) -> int:
         outcomes.add((summary['split'], tuple(sorted(summary.get('cut_branch_ids', [])))))
         failures.append(graph_failure(summary))
         latencies += summary['latency_ms']['samples']  # the bag's requests and any --probe-hz ones
+        to_command += summary['latency_ms']['to_command']
         if summary['replay']:
             speeds.append(summary['replay']['speed_vs_real_time'])
         _say(args.json, f'replay {i + 1}/{args.repeat}: split={summary["split"]} '
@@ -815,7 +821,8 @@ def _run_repeated(args: argparse.Namespace) -> int:
               'distinct_decisions': [list(o) for o in sorted(outcomes, key=str)],
               'latency_ms': {'n': len(latencies), 'median': statistics.median(latencies) if latencies else None,
                              'p99': percentile(latencies, 99) if latencies else None,
-                             'max': max(latencies) if latencies else None},
+                             'max': max(latencies) if latencies else None,
+                             'samples': latencies, 'to_command': to_command},
               'speed_vs_real_time': {'median': statistics.median(speeds) if speeds else None,
                                      'min': min(speeds) if speeds else None}}
     if args.json:
@@ -825,8 +832,9 @@ def _run_repeated(args: argparse.Namespace) -> int:
         print(f'{args.repeat} replays of {args.bag} ({"as fast as possible" if args.fast else "real time"}): '
               f'{len(outcomes)} distinct decision(s) {result["distinct_decisions"]}')
         if lat['n']:
-            print(f'latency request -> breaker command over {lat["n"]} requests: median {lat["median"]:.1f} ms, '
-                  f'p99 {lat["p99"]:.1f} ms, max {lat["max"]:.1f} ms')
+            print(f'latency over {lat["n"]} requests, to the breaker command ({to_command} of them) or else to the '
+                  f'decision (nothing to command): median {lat["median"]:.1f} ms, p99 {lat["p99"]:.1f} ms, '
+                  f'max {lat["max"]:.1f} ms')
         if spd['median'] is not None:
             print(f'speed against real time: median {spd["median"]:.1f}x, slowest {spd["min"]:.1f}x')
         print(f'results: {base}')
