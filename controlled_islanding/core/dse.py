@@ -197,7 +197,7 @@ def _to_dq(x: np.ndarray, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class _Model:
     """One machine model: state layout and steady-state initialisation, batched over machines (numpy).
 
-    Its dynamics and measurement are in core/dse_kernel.py (_derivative, _internal_voltage), under its name in
+    Its dynamics and measurement are in core/dse_kernel.py (_rates, _internal_voltage), under its name in
     _MODEL_CLASSES. Parameters arrive as a dict of arrays, one value per machine.
     """
 
