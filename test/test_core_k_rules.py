@@ -77,6 +77,28 @@ def test_a_pole_slip_inside_the_window_separates_even_at_a_steady_rate() -> None
     assert partition(DTWCoherency(k_rule='separation').fit(series).labels_) == partition(AREAS)
 
 
+@pytest.mark.parametrize('samples', [90, 91])
+def test_a_pair_speeding_up_is_not_slowing_down_whatever_the_parity_of_the_window(samples: int) -> None:
+    # 3 s at 30 frames/s holds 90 or 91 tags, as the window's start edge falls. 121 deg over the window, its rate
+    # 0.7 % higher over the latest half: at that rate pi within one more window, and not slowing. Doubling the
+    # half's drift read it as slowing with 90 samples (the half spans 44 of 89 steps).
+    t = np.arange(samples) / 30.0
+    series = [0.7 * (t + 0.005 * t ** 2), np.zeros_like(t)]
+    assert np.pi / 2 <= abs(pair_drift_rad(np.array(series))[0, 1]) < np.pi
+    assert DTWCoherency(k_rule='separation').fit(series).n_groups_ == 2
+
+
+def test_a_pair_slowing_down_with_its_first_samples_lost_is_not_a_trend_separation() -> None:
+    # 118 deg over the 54 samples the pair shares, the latest half 5 % slower than their mean rate: slowing down.
+    # Its drift spans 0.6 of the window, so a doubled drift over the latest half had read it as steady.
+    t = np.arange(90) / 30.0
+    lost_start = np.zeros_like(t)
+    lost_start[:36] = np.nan
+    series = [2.0 * t - 0.2 * t ** 2, lost_start]
+    assert np.pi / 2 <= abs(pair_drift_rad(np.array(series))[0, 1]) < np.pi
+    assert DTWCoherency(k_rule='separation').fit(series).n_groups_ == 1
+
+
 def test_three_areas_two_of_them_slipping_apart() -> None:
     rng = np.random.default_rng(3)
     t = np.arange(0.0, WINDOW_S, 1.0 / RATE_FPS)

@@ -13,9 +13,9 @@ Rules (docs/coherency_rules.md compares them on every scenario bag; `RULES` maps
   - trend over the window: the least-squares slope of delta_p - delta_q times the span of the window (the
     pair's drift) reaches pi, or at that rate the pair would drift pi within one more window (|drift| >= pi / 2
     with the default horizon of one window) and it is not slowing down: over the latest half of the window it
-    moves on, the same way, at least at the window's mean rate. Stable swings go back and forth inside a
-    window, so their drift is small whatever their amplitude, as long as the window holds about a swing period;
-    or
+    moves on, the same way, at least at the window's mean rate (least-squares slopes compared). Stable swings go
+    back and forth inside a window, so their drift is small whatever their amplitude, as long as the window holds
+    about a swing period; or
   - runaway from rest (pair_runaway): the window starts before the disturbance (the pair at rest over its first
     quarter), and the pair is now pi from where it rested, or pi / 2 and still moving away without slowing
     down. This sees a runaway a fraction of a second after the fault is cleared, which the trend over a window
@@ -88,7 +88,7 @@ def canonical(labels: np.ndarray) -> np.ndarray:
     return np.array([order.setdefault(int(lab), len(order)) for lab in np.asarray(labels).tolist()], dtype=int)
 
 
-def pair_drift_rad(angles: np.ndarray) -> np.ndarray:
+def pair_drift_rad(angles: np.ndarray, per_sample: bool = False) -> np.ndarray:
     """Return each pair's drift over the window: the least-squares slope of delta_p - delta_q times the span, rad.
 
     Each pair is fitted over the samples both have. The span is computed from the spread of those sample times
@@ -99,20 +99,30 @@ def pair_drift_rad(angles: np.ndarray) -> np.ndarray:
 
     Args:
         angles: Rotor angles, rad, shape (n_generators, n_samples), on one time grid; NaN = lost.
+        per_sample: Return the slope itself, rad per sample: a rate, which unlike the drift does not grow with
+            the span, so two stretches of one window compare fairly whatever their sample counts.
 
     Returns:
-        Antisymmetric (n, n) matrix: drift of delta_p - delta_q, rad (0 where a pair shares < 2 samples).
+        Antisymmetric (n, n) matrix: drift of delta_p - delta_q, rad, or its rate, rad per sample (0 where a pair
+        shares < 2 samples).
 
     """
+    drift, rate = _drift_and_rate(angles)
+    return rate if per_sample else drift
+
+
+def _drift_and_rate(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return pair_drift_rad's drift and rate matrices from one pass."""
     angles = np.ascontiguousarray(angles, dtype=np.float64)
     drift = np.zeros((angles.shape[0], angles.shape[0]))
-    _drift_rows(angles, drift)
-    return drift - drift.T
+    rate = np.zeros_like(drift)
+    _drift_rows(angles, drift, rate)
+    return drift - drift.T, rate - rate.T
 
 
 @numba.njit(cache=True)
-def _drift_rows(angles, drift):
-    """pair_drift_rad of every pair p < q into drift[p, q] (time in samples, the slope's unit cancels)."""
+def _drift_rows(angles, drift, rate):
+    """pair_drift_rad's drift and rate of every pair p < q into [p, q] (time in samples)."""
     n, m = angles.shape
     finite = np.empty((n, m), dtype=np.bool_)
     for p in range(n):
@@ -135,6 +145,7 @@ def _drift_rows(angles, drift):
             if not var_x > 0.0:
                 continue
             slope = (sxd - sx * sd / count) / var_x
+            rate[p, q] = slope
             # First-to-last distance of count evenly spaced samples, from their spread, so lost samples leave it fair.
             drift[p, q] = slope * np.sqrt(12.0 * var_x / count * (count - 1.0) / (count + 1.0))
 
@@ -156,6 +167,7 @@ class Evidence:
     max_groups: int
     cluster: Callable[[int], np.ndarray]
     _drift: np.ndarray | None = field(default=None, repr=False)
+    _rate: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def n(self) -> int:
@@ -171,8 +183,15 @@ class Evidence:
     def drift_rad(self) -> np.ndarray:
         """Return pair_drift_rad of the window (computed on first use)."""
         if self._drift is None:
-            self._drift = pair_drift_rad(self.angles_rad)
+            self._drift, self._rate = _drift_and_rate(self.angles_rad)
         return self._drift
+
+    @property
+    def rate_rad_per_sample(self) -> np.ndarray:
+        """Return pair_drift_rad(per_sample=True) of the window (computed with drift_rad)."""
+        if self._rate is None:
+            self._drift, self._rate = _drift_and_rate(self.angles_rad)
+        return self._rate
 
 
 def _one_group(n: int) -> np.ndarray:
@@ -400,10 +419,13 @@ class SeparationRule:
             raise KRuleError(f'horizon_windows must be >= 0, got {self.horizon_windows}')
         bar = np.pi / (1.0 + self.horizon_windows)
         drift = np.abs(ev.drift_rad)
-        latest = pair_drift_rad(ev.angles_rad[:, ev.angles_rad.shape[1] // 2:])
+        rate = ev.rate_rad_per_sample
+        latest = pair_drift_rad(ev.angles_rad[:, ev.angles_rad.shape[1] // 2:], per_sample=True)
         # Not slowing down: over the latest half of the window the pair moves on, the same way, at least at the
-        # window's mean rate (a drift over half the window, doubled, is a rate per window).
-        steady = (np.sign(latest) == np.sign(ev.drift_rad)) & (2.0 * np.abs(latest) >= drift)
+        # window's mean rate. Rates, not drifts: the latest half spans (n - 1) // 2 of an even count's n - 1 sample
+        # steps, and a pair whose first samples are lost spans less than the window, so a doubled drift over the
+        # half read a steady pair as slowing down in the one case and a slowing one as steady in the other.
+        steady = (np.sign(latest) == np.sign(rate)) & (np.abs(latest) >= np.abs(rate))
         runaway, deviation = pair_runaway(ev.angles_rad)
         separating = (drift >= np.pi) | ((drift >= bar) & steady) | runaway
         np.fill_diagonal(separating, False)
