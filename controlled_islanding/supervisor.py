@@ -11,13 +11,15 @@ each in `restarts` and `hangs` so that a run can report that it did not come fro
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -149,8 +151,32 @@ def node_command(spec: NodeSpec, overrides: Mapping[str, object] | None = None, 
     return argv
 
 
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """While open, SIGTERM raises KeyboardInterrupt in the main thread, as Ctrl-C does.
+
+    Python's default SIGTERM ends the process at once, skipping every `finally` and `__exit__`: a `kill PID` left
+    the nodes' forked helpers running and a results folder that did not say it was unfinished. A handler the
+    program set itself, or a call off the main thread, is left alone.
+    """
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL):
+        yield
+        return
+    signal.signal(signal.SIGTERM, _terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _terminated(signum: int, _frame: object) -> None:
+    raise KeyboardInterrupt(f'signal {signum}')
+
+
 def _die_with_parent() -> None:
-    # A SIGKILLed supervisor cannot run its cleanup; the kernel then stops the children instead.
+    # A SIGKILLed supervisor cannot run its cleanup; the kernel then stops the children instead (only them:
+    # what a child forked is then the child's to end).
     try:
         ctypes.CDLL('libc.so.6', use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except OSError:
@@ -158,7 +184,7 @@ def _die_with_parent() -> None:
 
 
 class Supervisor:
-    """Owns child node processes; `with Supervisor(...)` stops them all on exit, Ctrl-C or error.
+    """Owns child node processes; `with Supervisor(...)` stops them all on exit, Ctrl-C, SIGTERM or error.
 
     Args:
         env: Environment for the children (from controlled_islanding.rosenv).
@@ -186,10 +212,15 @@ class Supervisor:
         self._t0_s = time.monotonic()
 
     def __enter__(self) -> Supervisor:
+        self._sigterm = sigterm_as_interrupt()
+        self._sigterm.__enter__()
         return self
 
     def __exit__(self, *exc_info: object) -> None:
-        self.stop_all()
+        try:
+            self.stop_all()
+        finally:
+            self._sigterm.__exit__(None, None, None)
 
     def start(self, spec: NodeSpec, overrides: Mapping[str, object] | None = None, name: str | None = None,
               namespace: str | None = None, prefix: Sequence[str] = ()) -> subprocess.Popen:
@@ -270,7 +301,7 @@ class Supervisor:
     def _kill_hung(self, child: subprocess.Popen) -> None:
         # A hung (or stopped) process cannot run a clean shutdown: SIGKILL is the one signal it cannot ignore.
         try:
-            os.kill(child.pid, signal.SIGKILL)
+            os.killpg(child.pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
         child.wait()
@@ -299,44 +330,90 @@ class Supervisor:
         return '\n'.join(path.read_text(errors='replace').splitlines()[-lines:]) if path.exists() else ''
 
     def stop(self, name: str, timeout_s: float = 5.0) -> int | None:
-        """Stop one child: SIGINT, then SIGTERM, then SIGKILL, each after timeout_s; return its exit status."""
+        """Stop one child and its process group: SIGINT, then SIGTERM, then SIGKILL; return its exit status."""
         child = self.children.get(name)
         if child is None:
             return None
         if self.watchdog is not None:
             self.watchdog.stopped(name)
-        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
-            if child.poll() is not None:
-                break
-            try:
-                os.kill(child.pid, sig)
-            except ProcessLookupError:
-                break
-            try:
-                child.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                continue
-        return child.wait()
+        _end_groups([child], timeout_s)
+        return child.returncode
 
     def stop_all(self, timeout_s: float = 5.0) -> None:
-        """Stop every child, all at once: SIGINT to all, wait, then escalate per child."""
+        """Stop every child and its process group, all at once: SIGINT, then SIGTERM, then SIGKILL.
+
+        Ends within about timeout_s + 4 s. A SIGINT or SIGTERM that comes meanwhile is held until every child
+        is gone (a second Ctrl-C must not leave orphans), then raised as KeyboardInterrupt.
+        """
         if self.watchdog is not None:
             for name in self.children:
                 self.watchdog.stopped(name)
         for name, child in self.children.items():
             if child.poll() is None:
                 self.cpu_s[name] = _cpu_s(child.pid)
-        for child in self.children.values():
-            if child.poll() is None:
-                try:
-                    os.kill(child.pid, signal.SIGINT)
-                except ProcessLookupError:
-                    pass
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and any(c.poll() is None for c in self.children.values()):
+        held: list[int] = []
+        saved = _hold_signals(held)
+        try:
+            _end_groups(list(self.children.values()), timeout_s)
+        finally:
+            for sig, handler in saved.items():
+                signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+        if held:
+            raise KeyboardInterrupt(f'signal {held[0]} while stopping the children')
+
+
+def _hold_signals(held: list[int]) -> dict[int, object]:
+    """Record SIGINT and SIGTERM in `held` instead of acting on them; return the handlers to put back."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}  # only the main thread may set handlers; stop_all off it is not interrupted by them anyway
+    saved = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        saved[sig] = signal.signal(sig, lambda signum, _frame: held.append(signum))
+    return saved
+
+
+def _end_groups(children: Sequence[subprocess.Popen], timeout_s: float) -> None:
+    # Each child leads its own process group (start_new_session), which holds whatever it forked: ANDES' code
+    # generation pool, a shell's job. Signalling the leader's PID alone left those running after it died.
+    for sig, wait_s in ((signal.SIGINT, timeout_s), (signal.SIGTERM, 2.0), (signal.SIGKILL, 2.0)):
+        live = _live_groups(children)
+        if not live:
+            return
+        for child in live:
+            try:
+                os.killpg(child.pid, sig)
+            except (ProcessLookupError, PermissionError):
+                pass
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline and _live_groups(live):
             time.sleep(0.05)
-        for name in list(self.children):
-            self.stop(name, timeout_s=2.0)
+
+
+def _live_groups(children: Sequence[subprocess.Popen]) -> list[subprocess.Popen]:
+    """Return the children still running, or whose process group still has a running (not zombie) process."""
+    exited = {c.pid: c for c in children if c.poll() is not None}  # poll reaps an exited leader
+    live = [c for c in children if c.pid not in exited]
+    if exited:
+        groups = set()
+        for pid, state, pgid in _processes():
+            if state != 'Z':
+                groups.add(pgid)
+                # A reaped leader's number is reused only once its group is empty: a live one is someone else.
+                exited.pop(pid, None)
+        live += [c for pid, c in exited.items() if pid in groups]
+    return live
+
+
+def _processes() -> list[tuple[int, str, int]]:
+    """Return (pid, state, process group) of every process."""
+    out = []
+    for stat in Path('/proc').glob('[0-9]*/stat'):
+        try:
+            fields = stat.read_text().rsplit(')', 1)[1].split()
+            out.append((int(stat.parent.name), fields[0], int(fields[2])))
+        except (OSError, IndexError, ValueError):
+            continue
+    return out
 
 
 def _cpu_s(pid: int) -> float:

@@ -307,3 +307,55 @@ def test_the_replay_cli_fails_loudly_when_a_node_died_during_it():
     assert err.strip().splitlines()[-1].startswith('replay: FAILED: graph not healthy during the replay: '
                                                    'breaker_command exited with status -9')
     assert json.loads((results / 'summary.json').read_text())['restarts'] == summary['restarts']
+
+
+# A node that forked a helper into its process group, as andes.load's code generation pool did inside grid_sim
+# (until b5e904f): the shell's background `sleep` ignores SIGINT, as such a worker may.
+GROUP_SCRIPT = textwrap.dedent("""
+    import os, signal, sys, time
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    from pathlib import Path
+    from controlled_islanding.supervisor import GRAPH, Supervisor
+    with Supervisor(dict(os.environ), Path(sys.argv[1])) as sup:
+        node = sup.start(GRAPH[0], prefix=['sh', '-c', 'sleep 300 & exec "$@"', 'sh'])
+        print(node.pid, flush=True)
+        while True:
+            time.sleep(0.1)
+""")
+
+
+def group_of(pgid: int) -> list[int]:
+    return [int(s.parent.name) for s in Path('/proc').glob('[0-9]*/stat')
+            if alive(int(s.parent.name)) and _pgid(s) == pgid]
+
+
+def _pgid(stat: Path) -> int | None:
+    try:
+        return int(stat.read_text().rsplit(')', 1)[1].split()[2])
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize('sigs', [(signal.SIGINT,), (signal.SIGTERM,), (signal.SIGINT, signal.SIGINT)],
+                         ids=['ctrl_c', 'sigterm', 'ctrl_c_twice'])
+def test_what_a_node_forked_dies_with_it_when_its_supervisor_is_interrupted(ros_env, sigs):
+    # Twice: the second Ctrl-C comes while the supervisor waits for the helper, which ignores the first.
+    parent = subprocess.Popen([sys.executable, '-c', GROUP_SCRIPT, str(BUILD / f'group_{len(sigs)}_{sigs[0].name}')],
+                              env=ros_env, stdout=subprocess.PIPE, text=True)
+    group: list[int] = []
+    try:
+        node = int(parent.stdout.readline())
+        end = time.monotonic() + 10.0
+        while time.monotonic() < end and len(group) < 2:
+            group = group_of(node)
+            time.sleep(0.1)
+        assert node in group and len(group) == 2, f'the node and its helper did not both start: {group}'
+        for sig in sigs:
+            parent.send_signal(sig)
+            time.sleep(1.0)
+        parent.wait(timeout=20)
+        assert wait_dead(group, timeout_s=5.0) == [], 'a process of the node outlived its interrupted supervisor'
+    finally:
+        for pid in [p for p in group if alive(p)] + ([parent.pid] if parent.poll() is None else []):
+            os.kill(pid, signal.SIGKILL)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -250,3 +251,59 @@ def test_each_sample_holds_the_andes_solution_at_its_own_time():
         x, y = stored[round(s.t_s, 9)]
         assert np.array_equal(s.delta_rad, x[delta]) and np.array_equal(s.bus_v_pu, y[ss.Bus.v.a]), s.t_s
     assert np.ptp([s.delta_rad for s in run.samples], axis=0).max() > 0.01  # they moved: a step late would show
+
+
+def _procs() -> dict[int, tuple[str, int, int]]:
+    """Return {pid: (state, parent, process group)} of every process."""
+    out = {}
+    for stat in Path('/proc').glob('[0-9]*/stat'):
+        try:
+            fields = stat.read_text().rsplit(')', 1)[1].split()
+            out[int(stat.parent.name)] = (fields[0], int(fields[1]), int(fields[2]))
+        except (OSError, IndexError, ValueError):
+            continue
+    return out
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.parametrize(('sig', 'when'), [(signal.SIGTERM, ''), (signal.SIGINT, 't =  2.00')],
+                         ids=['sigterm_at_grid_sim_start', 'ctrl_c_at_the_request'])
+def test_an_interrupted_testbed_ends_every_process_it_started_and_says_it_was_interrupted(sig, when):
+    """Interrupted as grid_sim starts, or at the request (lockstep: the graph deciding, the cut being opened).
+
+    Every process of the run ends, and the results folder says it is unfinished.
+    """
+    results = BUILD / 'test_testbed' / f'sigterm-{time.time_ns()}'
+    env = dict(os.environ, CONTROLLED_ISLANDING_KEYS=str(BUILD / 'test_keys'))
+    results.parent.mkdir(parents=True, exist_ok=True)
+    with open(f'{results}.stderr', 'w') as err:
+        proc = subprocess.Popen([sys.executable, '-m', 'controlled_islanding.cli', 'testbed', str(SCENARIO),
+                                 '--no-baselines', '--results', str(results), '--timeout', '120'],
+                                stdout=subprocess.DEVNULL, stderr=err, env=env, cwd=REPO)
+    ours: list[int] = []
+    try:
+        end = time.monotonic() + 90.0
+        log = results / SCENARIO.stem / 'logs' / 'grid_sim.log'
+        groups: set[int] = set()
+        while time.monotonic() < end and not (len(groups) == 5 and when in log.read_text()):
+            assert proc.poll() is None, Path(f'{results}.stderr').read_text()[-2000:]
+            time.sleep(0.05)
+            procs = _procs()
+            groups = {pgid for _, parent, pgid in procs.values() if parent == proc.pid}
+        ours = [pid for pid, (state, _, pgid) in procs.items() if pgid in groups and state != 'Z']
+        assert len(groups) == 5, f'expected the four nodes and grid_sim, found groups {groups}'
+        proc.send_signal(sig)
+        proc.wait(timeout=30)
+        end = time.monotonic() + 10.0
+        while time.monotonic() < end and any(_procs().get(p, ('Z',))[0] != 'Z' for p in ours):
+            time.sleep(0.1)
+        left = [p for p in ours if _procs().get(p, ('Z',))[0] != 'Z']
+        assert not left, f'processes of the run outlived it: {left}'
+        marker = json.loads((results / 'INTERRUPTED.json').read_text())
+        assert marker['during'] == SCENARIO.stem and marker['finished'] == []
+        assert not (results / 'testbed.json').exists()
+        assert not (results / SCENARIO.stem / 'result.json').exists()
+    finally:
+        for pid in [p for p in ours if _procs().get(p, ('Z',))[0] != 'Z'] + ([proc.pid] if proc.poll() is None else []):
+            os.kill(pid, signal.SIGKILL)

@@ -50,6 +50,7 @@ Examples:
 
 REPO = Path(__file__).resolve().parents[2]
 INDEX = REPO / 'bags' / 'index.yaml'
+INTERRUPTED = 'INTERRUPTED.json'  # in a results folder: the run was stopped before its end
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -338,8 +339,15 @@ def run_scenario(path: Path, results: Path, args: argparse.Namespace, quiet: boo
                 result['runs']['milp'] = m.summary()
                 trajectories['milp'] = {'t_s': m.t_s, 'delta_rad': m.delta_rad, 'bus_v_pu': m.bus_v_pu}
     result['figure'] = str(_figure(scenario, result, trajectories, traj, out / f'{scenario.name}_closed_loop.png'))
-    (out / 'result.json').write_text(json.dumps(result, indent=1, default=str))
+    _write(out / 'result.json', json.dumps(result, indent=1, default=str))
     return result
+
+
+def _write(path: Path, text: str) -> None:
+    # An interrupted run must not leave a truncated file that reads as a result (--render trusts result.json).
+    tmp = path.with_name(f'.{path.name}.tmp')
+    tmp.write_text(text)
+    os.replace(tmp, path)
 
 
 def _figure(scenario: Any, result: dict, trajectories: dict, loop_traj: dict, path: Path) -> Path:
@@ -592,7 +600,7 @@ def _publish(results: list[dict], args: argparse.Namespace, missing: list[str]) 
         text = markdown(results, args, figures, args.markdown)
         if missing:
             text += f'\nNot in this table (not run, failed, or unfinished when written): {", ".join(missing)}.\n'
-        args.markdown.write_text(text)
+        _write(args.markdown, text)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -620,6 +628,13 @@ def run(args: argparse.Namespace) -> int:
     if results_dir.exists():
         raise CliError(f'results folder {results_dir} exists; name a new one')
     results_dir.mkdir(parents=True)
+    from controlled_islanding.supervisor import sigterm_as_interrupt
+
+    with sigterm_as_interrupt():  # the baselines run with no supervisor open: a SIGTERM there is marked too
+        return _run_all(paths, results_dir, args)
+
+
+def _run_all(paths: list[Path], results_dir: Path, args: argparse.Namespace) -> int:
     quiet = args.json
     cache: dict = {}
     results: list[dict] = []
@@ -635,8 +650,16 @@ def run(args: argparse.Namespace) -> int:
             _say(quiet, f'testbed {path.stem}: FAILED: {exc}')
             failures.append(f'{path.stem}: {str(exc).splitlines()[0]}')
             continue
+        except KeyboardInterrupt:
+            # Ctrl-C or SIGTERM (the supervisor turns it into this): its nodes are stopped by now. Without a
+            # testbed.json the folder is unfinished; this file says so and why, for a reader and for --render.
+            _write(results_dir / INTERRUPTED, json.dumps({
+                'interrupted_utc': datetime.now(UTC).isoformat(timespec='seconds'), 'during': path.stem,
+                'finished': [r['scenario'] for r in results], 'failed': failures,
+                'not_run': [p.stem for p in paths[i + 1:]]}, indent=1) + '\n')
+            raise
         _publish(results, args, [p.stem for p in paths[i + 1:]] + failures)
-    (results_dir / 'testbed.json').write_text(json.dumps(results, indent=1, default=str))
+    _write(results_dir / 'testbed.json', json.dumps(results, indent=1, default=str))
     if args.json:
         print(json.dumps(results, default=str))
     else:
