@@ -63,13 +63,18 @@ def settings(fifo_priority: int) -> tuple[Setting, ...]:
             Setting(f'one core busy, SCHED_FIFO {fifo_priority}', busy=True, fifo_priority=fifo_priority))
 
 
+def _fifo(priority: int):
+    """Return a preexec_fn that puts the child, and so everything it starts, under SCHED_FIFO at `priority`."""
+    return lambda: os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+
+
 def check_fifo_permitted(priority: int) -> None:
     """Raise LatencyBenchError unless this process may give a child the real-time policy at `priority`."""
     low, high = os.sched_get_priority_min(os.SCHED_FIFO), os.sched_get_priority_max(os.SCHED_FIFO)
     if not low <= priority <= high:
         raise LatencyBenchError(f'SCHED_FIFO priority must be in {low} .. {high}, got {priority}')
     probe = subprocess.run([sys.executable, '-c', 'pass'], check=False, capture_output=True, text=True,
-                           preexec_fn=lambda: os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority)))
+                           preexec_fn=_fifo(priority))
     if probe.returncode != 0:
         raise LatencyBenchError('this user may not use the SCHED_FIFO policy (needs CAP_SYS_NICE or an rtprio '
                                 f'limit): {probe.stderr.strip().splitlines()[-1] if probe.stderr else "refused"}')
@@ -78,10 +83,7 @@ def check_fifo_permitted(priority: int) -> None:
 def _replay(bag: Path, results: Path, setting: Setting, repeat: int, probe_hz: float) -> dict:
     cmd = [sys.executable, '-m', 'controlled_islanding.cli', 'replay', str(bag), '--probe-hz', str(probe_hz),
            '--repeat', str(repeat), '--no-figures', '--no-record', '--isolate', '--json', '--results', str(results)]
-    policy = None
-    if setting.fifo_priority is not None:
-        def policy(priority=setting.fifo_priority):
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    policy = None if setting.fifo_priority is None else _fifo(setting.fifo_priority)
     done = subprocess.run(cmd, check=False, capture_output=True, text=True, preexec_fn=policy)
     lines = done.stdout.strip().splitlines()
     if done.returncode != 0 or not lines:
