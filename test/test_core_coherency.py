@@ -10,7 +10,7 @@ import yaml
 from test_sim_bags import MISSED_BY_THE_K_RULE
 
 from controlled_islanding.core.coherency import CoherencyError, DTWCoherency
-from controlled_islanding.core.k_rules import pair_drift_rad
+from controlled_islanding.core.k_rules import RULES, pair_drift_rad
 from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
 
 REPO = Path(__file__).resolve().parents[1]
@@ -85,6 +85,31 @@ def test_stable_swings_are_one_group(how: str) -> None:
     assert est.silhouette_ == {}
 
 
+@pytest.mark.parametrize('rule', sorted(RULES))
+@pytest.mark.parametrize('how', ['complete', '20% frames dropped', 'unequal lengths'])
+def test_pairs_left_out_change_no_group(rule: str, how: str) -> None:
+    # The default computes only the pairs the rule reads; every rule must group as on the whole matrix.
+    for case, (group_of, slipping) in enumerate([*CASES, ([0, 0, 1, 1, 1, 2, 2, 0, 0, 1], set())]):
+        series = impaired(swings(group_of, slipping, seed=case), how, seed=case)
+        lazy = DTWCoherency(window=30, k_rule=rule).fit(series)
+        whole = DTWCoherency(window=30, k_rule=rule, all_pairs=True).fit(series)
+        assert np.array_equal(lazy.labels_, whole.labels_)
+        done = ~np.isnan(lazy.distance_matrix_)
+        assert np.array_equal(lazy.distance_matrix_[done], whole.distance_matrix_[done])
+        assert not np.isnan(whole.distance_matrix_).any()
+
+
+def test_separation_rule_computes_no_pair_it_does_not_read() -> None:
+    stable = impaired(swings([0, 0, 1, 1, 1], set(), seed=7), 'complete', seed=7)
+    est = DTWCoherency().fit(stable)
+    assert est.n_groups_ == 1 and np.isnan(est.distance_matrix_[~np.eye(5, dtype=bool)]).all()
+    group_of = [0, 0, 0, 1, 1, 0]
+    est = DTWCoherency().fit(impaired(swings(group_of, {1}, seed=4), 'complete', seed=4))
+    assert partition(est.labels_) == partition(group_of)
+    apart = np.not_equal.outer(group_of, group_of)
+    assert np.isnan(est.distance_matrix_[apart]).all() and not np.isnan(est.distance_matrix_[~apart]).any()
+
+
 def test_fixed_k_and_outputs() -> None:
     angles = swings([0, 0, 1, 1, 1], {1}, seed=5)
     est = DTWCoherency(n_groups=2).fit(list(angles.T))
@@ -115,7 +140,7 @@ def test_two_machines_slipping_apart_are_two_groups() -> None:
 
 def test_constant_offset_is_not_incoherence() -> None:
     base = swings([0, 0], set(), seed=2)[:, 0]
-    est = DTWCoherency().fit([base, base + 2.5, base - 1.0])
+    est = DTWCoherency(all_pairs=True).fit([base, base + 2.5, base - 1.0])
     assert est.n_groups_ == 1
     assert np.allclose(est.distance_matrix_, 0.0)
 

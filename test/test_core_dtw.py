@@ -102,6 +102,21 @@ def test_matrix_matches_pairwise_and_is_symmetric(rng: np.random.Generator) -> N
     assert np.array_equal(dtw_distance_matrix(equal, parallel=True), d)
 
 
+def test_pairs_asked_are_the_whole_matrix_bit_for_bit(rng: np.random.Generator) -> None:
+    # 40 series of two lengths: blocks of lanes hold different pairs when some are left out.
+    series = [np.cumsum(rng.normal(size=60 if i % 3 else 55)) for i in range(40)]
+    whole = dtw_distance_matrix(series, 5)
+    mask = rng.random((40, 40)) < 0.3
+    part = dtw_distance_matrix(series, 5, pairs=mask)
+    asked = np.triu(mask, 1) | np.triu(mask, 1).T
+    assert np.array_equal(part[asked], whole[asked]) and np.all(np.diag(part) == 0.0)
+    assert np.isnan(part[~asked & ~np.eye(40, dtype=bool)]).all()
+    none = dtw_distance_matrix(series, pairs=np.zeros((40, 40), bool))
+    assert np.array_equal(np.isnan(none), ~np.eye(40, dtype=bool))
+    with pytest.raises(DTWError, match=r'pairs must be a \(40, 40\) mask'):
+        dtw_distance_matrix(series, pairs=np.ones((3, 3), bool))
+
+
 @pytest.mark.parametrize(('bad', 'message'), [
     (np.zeros((3, 2)), '1-D'),
     (np.array([1.0, np.inf]), 'infinite'),

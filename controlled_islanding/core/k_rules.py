@@ -155,14 +155,16 @@ class Evidence:
     """What a rule may look at, computed once per window by DTWCoherency.
 
     Attributes:
-        rms_rad: RMS angle difference along the optimal warping path, rad, (n, n).
+        rms_of: mask -> RMS angle difference along the optimal warping path, rad, (n, n), computed at least for
+            the pairs of the boolean mask (None: all) and NaN where not computed. DTW is most of a window's cost,
+            so a rule asks only for the pairs its answer depends on.
         angles_rad: The window's rotor angles on one time grid, rad, (n, n_samples), NaN = lost.
         max_groups: Largest k a rule may choose (it is also capped at the number of generators).
         cluster: k -> PAM labels on rms_rad (cached by the caller).
 
     """
 
-    rms_rad: np.ndarray
+    rms_of: Callable[[np.ndarray | None], np.ndarray]
     angles_rad: np.ndarray
     max_groups: int
     cluster: Callable[[int], np.ndarray]
@@ -172,7 +174,12 @@ class Evidence:
     @property
     def n(self) -> int:
         """Return the number of generators."""
-        return len(self.rms_rad)
+        return len(self.angles_rad)
+
+    @property
+    def rms_rad(self) -> np.ndarray:
+        """Return the RMS matrix of every pair, rad, (n, n)."""
+        return self.rms_of(None)
 
     @property
     def candidates(self) -> range:
@@ -439,10 +446,11 @@ class SeparationRule:
         separating = self.separating(ev)
         if ev.n < 2 or not separating.any():
             return _one_group(ev.n)
-        r = ev.rms_rad
+        # A separating pair's r is never read: its distance below is set apart whatever r is.
+        r = ev.rms_of(~separating)
         # Complete linkage of r in which a separating pair is farther apart than any other: cut below that
         # distance, every group is free of separating pairs and no two groups could merge without one.
-        apart = 2.0 * float(r.max()) + 1.0
+        apart = 2.0 * float(np.max(r, where=~separating, initial=0.0)) + 1.0
         distance = np.where(separating, apart + np.abs(ev.drift_rad), r)
         np.fill_diagonal(distance, 0.0)
         tree = linkage(squareform(distance, checks=False), method='complete')

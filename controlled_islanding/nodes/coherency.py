@@ -56,6 +56,7 @@ class CoherencyNode(Node):
         self.declare_parameter('max_groups', 8)
         self.declare_parameter('max_sample_age_s', 10.0)
         self.declare_parameter('dtw_band_samples', 30)
+        self.declare_parameter('dtw_all_pairs', False)
         self.declare_parameter('k_rule', DEFAULT_RULE)
         self.k_rule = str(self.get_parameter('k_rule').value)
         if self.k_rule not in RULES:
@@ -67,6 +68,7 @@ class CoherencyNode(Node):
         self.max_groups = int(self.get_parameter('max_groups').value)
         self.max_sample_age_s = float(self.get_parameter('max_sample_age_s').value)
         band = int(self.get_parameter('dtw_band_samples').value)
+        self.all_pairs = bool(self.get_parameter('dtw_all_pairs').value)
         self.band = band if band > 0 else None
         if self.window_s <= 0 or self.min_samples < 2:
             raise NodeSetupError(f'window_s={self.window_s} must be positive and min_samples={self.min_samples} >= 2')
@@ -301,10 +303,12 @@ class CoherencyNode(Node):
             if len(seen) == 1:
                 labels, k, distance = [0], 1, [0.0]
             else:
-                model = DTWCoherency(max_groups=self.max_groups, window=self.band,
-                                     k_rule=self.k_rule).fit(list(block[:, seen].T))
+                model = DTWCoherency(max_groups=self.max_groups, window=self.band, k_rule=self.k_rule,
+                                     all_pairs=self.all_pairs).fit(list(block[:, seen].T))
                 labels, k = [int(g) for g in model.labels_], int(model.n_groups_)
-                distance = [float(x) for x in np.asarray(model.distance_matrix_, dtype=float).ravel()]
+                matrix = np.asarray(model.distance_matrix_, dtype=float)
+                # The message's distance is all pairs or none: the pairs the rule did not need were not computed.
+                distance = [float(x) for x in matrix.ravel()] if not np.isnan(matrix).any() else []
         except Exception as exc:  # the core names what was wrong; the node keeps running
             self.diag.reject('compute_failed', f'coherency over {hi - lo} samples: {exc}')
             return
