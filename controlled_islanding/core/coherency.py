@@ -15,7 +15,8 @@ of a pair still have unequal lengths, which DTW handles.
 
 Dissimilarity: DTW (eq. 3, rad^2) grows with the number of samples, so groups are formed on the RMS angle
 difference along the optimal warping path, r_pq = sqrt(DTW_pq / max(n_p, n_q)) in rad, with n the valid
-samples of each series. It is comparable across window lengths and PMU rates.
+samples of each series. It is comparable across window lengths and PMU rates, and so with ``decimate``, which
+runs DTW on block means (a low-pass filter that keeps the swings under 2 Hz) while the k rule reads every sample.
 
 Choosing k, and whether to split at all: a rule from core/k_rules.py, named by ``k_rule``. The default,
 ``separation``, splits generators whose angle difference is heading for a pole slip (pi rad), by its trend
@@ -40,29 +41,66 @@ import numpy as np
 from controlled_islanding.core.dtw import clean_series, dtw_distance, dtw_distance_matrix
 from controlled_islanding.core.k_rules import DEFAULT_RULE, Evidence, KRuleError, canonical, make_rule, silhouette
 
-__all__ = ['CoherencyError', 'DTWCoherency', 'silhouette']
+__all__ = ['CoherencyError', 'DTWCoherency', 'block_means', 'decimation_factor', 'silhouette']
 
 
 class CoherencyError(ValueError):
     """Series or settings the coherency estimator cannot use."""
 
 
+def block_means(grid: np.ndarray, size: int) -> np.ndarray:
+    """Return the mean of each block of ``size`` samples along the last axis, lost (NaN) samples left out.
+
+    A block with no valid sample is NaN; the last block may be shorter. A block mean is a moving average sampled
+    once a block: its gain at frequency f is |sin(pi f T) / (pi f T)| for a block of T s, 0.94 at 2 Hz for the
+    10 frames/s blocks of a 60 frames/s stream, where inter-area modes lie (0.1 to 2 Hz).
+    """
+    if size < 1:
+        raise CoherencyError(f'decimate must be a whole number >= 1, got {size}')
+    grid = np.asarray(grid, dtype=float)
+    pad = -grid.shape[-1] % size
+    padded = np.concatenate([grid, np.full((*grid.shape[:-1], pad), np.nan)], axis=-1)
+    blocks = padded.reshape(*grid.shape[:-1], -1, size)
+    valid = ~np.isnan(blocks)
+    count = valid.sum(axis=-1)
+    total = np.where(valid, blocks, 0.0).sum(axis=-1)
+    return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
+def decimation_factor(t_s: np.ndarray | Sequence[float], target_fps: float) -> int:
+    """Return the block size that brings samples with time tags t_s (s) down to about target_fps (at least 1).
+
+    The stream's own spacing (the median step between tags) decides, not a nominal rate: a 30 frames/s stream
+    under a 60 frames/s setting gets half the factor.
+    """
+    steps = np.diff(np.asarray(t_s, dtype=float))
+    steps = steps[steps > 0]
+    if not target_fps > 0 or steps.size == 0:
+        return 1
+    return max(1, int(round(1.0 / (target_fps * float(np.median(steps))))))
+
+
 class _PairDistances:
     """DTW (rad^2) and RMS (rad) matrices of mean-referenced series, computed pair by pair as asked (see module doc).
 
-    ``grid`` holds the series on one time grid, (n, longest length), rad, NaN where lost or past a series' end.
-    The matrices hold NaN at pairs not computed yet.
+    ``grid`` holds the series on one time grid, (n, longest length), rad, NaN where lost or past a series' end:
+    what the k rule reads. DTW runs on the same grid, or on its block means of ``decimate`` samples (the band
+    divided alike, rounded up). The matrices hold NaN at pairs not computed yet.
     """
 
-    def __init__(self, series: Sequence[np.ndarray], window: int | None) -> None:
-        self.window = window
-        self.clean = [clean_series(x, f'series {i}') for i, x in enumerate(series)]
-        n = len(self.clean)
+    def __init__(self, series: Sequence[np.ndarray], window: int | None, decimate: int = 1) -> None:
+        for i, x in enumerate(series):
+            clean_series(x, f'series {i}')
+        n = len(series)
         # Start-aligned on one time grid: a shorter series lost its end (or it is not delivered yet).
         length = max(len(x) for x in series)
         self.grid = np.array([np.concatenate([np.asarray(x, dtype=float), np.full(length - len(x), np.nan)])
                               for x in series])
-        valid = ~np.isnan(self.grid)
+        on = block_means(self.grid, decimate) if decimate > 1 else self.grid
+        self.window = window if window is None or decimate == 1 else -(-window // decimate)
+        self.on_grid = on
+        self.clean = [np.ascontiguousarray(row[~np.isnan(row)]) for row in on]
+        valid = ~np.isnan(on)
         self.first = valid.argmax(axis=1)
         self.last = valid.shape[1] - 1 - valid[:, ::-1].argmax(axis=1)
         self.same_span = len(set(self.first.tolist())) == 1 and len(set(self.last.tolist())) == 1
@@ -88,7 +126,7 @@ class _PairDistances:
         # Different spans: each pair over the span both cover.
         for p, q in zip(*np.nonzero(wanted), strict=True):
             lo, hi = max(self.first[p], self.first[q]), min(self.last[p], self.last[q])
-            a, b = self.grid[p][lo:hi + 1], self.grid[q][lo:hi + 1]
+            a, b = self.on_grid[p][lo:hi + 1], self.on_grid[q][lo:hi + 1]
             a, b = a[~np.isnan(a)], b[~np.isnan(b)]
             if min(len(a), len(b)) < 2:
                 a, b = self.clean[p], self.clean[q]
@@ -106,6 +144,9 @@ class DTWCoherency:
         window: Sakoe-Chiba half-width in samples for DTW, or None for none.
         k_rule: Name of a rule in core.k_rules.RULES, or a rule instance (its settings in its constructor).
         random_state: Passed to k-medoids (BUILD initialisation makes it irrelevant; kept for the API).
+        decimate: DTW on block means of this many samples (1: every sample), the band divided alike; the k rule
+            still reads every sample. Inter-area swings lie under 2 Hz, so 10 frames/s keeps them (block_means);
+            DTW's cost falls with the square of the factor. docs/benchmarks.md measures what it changes.
         all_pairs: Compute DTW for every pair. By default only the pairs the grouping reads are computed: none
             when the rule finds no split (the separation rule decides that from the angles alone), and not the
             separating pairs, which it keeps apart whatever their distance. The groups are the same either way.
@@ -121,12 +162,13 @@ class DTWCoherency:
     """
 
     def __init__(self, n_groups: int | None = None, max_groups: int = 8, window: int | None = None,
-                 k_rule=DEFAULT_RULE, random_state: int = 0, all_pairs: bool = False) -> None:
+                 k_rule=DEFAULT_RULE, random_state: int = 0, decimate: int = 1, all_pairs: bool = False) -> None:
         self.n_groups = n_groups
         self.max_groups = max_groups
         self.window = window
         self.k_rule = k_rule
         self.random_state = random_state
+        self.decimate = decimate
         self.all_pairs = all_pairs
 
     def fit(self, series: Sequence[np.ndarray]) -> DTWCoherency:
@@ -155,7 +197,9 @@ class DTWCoherency:
             rule = None if self.n_groups is not None else make_rule(self.k_rule)
         except KRuleError as exc:
             raise CoherencyError(str(exc)) from exc
-        pairs = _PairDistances(series, self.window)
+        if int(self.decimate) != self.decimate or self.decimate < 1:
+            raise CoherencyError(f'decimate must be a whole number >= 1, got {self.decimate!r}')
+        pairs = _PairDistances(series, self.window, int(self.decimate))
         if self.all_pairs:
             pairs.rms_rad()
         cache: dict[int, np.ndarray] = {}

@@ -29,7 +29,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from controlled_islanding import topics
-from controlled_islanding.core.coherency import DTWCoherency
+from controlled_islanding.core.coherency import DTWCoherency, decimation_factor
 from controlled_islanding.core.k_rules import DEFAULT_RULE, RULES
 from controlled_islanding.messages import MAX_REQUEST_ID, MessageError, grid_from_snapshot, split_stamp, stamp_s
 from controlled_islanding.node_common import (
@@ -57,6 +57,7 @@ class CoherencyNode(Node):
         self.declare_parameter('max_sample_age_s', 10.0)
         self.declare_parameter('dtw_band_samples', 30)
         self.declare_parameter('dtw_all_pairs', False)
+        self.declare_parameter('dtw_decimate_to_fps', 0.0)
         self.declare_parameter('k_rule', DEFAULT_RULE)
         self.k_rule = str(self.get_parameter('k_rule').value)
         if self.k_rule not in RULES:
@@ -69,6 +70,9 @@ class CoherencyNode(Node):
         self.max_sample_age_s = float(self.get_parameter('max_sample_age_s').value)
         band = int(self.get_parameter('dtw_band_samples').value)
         self.all_pairs = bool(self.get_parameter('dtw_all_pairs').value)
+        self.decimate_to_fps = float(self.get_parameter('dtw_decimate_to_fps').value)
+        if not (self.decimate_to_fps >= 0 and math.isfinite(self.decimate_to_fps)):
+            raise NodeSetupError(f'dtw_decimate_to_fps={self.decimate_to_fps} must be 0 (off) or a rate in frames/s')
         self.band = band if band > 0 else None
         if self.window_s <= 0 or self.min_samples < 2:
             raise NodeSetupError(f'window_s={self.window_s} must be positive and min_samples={self.min_samples} >= 2')
@@ -303,8 +307,9 @@ class CoherencyNode(Node):
             if len(seen) == 1:
                 labels, k, distance = [0], 1, [0.0]
             else:
+                decimate = decimation_factor(self.t_s[lo:hi], self.decimate_to_fps)
                 model = DTWCoherency(max_groups=self.max_groups, window=self.band, k_rule=self.k_rule,
-                                     all_pairs=self.all_pairs).fit(list(block[:, seen].T))
+                                     decimate=decimate, all_pairs=self.all_pairs).fit(list(block[:, seen].T))
                 labels, k = [int(g) for g in model.labels_], int(model.n_groups_)
                 matrix = np.asarray(model.distance_matrix_, dtype=float)
                 # The message's distance is all pairs or none: the pairs the rule did not need were not computed.
