@@ -303,11 +303,11 @@ class CoherencyNode(Node):
         if len(seen) == 0:
             self.diag.reject('no_data', f'no generator has {self.min_samples} usable samples in the window')
             return
+        decimate = decimation_factor(self.t_s[lo:hi], self.decimate_to_fps)
         try:
             if len(seen) == 1:
                 labels, k, distance = [0], 1, [0.0]
             else:
-                decimate = decimation_factor(self.t_s[lo:hi], self.decimate_to_fps)
                 model = DTWCoherency(max_groups=self.max_groups, window=self.band, k_rule=self.k_rule,
                                      decimate=decimate, all_pairs=self.all_pairs).fit(list(block[:, seen].T))
                 labels, k = [int(g) for g in model.labels_], int(model.n_groups_)
@@ -329,6 +329,7 @@ class CoherencyNode(Node):
         self.diag.computed(time.perf_counter() - t0)
         self.diag.values['k'] = str(msg.k)
         self.diag.values['window_samples'] = str(hi - lo)
+        self.diag.values['dtw_decimate'] = str(decimate)
         self.diag.values['unobserved_generators'] = ','.join(unobserved)[:200]
 
 
