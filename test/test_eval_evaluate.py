@@ -154,6 +154,24 @@ def test_detection_lead_is_measured_against_the_first_pole_slip():
                         step_s=0.5).false_split_s is not None
 
 
+def test_decimation_effect_counts_what_block_means_change():
+    from controlled_islanding import coherency_rules as study
+    from controlled_islanding.bagdata import load_bag
+    from controlled_islanding.benchmarks import decimation_effect
+
+    entries = study.manifest_entries(BAGS / 'index.yaml')
+    scenario = study.scenario_from_bag(load_bag(_bag('ieee39_g6g7_unstable')), entries['ieee39_g6g7_unstable'])
+    short = study.Scenario(scenario.name, scenario.source, scenario.generator_names, scenario.t_s[:420],
+                           scenario.angles_rad[:, :420], 6.5, scenario.truth, scenario.first_pole_slip_s)
+    r = decimation_effect(short, 10.0, step_s=0.5)
+    assert r['factor'] == 6 and r['windows'] == 420 - 180 and 0 <= r['differ'] <= r['windows']
+    assert r['right_at_request'] == (True, True)
+    assert all(d.found_s is not None for d in r['detection']) and len(r['fit_s']) == 2
+    # Decimating to the stream's own rate is no decimation: nothing can differ.
+    same = decimation_effect(short, 60.0, step_s=0.5)
+    assert same['factor'] == 1 and same['differ'] == 0
+
+
 def test_k_rules_page_compares_every_rule(tmp_path, capsys):
     from controlled_islanding.core.k_rules import RULES
 
