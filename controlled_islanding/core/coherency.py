@@ -35,7 +35,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import kmedoids
 import numpy as np
 
 from controlled_islanding.core.dtw import clean_series, dtw_distance, dtw_distance_matrix
@@ -228,5 +227,9 @@ class DTWCoherency:
             return np.zeros(n, dtype=int)
         if k == n:
             return np.arange(n)
+        # Imported here: kmedoids imports scikit-learn, 2 s of CPU at every node start, and the default rule never
+        # clusters by PAM.
+        import kmedoids
+
         result = kmedoids.pam(rms_rad(), k, init='build', random_state=self.random_state)
         return canonical(np.asarray(result.labels, dtype=int))
