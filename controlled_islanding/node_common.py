@@ -499,6 +499,22 @@ class ClockGate:
             self._timer.cancel()
 
 
+def writers_matched(values: dict[str, str], count_subscribers: Callable[[str], int]) -> bool:
+    """Whether a node's /diagnostics values say each of its writers matches every reader seen on its topic.
+
+    That both ends of a topic exist in another process's view does not mean that the writer has matched the
+    reader: under load two nodes found each other seconds later, and pmu_ingestion's volatile rotor angles sent
+    meanwhile never reached coherency. A node that has not reported its writers yet is not wired.
+
+    Args:
+        values: The node's latest /diagnostics key-value pairs.
+        count_subscribers: Topic name -> readers on it, as the caller's node sees the graph.
+
+    """
+    found = [(k[len('matched.'):], int(v)) for k, v in values.items() if k.startswith('matched.')]
+    return bool(found) and all(n >= count_subscribers(t) for t, n in found)
+
+
 def declare_bounded(node: Node, name: str, default: float | int, low: float | int, high: float | int,
                     description: str, read_only: bool = False) -> float | int:
     """Declare a parameter with its range and meaning (read-only: never changed at run time); return its value.

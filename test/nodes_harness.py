@@ -14,7 +14,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
 from controlled_islanding import topics
-from controlled_islanding.node_common import qos_for
+from controlled_islanding.node_common import qos_for, writers_matched
 from controlled_islanding.rosenv import isolated_ros_environment
 from controlled_islanding.supervisor import Supervisor
 
@@ -68,6 +68,16 @@ class Probe:
         """Wait until our publisher on topic has at least count subscribers."""
         assert self.spin_until(lambda: self.pubs[topic].get_subscription_count() >= count, timeout_s), \
             f'no subscriber matched {topic} within {timeout_s} s'
+
+    def wait_wired(self, nodes: tuple[str, ...], timeout_s: float = 20.0) -> None:
+        """Wait until every writer of each node matches every reader of its topic, as its /diagnostics say."""
+        def wired() -> bool:
+            return all(writers_matched(self.diagnostics.get(n, {}), self.node.count_subscribers) for n in nodes)
+
+        if not self.spin_until(wired, timeout_s):
+            seen = {n: {k: v for k, v in self.diagnostics.get(n, {}).items() if k.startswith('matched.')}
+                    for n in nodes}
+            raise AssertionError(f'writers not matched within {timeout_s} s: {seen}')
 
     def counter(self, node: str, key: str) -> int:
         """Return a diagnostics counter of a node (0 if not reported yet)."""

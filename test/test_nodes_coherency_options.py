@@ -32,6 +32,7 @@ def test_decimation_and_all_pairs_reach_the_core(options, decimate, all_pairs):
         groups = probe.collect(CoherentGroups, topics.COHERENT_GROUPS)
         probe.wait_matched(topics.NETWORK_SNAPSHOT, 2)
         probe.wait_matched(topics.PMU_FRAMES, 1)
+        probe.wait_wired(('pmu_ingestion', 'coherency'))
         probe.pubs[topics.NETWORK_SNAPSHOT].publish(snapshot)
         probe.spin_for(0.5)
         for frame in frames:

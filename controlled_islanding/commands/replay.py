@@ -188,7 +188,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
     from rclpy.signals import SignalHandlerOptions
 
     from controlled_islanding import signing
-    from controlled_islanding.node_common import qos_for, settle_heap
+    from controlled_islanding.node_common import qos_for, settle_heap, writers_matched
     from controlled_islanding.rosenv import graph_environment
     from controlled_islanding.supervisor import GRAPH, PIPELINE_POLICY, PLAYER, RECORDER, Supervisor, SupervisorError
 
@@ -304,16 +304,9 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                 wiring: dict[str, tuple[int, int]] = {}
 
                 def matched() -> bool:
-                    # That both ends of a topic exist in this observer's view does not mean that the writer has
-                    # matched the reader: under load, two nodes found each other seconds later, and pmu_ingestion's
-                    # volatile rotor angles before the request never reached coherency (Kundur, load 9). Each node
-                    # says in /diagnostics how many readers its writers match.
-                    for spec in GRAPH:
-                        values = obs.diagnostics.get(f'/{spec.executable}', {})
-                        found = [(k[len('matched.'):], int(v)) for k, v in values.items() if k.startswith('matched.')]
-                        if not found or any(n < node.count_subscribers(t) for t, n in found):
-                            return False
-                    return True
+                    # Kundur at load 9 lost the rotor angles before its request so (writers_matched).
+                    return all(writers_matched(obs.diagnostics.get(f'/{spec.executable}', {}), node.count_subscribers)
+                               for spec in GRAPH)
 
                 stable_since = begun = time.monotonic()
                 while time.monotonic() < begun + 20.0:
