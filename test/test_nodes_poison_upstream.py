@@ -125,6 +125,7 @@ def upstream():
         probe.wait_matched(topics.NETWORK_SNAPSHOT, 2)
         probe.wait_matched(topics.PMU_FRAMES, 1)
         probe.wait_matched(topics.ROTOR_ANGLES, 2)
+        probe.wait_wired(tuple(s.executable for s in NODES))  # as test_nodes_bad_input: volatile angles otherwise lost
         yield up
 
 
