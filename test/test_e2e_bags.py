@@ -110,9 +110,9 @@ KNOWN_WRONG = {
                             'estimated from terminal phasors do not show the bus-3 machine slipping; k = 2 is found',
     'nordic44_bus6000_three_groups': 'at the request (the clearing instant) the machines of buses 5300 and 6100 are '
                                      '20 to 30 deg from their pre-fault angles, and up to it the rotor angles agree '
-                                     'within 2 deg with the same fault cleared 30 ms earlier, which stays '
-                                     'synchronous: nothing can find the final groups yet; they are found 0.3 s later '
-                                     '(docs/coherency_rules.md)',
+                                     'within 2 deg with the same fault cleared 30 ms earlier, which stays one group '
+                                     'for 5 s and slips only at 6.9 s, into other groups: nothing can find the final '
+                                     'groups yet; they are found 0.3 s later (docs/coherency_rules.md)',
 }
 
 

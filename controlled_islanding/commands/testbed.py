@@ -553,8 +553,9 @@ def markdown(results: list[dict], args: argparse.Namespace, figures: list[Path],
             'there (1.80 rad from rest), and the three final groups appear only from 1.60 s; the steady-state '
             "estimates, whose fault-on error hides part of that lead (1.51 rad, below the rule's pi/2), keep one "
             "group, on grid_sim's frames and the recorded bag's alike (they agree within 0.01 rad of rotor angle "
-            'since fbd1a33, 0.08 rad before); the same fault cleared 30 ms earlier, which stays synchronous, is split '
-            'the same way 30 ms after its clearing, so a split there is no evidence yet. Cut off alone, bus 6000 '
+            'since fbd1a33, 0.08 rad before); the same fault cleared 30 ms earlier, which stays one group for 5 s (it '
+            'slips at 6.9 s, into other groups), is split the same way 30 ms after its clearing, so a split there '
+            'is no evidence yet. Cut off alone, bus 6000 '
             'leaves the main island with the machines of buses 5300 and 6100, which slip later, and it is lost. '
             '(6) EI 33: GENROU_53 and 54 have no turbine '
             'governor in EI_33.xlsx, so their island keeps the speed it had at the cut, and whether that is '
