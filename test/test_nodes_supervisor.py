@@ -309,6 +309,40 @@ def test_the_replay_cli_fails_loudly_when_a_node_died_during_it():
     assert json.loads((results / 'summary.json').read_text())['restarts'] == summary['restarts']
 
 
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['ctrl_c', 'sigterm'])
+def test_an_interrupted_replay_says_so_in_its_results_and_leaves_no_node(sig):
+    """Interrupted while the bag plays in real time: no summary, a marker saying why, every node ended."""
+    from controlled_islanding.commands.demo import default_bag
+
+    bag = REPO / 'bags' / default_bag()['bag']
+    if not bag.exists():
+        pytest.skip(f'{bag} is not present')
+    results = BUILD / 'replay_interrupted' / str(time.time_ns())
+    cli = subprocess.Popen([sys.executable, '-m', 'controlled_islanding.cli', 'replay', str(bag), '--isolate',
+                            '--no-figures', '--no-record', '--timeout', '60', '--results', str(results)],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    nodes: dict[str, int] = {}
+    try:
+        end = time.monotonic() + 60.0
+        while not (results / 'player_go.json').exists() and cli.poll() is None and time.monotonic() < end:
+            time.sleep(0.05)
+        nodes = children_of(cli.pid)
+        assert len(nodes) >= 4, f'the replay did not get as far as playing the bag: {nodes}'
+        cli.send_signal(sig)
+        _, err = cli.communicate(timeout=60)
+    finally:
+        if cli.poll() is None:
+            cli.kill()
+            cli.wait(timeout=30)
+    assert cli.returncode != 0, err
+    marker = json.loads((results / 'INTERRUPTED.json').read_text())
+    assert marker['bag'] == str(bag) and marker['interrupted_utc']
+    assert not (results / 'summary.json').exists()
+    left = [name for name, pid in nodes.items() if Path(f'/proc/{pid}').exists()
+            and Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()[0] != 'Z']
+    assert not left, f'nodes outlived the interrupted replay: {left}'
+
+
 # A node that forked a helper into its process group, as andes.load's code generation pool did inside grid_sim
 # (until b5e904f): the shell's background `sleep` ignores SIGINT, as such a worker may.
 GROUP_SCRIPT = textwrap.dedent("""

@@ -70,6 +70,7 @@ REPO = Path(__file__).resolve().parents[2]
 # After the bag ends, a request still unanswered this long (wall, s) is reported as undecided. The nodes
 # give up after at most 2 s (coherency request_wait_s, partitioning groups_wait_s), so this is ample.
 SETTLE_S = 8.0
+INTERRUPTED = 'INTERRUPTED.json'  # in a results folder: the replay was stopped before its summary
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -663,9 +664,16 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
     options = {'fast': fast, 'rate': rate, 'probe_hz': probe_hz, 'timeout_s': timeout_s, 'figures': figures,
                'quiet': quiet, 'arm': arm, 'record': record, 'isolate': isolate, 'namespace': namespace,
                'estimator': estimator}
-    if host_roles:
-        return _replay_on_hosts(bag, results, host_roles, link or wan.LinkModel(), options)
-    return _replay_here(bag, results, **options)
+    try:
+        if host_roles:
+            return _replay_on_hosts(bag, results, host_roles, link or wan.LinkModel(), options)
+        return _replay_here(bag, results, **options)
+    except KeyboardInterrupt:
+        # Ctrl-C or SIGTERM (the supervisor turns it into this), its nodes stopped by now: without summary.json the
+        # folder is unfinished, and this file says so to a reader, as a testbed's does.
+        _write_atomic(results / INTERRUPTED, json.dumps({
+            'interrupted_utc': datetime.now(UTC).isoformat(timespec='seconds'), 'bag': str(bag)}, indent=1) + '\n')
+        raise
 
 
 def _replay_here(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: float, timeout_s: float,
@@ -690,10 +698,15 @@ def _replay_here(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz:
 
 
 def _write_summary(results: Path, summary: dict) -> None:
-    tmp = results / 'summary.json.tmp'
-    tmp.write_text(json.dumps(summary, indent=2, default=str))
-    os.replace(tmp, results / 'summary.json')
-    (results / 'summary.txt').write_text(render(summary) + '\n')
+    _write_atomic(results / 'summary.json', json.dumps(summary, indent=2, default=str))
+    _write_atomic(results / 'summary.txt', render(summary) + '\n')
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    # An interrupted write must not leave a truncated file that reads as a result.
+    tmp = path.with_name(f'.{path.name}.tmp')
+    tmp.write_text(text)
+    os.replace(tmp, path)
 
 
 def _replay_on_hosts(bag: Path, results: Path, hosts: dict[str, tuple[str, ...]], link: wan.LinkModel,
