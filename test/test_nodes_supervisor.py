@@ -338,8 +338,7 @@ def test_an_interrupted_replay_says_so_in_its_results_and_leaves_no_node(sig):
     marker = json.loads((results / 'INTERRUPTED.json').read_text())
     assert marker['bag'] == str(bag) and marker['interrupted_utc']
     assert not (results / 'summary.json').exists()
-    left = [name for name, pid in nodes.items() if Path(f'/proc/{pid}').exists()
-            and Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()[0] != 'Z']
+    left = [name for name, pid in nodes.items() if alive(pid)]
     assert not left, f'nodes outlived the interrupted replay: {left}'
 
 
