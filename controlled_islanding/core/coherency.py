@@ -72,9 +72,11 @@ def decimation_factor(t_s: np.ndarray | Sequence[float], target_fps: float) -> i
     The stream's own spacing (the median step between tags) decides, not a nominal rate: a 30 frames/s stream
     under a 60 frames/s setting gets half the factor.
     """
+    if not target_fps > 0:
+        return 1
     steps = np.diff(np.asarray(t_s, dtype=float))
     steps = steps[steps > 0]
-    if not target_fps > 0 or steps.size == 0:
+    if steps.size == 0:
         return 1
     return max(1, int(round(1.0 / (target_fps * float(np.median(steps))))))
 
