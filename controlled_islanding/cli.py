@@ -13,7 +13,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from controlled_islanding.rosenv import RosEnvError
+from controlled_islanding.graph.rosenv import RosEnvError
 
 SUBCOMMANDS = ('demo', 'replay', 'partition', 'simulate', 'evaluate', 'bench', 'keys', 'fuzz', 'serve-pmu', 'export',
                'testbed')

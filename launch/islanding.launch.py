@@ -1,6 +1,6 @@
 """Start the islanding node graph with native ROS 2 (`ros2 launch controlled_islanding islanding.launch.py`).
 
-It mirrors controlled_islanding.supervisor.GRAPH (same executables, same parameter files), which is what the
+It mirrors controlled_islanding.graph.supervisor.GRAPH (same executables, same parameter files), which is what the
 pip-only path (`controlled-islanding replay/demo`) starts; test_nodes_launch checks the two agree.
 Play a bag into it with: ros2 run controlled_islanding bag_player --ros-args -p bag:=BAG
 

@@ -5,9 +5,10 @@ from __future__ import annotations
 from functools import cache
 from pathlib import Path
 
-from controlled_islanding import breaker_soak, signing
-from controlled_islanding.breaker_soak import boundary, snapshot_msg, two_islands  # noqa: F401  re-exported
 from controlled_islanding.core.grid import Grid
+from controlled_islanding.harness import breaker_soak
+from controlled_islanding.harness.breaker_soak import boundary, snapshot_msg, two_islands  # noqa: F401  re-exported
+from controlled_islanding.safety import signing
 
 BUILD = Path(__file__).resolve().parents[1] / 'build'
 

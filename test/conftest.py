@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from controlled_islanding.rosenv import isolated_ros_environment
+from controlled_islanding.graph.rosenv import isolated_ros_environment
 
 REPO = Path(__file__).resolve().parents[1]
 BUILD = REPO / 'build'

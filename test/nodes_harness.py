@@ -13,10 +13,10 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
-from controlled_islanding import topics
-from controlled_islanding.node_common import qos_for, writers_matched
-from controlled_islanding.rosenv import isolated_ros_environment
-from controlled_islanding.supervisor import Supervisor
+from controlled_islanding.graph.rosenv import isolated_ros_environment
+from controlled_islanding.graph.supervisor import Supervisor
+from controlled_islanding.ros.node_common import qos_for, writers_matched
+from controlled_islanding.wire import topics
 
 BUILD = Path(__file__).resolve().parents[1] / 'build'
 
@@ -155,7 +155,7 @@ def bag_writer(path: Path) -> Iterator[Callable[[str, object, int], bytes]]:
     from rclpy.serialization import serialize_message
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    from controlled_islanding.interfaces import typestore
+    from controlled_islanding.wire.interfaces import typestore
 
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         conns = {}

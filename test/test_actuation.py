@@ -1,11 +1,11 @@
-"""The breaker rules of controlled_islanding.actuation, on six ANDES systems (no rclpy, no processes)."""
+"""The breaker rules of controlled_islanding.safety.actuation, on six ANDES systems (no rclpy, no processes)."""
 
 from __future__ import annotations
 
 import pytest
 from breaker_cases import ANDES_CASES, andes_grid, boundary, two_islands
 
-from controlled_islanding.actuation import Refusal, plan_commands
+from controlled_islanding.safety.actuation import Refusal, plan_commands
 
 pytestmark = pytest.mark.slow  # loading the six ANDES cases and their power flows takes ~12 s once
 

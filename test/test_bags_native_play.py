@@ -20,8 +20,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProf
 from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
 
-from controlled_islanding.interfaces import typestore
-from controlled_islanding.node_common import message_class, qos_for
+from controlled_islanding.ros.node_common import message_class, qos_for
+from controlled_islanding.wire.interfaces import typestore
 
 pytestmark = [pytest.mark.ros]
 

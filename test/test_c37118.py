@@ -1,4 +1,4 @@
-"""controlled_islanding.c37118 against pyc37, an independent C37.118.2 implementation, in both directions.
+"""controlled_islanding.pmu.c37118 against pyc37, an independent C37.118.2 implementation, in both directions.
 
 pyc37 builds CFG-2 and DATA frames in all four phasor formats and our parser must read back what was put in;
 our frames must parse in pyc37 with the same values. Our own round trips cover what pyc37 cannot express
@@ -13,7 +13,7 @@ import random
 
 import pytest
 
-from controlled_islanding import c37118 as c
+from controlled_islanding.pmu import c37118 as c
 
 pyc37_frame = pytest.importorskip('pyc37.frame')
 pyc37_utils = pytest.importorskip('pyc37.utils')

@@ -242,7 +242,7 @@ KNOWN_MISSES = {
     strict=True, reason=KNOWN_MISSES[e['name']])) if e['name'] in KNOWN_MISSES else pytest.param(e, id=e['name'])
     for e in _bag_entries()])
 def test_scenario_bags_truth_groups(entry: dict) -> None:
-    from controlled_islanding.bagdata import load_bag
+    from controlled_islanding.wire.bagdata import load_bag
 
     bag = load_bag(REPO / 'bags' / entry['bag'])
     names, angles = bag_rotor_angles(bag)

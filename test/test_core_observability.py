@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from breaker_cases import ANDES_CASES, andes_grid
 
-from controlled_islanding.benchmarks import regional_groups
 from controlled_islanding.core.islanding import IslandingError, decide
 from controlled_islanding.core.milp import ExactPartition
 from controlled_islanding.core.observability import (
@@ -16,6 +15,7 @@ from controlled_islanding.core.observability import (
     random_placement,
     reactance_distance,
 )
+from controlled_islanding.harness.benchmarks import regional_groups
 
 # GBnetwork's MILP does not finish in a test's time (docs/benchmarks.md); its spectral decision does.
 MILP_CASES = ['ieee14', 'pjm5bus', 'ieee39']

@@ -9,13 +9,13 @@ import pytest
 from breaker_cases import andes_grid
 from scipy.sparse.csgraph import connected_components
 
-from controlled_islanding.benchmarks import regional_groups
 from controlled_islanding.core.grid import Branch, Generator, Grid, Load
 from controlled_islanding.core.islanding import decide
 from controlled_islanding.core.milp import ExactPartition
 from controlled_islanding.core.observability import largest_first
 from controlled_islanding.core.portfolio import PortfolioPartition, disruption_mw, isolating_cut_bound
 from controlled_islanding.core.spectral import ConstrainedSpectralPartition, SpectralError, flow_weights
+from controlled_islanding.harness.benchmarks import regional_groups
 
 
 def observed_groups(grid: Grid, k: int, coverage: float) -> dict[str, int]:

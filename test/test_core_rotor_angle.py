@@ -88,8 +88,8 @@ ROTOR_ANGLE_OFF = {
     strict=True, reason=ROTOR_ANGLE_OFF[p.name])) if p.name in ROTOR_ANGLE_OFF else pytest.param(p, id=p.name)
     for p in _clean_bags()])
 def test_error_against_simulator_truth_before_the_fault(path: Path) -> None:
-    from controlled_islanding.bagdata import load_bag
     from controlled_islanding.sim.scenario import load_scenario
+    from controlled_islanding.wire.bagdata import load_bag
 
     bag = load_bag(path)
     scenario = load_scenario(path.parent / f'{path.name}.yaml')

@@ -194,7 +194,7 @@ def test_fallback_only_where_unit_weights_have_no_beta_on_andes_systems(case: st
     # large group holds 16 (Nordic 44) or 80 (EI 33) generator buses; the small systems keep eq. 6 as written.
     from breaker_cases import andes_grid
 
-    from controlled_islanding.benchmarks import regional_groups
+    from controlled_islanding.harness.benchmarks import regional_groups
 
     grid = andes_grid(case)
     region = regional_groups(grid, 3)
@@ -267,7 +267,7 @@ def test_no_dense_n_by_n_array_at_2224_buses() -> None:
     # GBnetwork: a single n x n float array would be 2224^2 * 8 B = 39.6 MB; the fit must stay well below it.
     import tracemalloc
 
-    from controlled_islanding.benchmarks import case_path
+    from controlled_islanding.harness.benchmarks import case_path
 
     path = case_path('GBnetwork')
     if path is None:
@@ -291,8 +291,8 @@ def test_no_dense_n_by_n_array_at_2224_buses() -> None:
 def test_refinement_lowers_eq9_keeps_islands_valid_and_is_bounded_by_the_milp(case: str, k: int) -> None:
     from breaker_cases import andes_grid
 
-    from controlled_islanding.benchmarks import regional_groups
     from controlled_islanding.core.milp import ExactPartition
+    from controlled_islanding.harness.benchmarks import regional_groups
 
     grid = andes_grid(case)
     groups = regional_groups(grid, k)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from diagnostic_msgs.msg import DiagnosticStatus
 
-from controlled_islanding.node_common import TopicStatus
+from controlled_islanding.ros.node_common import TopicStatus
 
 T0_S = 1_767_225_600.0  # a node clock that runs (sim or wall time), s
 

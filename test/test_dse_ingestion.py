@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controlled_islanding.bagdata import load_bag
 from controlled_islanding.core.dse import MachineData, StreamingDSE
 from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
+from controlled_islanding.wire.bagdata import load_bag
 
 BAG = Path(__file__).resolve().parents[1] / 'bags' / 'ieee39_g6g7_delay'
 
@@ -97,11 +97,11 @@ def test_pmu_ingestion_with_dse_publishes_the_filter_and_falls_back_where_data_a
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
 
-    from controlled_islanding import topics
-    from controlled_islanding.node_common import qos_for
     from controlled_islanding.nodes.grid_sim import frame_msg, snapshot_msg
     from controlled_islanding.nodes.pmu_ingestion import PmuIngestionNode
+    from controlled_islanding.ros.node_common import qos_for
     from controlled_islanding.sim.closed_loop import Frame
+    from controlled_islanding.wire import topics
 
     bare = bag.grid.generators[3].name
     gens = tuple(dataclasses.replace(g, m_s=float('nan')) if g.name == bare else g for g in bag.grid.generators)
@@ -155,8 +155,8 @@ def test_coherency_finds_the_groups_on_the_filter_angles_exactly_when_on_andes_o
     # Why DSE angles find the G6/G7 split 0.15 s after steady-state ones (docs/benchmarks.md): not filter lag, the
     # windows that find it are those that find it on ANDES' own rotor angles; the steady-state estimate finds it
     # earlier through its own error during the fault.
-    from controlled_islanding import coherency_rules as study
     from controlled_islanding.commands.evaluate import _coherency_node_parameters
+    from controlled_islanding.evaluation import coherency_rules as study
 
     params = _coherency_node_parameters()
     settings = {'rule': str(params['k_rule']), 'window_s': float(params['window_s']),

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from controlled_islanding import topics
-from controlled_islanding.bagdata import load_bag
 from controlled_islanding.commands.demo import default_bag
 from controlled_islanding.commands.replay import replay
+from controlled_islanding.wire import topics
+from controlled_islanding.wire.bagdata import load_bag
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -22,9 +22,9 @@ def without_pmu(source: Path, out: Path, generator: str, bus: int) -> None:
     from rosbags.highlevel import AnyReader
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    from controlled_islanding.bagmeta import qos_profile
-    from controlled_islanding.interfaces import typestore
-    from controlled_islanding.node_common import qos_for
+    from controlled_islanding.ros.node_common import qos_for
+    from controlled_islanding.wire.bagmeta import qos_profile
+    from controlled_islanding.wire.interfaces import typestore
 
     store = typestore()
     with AnyReader([source], default_typestore=store) as reader, \

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
-from controlled_islanding import plots
+from controlled_islanding.evaluation import plots
 
 
 def _image(path):

@@ -14,9 +14,9 @@ from pypower.api import ppoption, runpf
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from controlled_islanding import export
 from controlled_islanding.cli import main
 from controlled_islanding.core.grid import Grid
+from controlled_islanding.evaluation import export
 
 BAGS = Path(__file__).resolve().parents[1] / 'bags'
 SPLITS = [e for e in yaml.safe_load((BAGS / 'index.yaml').read_text())['bags'] if e['expected_decision'].get('split')]

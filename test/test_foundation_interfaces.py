@@ -12,7 +12,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from sample_messages import MESSAGE_NAMES, msg_class, plain, sample
 
-from controlled_islanding.interfaces import msg_type_name, typestore
+from controlled_islanding.wire.interfaces import msg_type_name, typestore
 
 ECHO = Path(__file__).with_name('ros_echo.py')
 

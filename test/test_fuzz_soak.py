@@ -16,10 +16,11 @@ from pathlib import Path
 import pytest
 from nodes_harness import graph
 
-from controlled_islanding import fuzzing, topics
 from controlled_islanding.commands.demo import default_bag
-from controlled_islanding.messages import MessageError, grid_from_snapshot
-from controlled_islanding.supervisor import GRAPH
+from controlled_islanding.graph.supervisor import GRAPH
+from controlled_islanding.harness import fuzzing
+from controlled_islanding.wire import topics
+from controlled_islanding.wire.messages import MessageError, grid_from_snapshot
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

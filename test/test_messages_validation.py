@@ -15,7 +15,7 @@ import pytest
 
 from controlled_islanding.core.dse import MachineData
 from controlled_islanding.core.grid import DYNAMIC_FIELDS
-from controlled_islanding.messages import MAX_MODEL_NAME, Limits, MessageError, grid_from_snapshot, groups_from_msg
+from controlled_islanding.wire.messages import MAX_MODEL_NAME, Limits, MessageError, grid_from_snapshot, groups_from_msg
 
 try:
     from hypothesis import given, settings

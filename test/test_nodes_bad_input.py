@@ -25,11 +25,11 @@ from nodes_harness import graph
 from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
 
-from controlled_islanding import topics
 from controlled_islanding.commands.demo import default_bag, manifest_entries
-from controlled_islanding.interfaces import typestore
-from controlled_islanding.messages import MAX_REQUEST_ID
-from controlled_islanding.supervisor import GRAPH
+from controlled_islanding.graph.supervisor import GRAPH
+from controlled_islanding.wire import topics
+from controlled_islanding.wire.interfaces import typestore
+from controlled_islanding.wire.messages import MAX_REQUEST_ID
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -272,7 +272,7 @@ def test_a_burst_into_a_keep_last_1_reader_is_taken_or_counted_as_lost(pipeline)
 
 
 def test_loss_counter_follows_each_writer_by_continuity():
-    from controlled_islanding.node_common import LossCounter
+    from controlled_islanding.ros.node_common import LossCounter
 
     counter = LossCounter()
     assert [counter.seen(s) for s in (5, 6, 9)] == [0, 0, 2]  # the first seen is the start; 7 and 8 lost

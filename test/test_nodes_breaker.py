@@ -22,9 +22,11 @@ from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import GetParameters, SetParameters
 
-from controlled_islanding import breaker_soak, signing, topics
 from controlled_islanding.core.grid import Grid
-from controlled_islanding.supervisor import GRAPH
+from controlled_islanding.graph.supervisor import GRAPH
+from controlled_islanding.harness import breaker_soak
+from controlled_islanding.safety import signing
+from controlled_islanding.wire import topics
 
 BUILD_DIR = Path(__file__).resolve().parents[1] / 'build'
 

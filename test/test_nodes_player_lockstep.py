@@ -19,10 +19,10 @@ from controlled_islanding_msgs.msg import CoherentGroups, IslandingDecision, Isl
 from nodes_harness import BUILD, bag_writer, graph
 from rosgraph_msgs.msg import Clock
 
-from controlled_islanding import topics
-from controlled_islanding.messages import split_stamp, stamp_s
-from controlled_islanding.node_common import qos_for
-from controlled_islanding.supervisor import PLAYER
+from controlled_islanding.graph.supervisor import PLAYER
+from controlled_islanding.ros.node_common import qos_for
+from controlled_islanding.wire import topics
+from controlled_islanding.wire.messages import split_stamp, stamp_s
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

@@ -12,9 +12,9 @@ from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
 from rosgraph_msgs.msg import Clock
 
-from controlled_islanding import topics
-from controlled_islanding.interfaces import typestore
-from controlled_islanding.supervisor import PLAYER, RECORDER
+from controlled_islanding.graph.supervisor import PLAYER, RECORDER
+from controlled_islanding.wire import topics
+from controlled_islanding.wire.interfaces import typestore
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

@@ -19,16 +19,16 @@ from pathlib import Path
 import pytest
 from nodes_harness import graph
 
-from controlled_islanding.supervisor import (
+from controlled_islanding.graph.supervisor import (
     GRAPH,
     NodeSpec,
     RestartRecord,
     Supervisor,
     SupervisorError,
-    config_dir,
     node_command,
 )
-from controlled_islanding.watchdog import RestartPolicy, Watchdog
+from controlled_islanding.graph.watchdog import RestartPolicy, Watchdog
+from controlled_islanding.locations import config_dir
 
 REPO = Path(__file__).resolve().parents[1]
 BUILD = REPO / 'build' / 'test_nodes' / 'supervisor'
@@ -96,7 +96,7 @@ SCRIPT = textwrap.dedent("""
     import signal, sys, time
     signal.signal(signal.SIGINT, signal.default_int_handler)
     from pathlib import Path
-    from controlled_islanding.supervisor import GRAPH, Supervisor
+    from controlled_islanding.graph.supervisor import GRAPH, Supervisor
     import os
     with Supervisor(dict(os.environ), Path(sys.argv[1])) as sup:
         audit = {'audit_log': Path(sys.argv[1]) / 'audit.jsonl'}
@@ -148,8 +148,8 @@ def watch(sup: Supervisor, probe, policy: RestartPolicy) -> dict[str, float]:
     """Watch the supervisor's children under policy; return the heartbeat times the probe keeps, by node."""
     from diagnostic_msgs.msg import DiagnosticArray
 
-    from controlled_islanding import topics
-    from controlled_islanding.node_common import qos_for
+    from controlled_islanding.ros.node_common import qos_for
+    from controlled_islanding.wire import topics
 
     beats: dict[str, float] = {}
     sup.watchdog = Watchdog(policy)
@@ -348,7 +348,7 @@ GROUP_SCRIPT = textwrap.dedent("""
     import os, signal, sys, time
     signal.signal(signal.SIGINT, signal.default_int_handler)
     from pathlib import Path
-    from controlled_islanding.supervisor import GRAPH, Supervisor
+    from controlled_islanding.graph.supervisor import GRAPH, Supervisor
     with Supervisor(dict(os.environ), Path(sys.argv[1])) as sup:
         node = sup.start(GRAPH[0], prefix=['sh', '-c', 'sleep 300 & exec "$@"', 'sh'])
         print(node.pid, flush=True)

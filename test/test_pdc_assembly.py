@@ -7,8 +7,8 @@ import math
 
 import pytest
 
-from controlled_islanding import c37118 as c
-from controlled_islanding.pdc_assembly import (
+from controlled_islanding.pmu import c37118 as c
+from controlled_islanding.pmu.pdc_assembly import (
     ChannelMap,
     PdcAssembler,
     PdcAssemblyError,

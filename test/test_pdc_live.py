@@ -34,10 +34,11 @@ from controlled_islanding_msgs.srv import SetArmed
 from nodes_harness import BUILD, graph
 from rosgraph_msgs.msg import Clock
 
-from controlled_islanding import signing, topics
 from controlled_islanding.commands.demo import default_bag
-from controlled_islanding.node_common import qos_for
-from controlled_islanding.supervisor import GRAPH, PLAYER, NodeSpec
+from controlled_islanding.graph.supervisor import GRAPH, PLAYER, NodeSpec
+from controlled_islanding.ros.node_common import qos_for
+from controlled_islanding.safety import signing
+from controlled_islanding.wire import topics
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -206,7 +207,7 @@ def bag_frame_tags_ns(bag: Path) -> np.ndarray:
     """Return the time tags of a bag's PMU frames, ns, ascending."""
     from rosbags.highlevel import AnyReader
 
-    from controlled_islanding.interfaces import typestore
+    from controlled_islanding.wire.interfaces import typestore
 
     with AnyReader([bag], default_typestore=typestore()) as reader:
         conns = [c for c in reader.connections if c.topic == topics.PMU_FRAMES]

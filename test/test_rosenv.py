@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from controlled_islanding.commands import replay
-from controlled_islanding.rosenv import FIRST_DOMAIN_ID, LAST_DOMAIN_ID, RosEnvError, graph_environment
+from controlled_islanding.graph.rosenv import FIRST_DOMAIN_ID, LAST_DOMAIN_ID, RosEnvError, graph_environment
 
 REPO = Path(__file__).resolve().parents[1]
 

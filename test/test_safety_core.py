@@ -11,11 +11,11 @@ from types import SimpleNamespace
 
 import pytest
 
-from controlled_islanding import signing
-from controlled_islanding.audit import AuditError, AuditLog, read_state
 from controlled_islanding.core.grid import Grid
-from controlled_islanding.timebounds import StampError, StampGate
-from controlled_islanding.topology import Topology, TopologyError
+from controlled_islanding.safety import signing
+from controlled_islanding.safety.audit import AuditError, AuditLog, read_state
+from controlled_islanding.safety.topology import Topology, TopologyError
+from controlled_islanding.wire.timebounds import StampError, StampGate
 
 
 # --- audit ------------------------------------------------------------------------------------------------------
@@ -190,7 +190,7 @@ def test_processes_initialising_one_directory_at_once_leave_matching_pairs(tmp_p
     # Two replays started together on a fresh key directory once left one's private key beside the other's public.
     from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
 
-    code = 'import sys; from controlled_islanding import signing; signing.init_keys(sys.argv[1])'
+    code = 'import sys; from controlled_islanding.safety import signing; signing.init_keys(sys.argv[1])'
     for attempt in range(3):
         directory = tmp_path / str(attempt)
         children = [subprocess.Popen([sys.executable, '-c', code, str(directory)]) for _ in range(6)]

@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 import yaml
 
-from controlled_islanding import topics
-from controlled_islanding.bagdata import BagData, load_bag
-from controlled_islanding.interfaces import msg_type_name
 from controlled_islanding.sim.manifest import build_manifest, scenario_files
 from controlled_islanding.sim.scenario import load_scenario
+from controlled_islanding.wire import topics
+from controlled_islanding.wire.bagdata import BagData, load_bag
+from controlled_islanding.wire.interfaces import msg_type_name
 
 BAGS = Path(__file__).resolve().parents[1] / 'bags'
 MANIFEST = yaml.safe_load((BAGS / 'index.yaml').read_text())['bags']
@@ -215,12 +215,12 @@ def test_a_sample_of_bags_regenerates_with_the_same_messages(tmp_path: Path) -> 
 
 @pytest.mark.parametrize('case,richest', [('ieee14/ieee14_full.xlsx', 'genrou'), ('5bus/pjm5bus.xlsx', 'classical')])
 def test_the_snapshot_carries_each_machines_dynamic_data_from_andes_through_the_bag_format(case, richest) -> None:
-    from controlled_islanding.bagdata import _grid_from_snapshot
     from controlled_islanding.core.dse import MachineData
-    from controlled_islanding.interfaces import typestore
-    from controlled_islanding.messages import grid_from_snapshot
     from controlled_islanding.sim.andes_sim import power_flow_grid
     from controlled_islanding.sim.bag import _Messages, _snapshot_msg
+    from controlled_islanding.wire.bagdata import _grid_from_snapshot
+    from controlled_islanding.wire.interfaces import typestore
+    from controlled_islanding.wire.messages import grid_from_snapshot
 
     grid = power_flow_grid(case)
     sent = MachineData.of_generators(grid.generators)
@@ -240,8 +240,8 @@ def test_message_comparison_forgives_rounding_only() -> None:
 
     from rosbags.highlevel import AnyReader
 
-    from controlled_islanding.interfaces import typestore
     from controlled_islanding.sim.bag import _same_fields
+    from controlled_islanding.wire.interfaces import typestore
 
     with AnyReader([BAGS / 'pjm5bus_three_groups'], default_typestore=typestore()) as reader:
         frame = next(reader.deserialize(raw, c.msgtype) for c, _t, raw in reader.messages()

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from controlled_islanding.sim.closed_loop import LoopConfig, Sample, assess, generation_to_reject, out_of_step
-from controlled_islanding.topics import GLOBAL
+from controlled_islanding.wire.topics import GLOBAL
 
 REPO = Path(__file__).resolve().parents[1]
 BUILD = REPO / 'build'

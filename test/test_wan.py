@@ -1,4 +1,4 @@
-"""Deployment across emulated hosts (controlled_islanding.wan, `replay --hosts`).
+"""Deployment across emulated hosts (controlled_islanding.graph.wan, `replay --hosts`).
 
 The default bag across three network namespaces over a delayed, lossy WAN reaches the manifest's decision and
 breaker command, and no namespace can reach past the emulated WAN.
@@ -16,11 +16,11 @@ import pytest
 from nodes_harness import graph
 from test_e2e_bags import ENTRIES, REPO, check_breaker_rules, check_decision, results_dir
 
-from controlled_islanding import wan
 from controlled_islanding.commands.demo import default_bag
 from controlled_islanding.commands.replay import replay
-from controlled_islanding.node_common import DECISION_LEASE_S
-from controlled_islanding.supervisor import GRAPH
+from controlled_islanding.graph import wan
+from controlled_islanding.graph.supervisor import GRAPH
+from controlled_islanding.ros.node_common import DECISION_LEASE_S
 
 UNAVAILABLE = wan.unavailable_reason()
 
@@ -91,8 +91,8 @@ def test_default_bag_across_three_hosts_over_a_lossy_wan_reaches_the_manifest_de
 CONTROL_CENTRE = """
 import rclpy
 from controlled_islanding_msgs.msg import IslandingDecision
-from controlled_islanding import topics
-from controlled_islanding.node_common import qos_for
+from controlled_islanding.wire import topics
+from controlled_islanding.ros.node_common import qos_for
 rclpy.init()
 node = rclpy.create_node('partitioning')
 node.create_publisher(IslandingDecision, topics.relative(topics.ISLANDING_DECISION), qos_for(topics.ISLANDING_DECISION))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from controlled_islanding.watchdog import ActionKind, RestartPolicy, Watchdog, WatchdogError
+from controlled_islanding.graph.watchdog import ActionKind, RestartPolicy, Watchdog, WatchdogError
 
 POLICY = RestartPolicy(nodes=frozenset({'coherency', 'partitioning'}), backoff_initial_s=0.5, backoff_factor=2.0,
                        backoff_max_s=3.0, max_restarts=4, restart_window_s=60.0, hang_timeout_s=5.0,

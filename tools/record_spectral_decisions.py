@@ -25,10 +25,10 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from controlled_islanding.benchmarks import case_path, regional_groups  # noqa: E402
 from controlled_islanding.core.grid import Grid  # noqa: E402
 from controlled_islanding.core.islanding import evaluate_partition  # noqa: E402
 from controlled_islanding.core.spectral import ConstrainedSpectralPartition, SpectralError  # noqa: E402
+from controlled_islanding.harness.benchmarks import case_path, regional_groups  # noqa: E402
 
 PAPER = {
     'case1': (['16-17', '1-2'], [[30, 37, 38], [31, 32, 33, 34, 35, 36, 39]]),
@@ -60,7 +60,7 @@ def sized_groups(grid: Grid, sizes: list[int]) -> dict[str, int]:
 
 def cases(skip_large: bool):
     """Yield (name, grid, groups, beta)."""
-    from controlled_islanding.bagdata import load_bag
+    from controlled_islanding.wire.bagdata import load_bag
 
     for entry in yaml.safe_load((REPO / 'bags' / 'index.yaml').read_text())['bags']:
         path = REPO / 'bags' / entry['bag']

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from controlled_islanding.benchmarks import case_path, load_average, time_call, time_interleaved
 from controlled_islanding.cli import CliError
+from controlled_islanding.harness.benchmarks import case_path, load_average, time_call, time_interleaved
 
 HELP = ('benchmark: DTW against dtaidistance, the core pipeline, a whole decision on any case, partition '
         'scaling, rotor angle DSE')
@@ -138,8 +138,8 @@ def _bag_case(bags: Path):
     """Return (label, grid with trips, rotor angle series) from the first split bag, or None."""
     import yaml
 
-    from controlled_islanding.bagdata import load_bag
     from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
+    from controlled_islanding.wire.bagdata import load_bag
 
     index = bags / 'index.yaml'
     if not index.exists():
@@ -214,8 +214,8 @@ def bench_rotor_angle_error(bags: Path) -> None:
     """Print the rotor angle estimation error against the simulator's truth on every bag without impairments."""
     import yaml
 
-    from controlled_islanding.bagdata import load_bag
     from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
+    from controlled_islanding.wire.bagdata import load_bag
 
     index = bags / 'index.yaml'
     if not index.exists():
@@ -265,16 +265,16 @@ def _groups_at(t_s: np.ndarray, angles_rad: np.ndarray, end_s: float, window_s: 
 
 def bench_dse(bags: Path, names: list[str] | None) -> None:
     """Print the DSE's rotor angle error against the steady-state estimate, and its cost per frame."""
-    from controlled_islanding.benchmarks import (
+    from controlled_islanding.core import dse_kernel  # noqa: F401  (loaded here, not in the first row's time)
+    from controlled_islanding.core.dse import RotorAngleDSE
+    from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
+    from controlled_islanding.harness.benchmarks import (
         DEAD_TERMINAL_PU,
         DSE_SCENARIOS,
         dse_cost_per_frame,
         rotor_angle_errors,
         same_grouping,
     )
-    from controlled_islanding.core import dse_kernel  # noqa: F401  (loaded here, not in the first row's time)
-    from controlled_islanding.core.dse import RotorAngleDSE
-    from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
 
     def steady(m, t, *phasors):
         return estimate_rotor_angle_rad(*phasors, m.xq_pu, m.ra_pu)
@@ -346,10 +346,10 @@ def bench_case(name: str, repeat: int, band: int = 30, samples: int = 240) -> No
     """Print the whole decision on one case against dtaidistance's parallel matrix on the same series."""
     from dtaidistance import dtw as dtai
 
-    from controlled_islanding.benchmarks import regional_groups, regional_swings
     from controlled_islanding.core.coherency import DTWCoherency
     from controlled_islanding.core.dtw import dtw_distance_matrix
     from controlled_islanding.core.islanding import decide
+    from controlled_islanding.harness.benchmarks import regional_groups, regional_swings
 
     grid = _grid(name)
     if grid is None:
@@ -405,10 +405,10 @@ def bench_scaling(cases: list[str], milp_limit_s: float) -> None:
     """Print the partition scaling table, the exact MILP beside it as the peer."""
     import tracemalloc
 
-    from controlled_islanding.benchmarks import regional_groups
     from controlled_islanding.core.islanding import evaluate_partition
     from controlled_islanding.core.milp import ExactPartition, MilpError
     from controlled_islanding.core.spectral import ConstrainedSpectralPartition, SpectralError, repair_partition
+    from controlled_islanding.harness.benchmarks import regional_groups
 
     print(f'Partition scaling: regional groups; spectral = eqs. 4-8 + PAM (fit) then repair; MILP limit '
           f'{milp_limit_s:g} s (peer, same groups); fit s = the better of two; memory = traced peak of the fit '
@@ -457,10 +457,10 @@ def bench_scaling(cases: list[str], milp_limit_s: float) -> None:
 
 def bench_decimation(bags: Path, target_fps: float) -> None:
     """Print, per manifest bag, what DTW on block means down to target_fps changes against DTW on every sample."""
-    from controlled_islanding import coherency_rules as study
-    from controlled_islanding.bagdata import load_bag
-    from controlled_islanding.benchmarks import decimation_effect
     from controlled_islanding.commands.evaluate import _coherency_node_parameters
+    from controlled_islanding.evaluation import coherency_rules as study
+    from controlled_islanding.harness.benchmarks import decimation_effect
+    from controlled_islanding.wire.bagdata import load_bag
 
     if not target_fps > 0:
         raise CliError(f'--decimation must be a positive rate in frames/s, got {target_fps}')
@@ -490,9 +490,9 @@ def bench_dse_decisions(bags: Path) -> None:
     """Print, per manifest bag, groups and decision at the request on steady-state against DSE angles."""
     from collections import Counter
 
-    from controlled_islanding import coherency_rules as study
-    from controlled_islanding.benchmarks import estimator_decisions
     from controlled_islanding.commands.evaluate import _coherency_node_parameters
+    from controlled_islanding.evaluation import coherency_rules as study
+    from controlled_islanding.harness.benchmarks import estimator_decisions
 
     params = _coherency_node_parameters()
     band = int(params.get('dtw_band_samples', 30)) or None
@@ -522,11 +522,11 @@ def bench_dse_decisions(bags: Path) -> None:
 
 
 def bench_wan(bags: Path, repeat: int, results: Path | None) -> None:
-    """Print the latency table across the emulated WAN (controlled_islanding.wan_bench)."""
+    """Print the latency table across the emulated WAN (controlled_islanding.harness.wan_bench)."""
     from datetime import UTC, datetime
 
     from controlled_islanding.commands.demo import default_bag
-    from controlled_islanding.wan_bench import render, run_bench, silence_table
+    from controlled_islanding.harness.wan_bench import render, run_bench, silence_table
 
     bag = bags / default_bag()['bag']
     stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
@@ -545,7 +545,7 @@ def bench_latency(bags: Path, rounds: int, repeat: int) -> None:
     from datetime import UTC, datetime
 
     from controlled_islanding.commands.demo import default_bag
-    from controlled_islanding.latency_bench import LatencyBenchError, check_fifo_permitted, render, run_bench
+    from controlled_islanding.harness.latency_bench import LatencyBenchError, check_fifo_permitted, render, run_bench
 
     if rounds < 1:
         raise CliError(f'--rounds must be >= 1, got {rounds}')

@@ -19,9 +19,9 @@ import numpy as np
 from controlled_islanding.cli import CliError
 
 if TYPE_CHECKING:
-    from controlled_islanding.coherency_rules import Detection
     from controlled_islanding.core.grid import Grid
     from controlled_islanding.core.islanding import IslandingDecision
+    from controlled_islanding.evaluation.coherency_rules import Detection
 
 HELP = 'compare DTW islanding with the correlation and community baselines and the exact MILP optimum'
 DESCRIPTION = """\
@@ -229,7 +229,7 @@ def run(args) -> int:
         raise CliError(f'--window-s ({args.window_s}) and --time-limit-s ({args.time_limit_s}) must be positive '
                        f'and --max-groups ({args.max_groups}) at least 2, --dtw-band-samples '
                        f'({args.dtw_band_samples}) not negative')
-    from controlled_islanding.bagdata import BagDataError, load_bag
+    from controlled_islanding.wire.bagdata import BagDataError, load_bag
 
     bags = []
     for path in args.bags:
@@ -288,7 +288,7 @@ def run(args) -> int:
 
 def _compare_rules(args, bags) -> int:
     """Compare every k rule on the bags and the --andes scenarios; print the tables and write the page."""
-    from controlled_islanding import coherency_rules as study
+    from controlled_islanding.evaluation import coherency_rules as study
 
     scenarios = []
     for bag in bags:
@@ -318,8 +318,8 @@ def _compare_rules(args, bags) -> int:
 
 def _sweep_observability(args, bags) -> int:
     """Sweep PMU coverage on every bag; print the table and write the page."""
-    from controlled_islanding import coherency_rules as study
-    from controlled_islanding import observability_sweep as obs
+    from controlled_islanding.evaluation import coherency_rules as study
+    from controlled_islanding.evaluation import observability_sweep as obs
 
     if not bags:
         raise CliError('--observability needs at least one BAG')
@@ -343,7 +343,7 @@ def _sweep_observability(args, bags) -> int:
 
 def _manifest_entry(bag) -> dict | None:
     """Return the bag's entry in the bags/index.yaml beside it (None if there is none)."""
-    from controlled_islanding.coherency_rules import manifest_entries
+    from controlled_islanding.evaluation.coherency_rules import manifest_entries
 
     return manifest_entries(bag.path.parent / 'index.yaml').get(bag.path.name)
 
@@ -474,8 +474,8 @@ def generator_series(bag, start_s: float, end_s: float) -> tuple[np.ndarray, lis
         EvaluateError: A generator without a PMU at its bus, or fewer than 2 valid samples for one.
 
     """
-    from controlled_islanding.bagdata import BagDataError
     from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
+    from controlled_islanding.wire.bagdata import BagDataError
 
     grid = bag.grid
     try:
@@ -500,7 +500,7 @@ def evaluate_bag(bag, *, window_s: float = 3.0, max_groups: int = 4, dtw_band: i
     """Run every method on one scenario bag.
 
     Args:
-        bag: A BagData (controlled_islanding.bagdata.load_bag).
+        bag: A BagData (controlled_islanding.wire.bagdata.load_bag).
         window_s: Rotor-angle window before the islanding request, s.
         max_groups: Most coherent groups considered.
         dtw_band: Sakoe-Chiba half-width of the DTW path, samples (None = none).
@@ -515,10 +515,10 @@ def evaluate_bag(bag, *, window_s: float = 3.0, max_groups: int = 4, dtw_band: i
         EvaluateError: The bag's PMU data cannot give rotor angles for every generator.
 
     """
-    from controlled_islanding import coherency_rules as study
     from controlled_islanding.core.coherency import DTWCoherency
     from controlled_islanding.core.correlation import CorrelationCoherency
     from controlled_islanding.core.k_rules import DEFAULT_RULE
+    from controlled_islanding.evaluation import coherency_rules as study
 
     k_rule = k_rule or DEFAULT_RULE
     end_s = request_time_s(bag)
@@ -708,7 +708,7 @@ def format_case(case: CaseReport) -> str:
     if case.truth_groups is not None:
         lines += [f'True coherent groups (final grouping): {_group_text(case.truth_groups)}', '']
     if case.detection is not None:
-        from controlled_islanding.coherency_rules import detection_text
+        from controlled_islanding.evaluation.coherency_rules import detection_text
 
         truth_k = len(set((case.truth_groups or {}).values()))
         slip = 'never' if case.first_pole_slip_s is None else f'{case.first_pole_slip_s:.2f} s'
@@ -777,7 +777,7 @@ def write_figures(case: CaseReport, folder: Path, *, bag=None, window_s: float =
         Figure name -> path.
 
     """
-    from controlled_islanding import plots
+    from controlled_islanding.evaluation import plots
 
     out: dict[str, Path] = {}
     dtw = next((r for r in case.rows if r.method.startswith('dtw') and r.groups is not None), None)

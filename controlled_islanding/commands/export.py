@@ -72,7 +72,7 @@ def _manifest_case(bag: str) -> tuple[str | None, str | None, list[str]]:
 
 def run(args: argparse.Namespace) -> int:
     """Export the decision."""
-    from controlled_islanding import export
+    from controlled_islanding.evaluation import export
 
     try:
         summary = json.loads(args.decision.read_text())

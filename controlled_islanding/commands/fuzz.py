@@ -88,8 +88,8 @@ def _manifest_entry(bag: Path | None) -> tuple[Path, dict]:
 
 def run(args: argparse.Namespace) -> int:
     """Run the soak and print its tables (or JSON)."""
-    from controlled_islanding import fuzzing
     from controlled_islanding.commands.replay import namespace_name
+    from controlled_islanding.harness import fuzzing
 
     namespace = namespace_name(args.namespace)
     if args.breaker_trials:
@@ -127,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_breaker_soak(args: argparse.Namespace) -> int:
-    from controlled_islanding import breaker_soak
+    from controlled_islanding.harness import breaker_soak
 
     if args.breaker_trials < 1:
         raise CliError(f'--breaker-trials {args.breaker_trials} must be at least 1')

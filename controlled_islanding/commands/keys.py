@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from controlled_islanding import signing
 from controlled_islanding.cli import CliError
+from controlled_islanding.safety import signing
 
 HELP = 'make the Ed25519 keys that sign decisions and arm/disarm requests'
 DESCRIPTION = """\

@@ -16,8 +16,9 @@ from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
-from controlled_islanding import topics, wan
 from controlled_islanding.cli import CliError
+from controlled_islanding.graph import wan
+from controlled_islanding.wire import topics
 
 HELP = 'replay a bag through the ROS 2 node graph and print its islanding decision'
 DESCRIPTION = """\
@@ -142,7 +143,7 @@ def _bag_topics(bag: Path) -> dict[str, int]:
     """Return message counts by topic of the bag (the player withholds /truth topics)."""
     from rosbags.highlevel import AnyReader
 
-    from controlled_islanding.interfaces import typestore
+    from controlled_islanding.wire.interfaces import typestore
 
     try:
         with AnyReader([bag], default_typestore=typestore()) as reader:
@@ -188,10 +189,17 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.signals import SignalHandlerOptions
 
-    from controlled_islanding import signing
-    from controlled_islanding.node_common import qos_for, settle_heap, writers_matched
-    from controlled_islanding.rosenv import graph_environment
-    from controlled_islanding.supervisor import GRAPH, PIPELINE_POLICY, PLAYER, RECORDER, Supervisor, SupervisorError
+    from controlled_islanding.graph.rosenv import graph_environment
+    from controlled_islanding.graph.supervisor import (
+        GRAPH,
+        PIPELINE_POLICY,
+        PLAYER,
+        RECORDER,
+        Supervisor,
+        SupervisorError,
+    )
+    from controlled_islanding.ros.node_common import qos_for, settle_heap, writers_matched
+    from controlled_islanding.safety import signing
 
     # The demo and replays sign with the user's keys, made on first use, outside the repository.
     key_dir = signing.default_key_dir()
@@ -428,7 +436,7 @@ def refused(summary: dict) -> bool:
 
 def _groups_dict(obs: Observation, request_stamp: object | None) -> dict:
     """Describe the groups the decision used: the newest published up to its request (else the newest)."""
-    from controlled_islanding.messages import stamp_s
+    from controlled_islanding.wire.messages import stamp_s
 
     if not obs.groups:
         return {}
@@ -586,9 +594,9 @@ def write_figures(bag: Path, results: Path, summary: dict) -> list[Path]:
     import numpy as np
     from rosbags.highlevel import AnyReader
 
-    from controlled_islanding import plots
-    from controlled_islanding.interfaces import typestore
-    from controlled_islanding.messages import grid_from_snapshot, stamp_s
+    from controlled_islanding.evaluation import plots
+    from controlled_islanding.wire.interfaces import typestore
+    from controlled_islanding.wire.messages import grid_from_snapshot, stamp_s
 
     out_bag = results / 'output_bag'
     t, rows, names, grid, trips = [], [], None, None, []
@@ -912,7 +920,7 @@ def child_main(argv: list[str]) -> int:
     """Run one replay of a regression run: `replay` with these arguments, as the command line would."""
     parser = argparse.ArgumentParser(prog='controlled-islanding replay')
     add_arguments(parser)
-    from controlled_islanding.rosenv import RosEnvError
+    from controlled_islanding.graph.rosenv import RosEnvError
 
     try:
         return run(parser.parse_args(argv))

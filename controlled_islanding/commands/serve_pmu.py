@@ -63,7 +63,7 @@ def _interrupt(*_: object) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Serve the bag until Ctrl-C (or, with --once, until one stream is complete)."""
-    from controlled_islanding.pmu_stream import PmuServer, PmuStreamError, load_bag_stream
+    from controlled_islanding.pmu.stream import PmuServer, PmuStreamError, load_bag_stream
 
     if not args.bag.exists():
         raise CliError(f'bag {args.bag} does not exist')

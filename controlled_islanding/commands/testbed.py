@@ -13,8 +13,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from controlled_islanding import topics
 from controlled_islanding.cli import CliError
+from controlled_islanding.wire import topics
 
 HELP = 'run a scenario closed-loop (ANDES as the grid, the four nodes deciding) and compare with no action and MILP'
 DESCRIPTION = """\
@@ -134,10 +134,10 @@ def run_closed_loop(scenario: Path, results: Path, *, rate: float, params: dict[
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.signals import SignalHandlerOptions
 
-    from controlled_islanding import signing
-    from controlled_islanding.node_common import qos_for
-    from controlled_islanding.rosenv import graph_environment
-    from controlled_islanding.supervisor import GRAPH, PIPELINE_POLICY, NodeSpec, Supervisor, SupervisorError
+    from controlled_islanding.graph.rosenv import graph_environment
+    from controlled_islanding.graph.supervisor import GRAPH, PIPELINE_POLICY, NodeSpec, Supervisor, SupervisorError
+    from controlled_islanding.ros.node_common import qos_for
+    from controlled_islanding.safety import signing
 
     key_dir = Path(os.environ.get('CONTROLLED_ISLANDING_KEYS') or signing.default_key_dir())
     signing.init_keys(key_dir)
@@ -351,7 +351,7 @@ def _write(path: Path, text: str) -> None:
 
 
 def _figure(scenario: Any, result: dict, trajectories: dict, loop_traj: dict, path: Path) -> Path:
-    from controlled_islanding import plots
+    from controlled_islanding.evaluation import plots
 
     decision = result['decision'] or {}
     bus_island = {b: isl['island'] for isl in decision.get('islands', []) for b in isl['buses']}
@@ -629,7 +629,7 @@ def run(args: argparse.Namespace) -> int:
     if results_dir.exists():
         raise CliError(f'results folder {results_dir} exists; name a new one')
     results_dir.mkdir(parents=True)
-    from controlled_islanding.supervisor import sigterm_as_interrupt
+    from controlled_islanding.graph.supervisor import sigterm_as_interrupt
 
     with sigterm_as_interrupt():  # the baselines run with no supervisor open: a SIGTERM there is marked too
         return _run_all(paths, results_dir, args)

@@ -52,9 +52,9 @@ from rclpy.qos import DurabilityPolicy
 from rosbags.highlevel import AnyReader
 from rosgraph_msgs.msg import Clock
 
-from controlled_islanding import topics
-from controlled_islanding.interfaces import typestore
-from controlled_islanding.node_common import Diagnostics, NodeSetupError, message_class, qos_for, spin_node
+from controlled_islanding.ros.node_common import Diagnostics, NodeSetupError, message_class, qos_for, spin_node
+from controlled_islanding.wire import topics
+from controlled_islanding.wire.interfaces import typestore
 
 _STAMP_ROUNDING_NS = 1_000
 _POLL_S = 0.02  # longest spin between two looks at a wait's condition, s

@@ -30,11 +30,8 @@ from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from controlled_islanding import signing, topics
-from controlled_islanding.actuation import Refusal, plan_commands
-from controlled_islanding.audit import AuditError, AuditLog
-from controlled_islanding.messages import Limits, MessageError, grid_from_snapshot, stamp_s
-from controlled_islanding.node_common import (
+from controlled_islanding.locations import config_dir
+from controlled_islanding.ros.node_common import (
     DECISION_LEASE_S,
     ClockGate,
     Diagnostics,
@@ -42,8 +39,12 @@ from controlled_islanding.node_common import (
     qos_for,
     spin_node,
 )
-from controlled_islanding.supervisor import config_dir
-from controlled_islanding.topology import Topology, TopologyError
+from controlled_islanding.safety import signing
+from controlled_islanding.safety.actuation import Refusal, plan_commands
+from controlled_islanding.safety.audit import AuditError, AuditLog
+from controlled_islanding.safety.topology import Topology, TopologyError
+from controlled_islanding.wire import topics
+from controlled_islanding.wire.messages import Limits, MessageError, grid_from_snapshot, stamp_s
 
 _MAX_ID_CHARS = 128
 _NOT_DECIDED = {

@@ -28,11 +28,9 @@ from controlled_islanding_msgs.msg import CoherentGroups, IslandingRequest, Netw
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
-from controlled_islanding import topics
 from controlled_islanding.core.coherency import DTWCoherency, decimation_factor
 from controlled_islanding.core.k_rules import DEFAULT_RULE, RULES
-from controlled_islanding.messages import MAX_REQUEST_ID, MessageError, grid_from_snapshot, split_stamp, stamp_s
-from controlled_islanding.node_common import (
+from controlled_islanding.ros.node_common import (
     ClockGate,
     Diagnostics,
     NodeSetupError,
@@ -41,6 +39,8 @@ from controlled_islanding.node_common import (
     qos_for,
     spin_node,
 )
+from controlled_islanding.wire import topics
+from controlled_islanding.wire.messages import MAX_REQUEST_ID, MessageError, grid_from_snapshot, split_stamp, stamp_s
 
 
 class CoherencyNode(Node):

@@ -63,10 +63,8 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
-from controlled_islanding import topics
 from controlled_islanding.core.grid import Grid
-from controlled_islanding.messages import dynamic_data_fields
-from controlled_islanding.node_common import Diagnostics, NodeSetupError, qos_for, spin_node
+from controlled_islanding.ros.node_common import Diagnostics, NodeSetupError, qos_for, spin_node
 from controlled_islanding.sim.bag import PDC_FRAME_ID, START_TIME_UNIX_S
 from controlled_islanding.sim.closed_loop import (
     ClosedLoopError,
@@ -79,6 +77,8 @@ from controlled_islanding.sim.closed_loop import (
     out_of_step,
 )
 from controlled_islanding.sim.scenario import ScenarioError, load_scenario
+from controlled_islanding.wire import topics
+from controlled_islanding.wire.messages import dynamic_data_fields
 
 ASSESSMENT_TOPIC = '/grid/assessment'
 _START_NS = START_TIME_UNIX_S * 1_000_000_000

@@ -15,7 +15,7 @@ separation, and a periodic grouping can reach this node after the request while 
 being computed. The node waits at most `groups_wait_s` of wall time, then takes any grouping within
 `groups_tolerance_s`, or refuses. The network is the newest snapshot
 stamped at or before T with every branch status change stamped after it and at or before T
-(`controlled_islanding.topology`).
+(`controlled_islanding.safety.topology`).
 Every stamp from the wire is bounded by the node clock (`future_tolerance_s`), so no single message can become
 "the newest" for good.
 
@@ -40,21 +40,11 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
-from controlled_islanding import signing, topics
 from controlled_islanding.core.islanding import IslandingDecision as Decision
 from controlled_islanding.core.islanding import decide, warm_up
 from controlled_islanding.core.portfolio import PortfolioPartition
 from controlled_islanding.core.spectral import ConstrainedSpectralPartition
-from controlled_islanding.messages import (
-    MAX_REQUEST_ID,
-    Groups,
-    Limits,
-    MessageError,
-    grid_from_snapshot,
-    groups_from_msg,
-    stamp_s,
-)
-from controlled_islanding.node_common import (
+from controlled_islanding.ros.node_common import (
     ClockGate,
     Diagnostics,
     NodeSetupError,
@@ -63,7 +53,18 @@ from controlled_islanding.node_common import (
     settle_heap,
     spin_node,
 )
-from controlled_islanding.topology import Topology, TopologyError
+from controlled_islanding.safety import signing
+from controlled_islanding.safety.topology import Topology, TopologyError
+from controlled_islanding.wire import topics
+from controlled_islanding.wire.messages import (
+    MAX_REQUEST_ID,
+    Groups,
+    Limits,
+    MessageError,
+    grid_from_snapshot,
+    groups_from_msg,
+    stamp_s,
+)
 
 _KEEP_GROUPS = 16
 _KEEP_ANSWERED = 10_000

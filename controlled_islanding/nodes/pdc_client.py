@@ -4,7 +4,7 @@ For each server in `servers` ('host:port' or 'host:port:idcode'; IDCODE 1 when n
 asks for the CFG-2 frame, sends START and reads frames; a lost connection is retried every `reconnect_s`.
 The CFG-2 frame gives the channel names, PHUNIT scaling and nominal frequency; `channel_map_file` says which
 channels are the terminal voltage and current of which bus, and the base values back to per unit
-(controlled_islanding/pdc_assembly.py). A STAT configuration-change bit, or a DATA frame that no longer
+(controlled_islanding/pmu/pdc_assembly.py). A STAT configuration-change bit, or a DATA frame that no longer
 matches the configuration, makes it ask for the CFG-2 frame again.
 
 Each DATA frame's PMUs are gathered with the other servers' data of the same time tag (at most `align_wait_s`
@@ -27,9 +27,10 @@ from controlled_islanding_msgs.msg import PmuFrame, PmuMeasurement
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
-from controlled_islanding import c37118, topics
-from controlled_islanding.node_common import Diagnostics, NodeSetupError, declare_bounded, qos_for, spin_node
-from controlled_islanding.pdc_assembly import PdcAssembler, PdcAssemblyError, TimeAligner, load_channel_map
+from controlled_islanding.pmu import c37118
+from controlled_islanding.pmu.pdc_assembly import PdcAssembler, PdcAssemblyError, TimeAligner, load_channel_map
+from controlled_islanding.ros.node_common import Diagnostics, NodeSetupError, declare_bounded, qos_for, spin_node
+from controlled_islanding.wire import topics
 
 _CONFIG_WAIT_S = 5.0  # ask again for CFG-2 after this long without one
 _MAX_EVENTS = 10_000  # events waiting for the executor; beyond, the socket thread drops DATA frames
@@ -171,7 +172,7 @@ class PdcClientNode(Node):
         map_file = self.get_parameter('channel_map_file').value
         if not map_file:
             raise NodeSetupError('parameter channel_map_file is empty: it must name the YAML file that maps PMU '
-                                 'channels to generator buses (see controlled_islanding/pdc_assembly.py)')
+                                 'channels to generator buses (see controlled_islanding/pmu/pdc_assembly.py)')
         try:
             channel_map = load_channel_map(map_file)
         except PdcAssemblyError as exc:

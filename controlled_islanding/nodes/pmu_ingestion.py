@@ -38,12 +38,10 @@ import numpy as np
 from controlled_islanding_msgs.msg import NetworkSnapshot, PmuFrame, PmuMeasurement, RotorAngles
 from rclpy.node import Node
 
-from controlled_islanding import topics
 from controlled_islanding.core.dse import DSEError, MachineData, StreamingDSE, TagGrid
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.core.rotor_angle import RotorAngleError, estimate_rotor_angle_rad
-from controlled_islanding.messages import MessageError, grid_from_snapshot, stamp_s
-from controlled_islanding.node_common import (
+from controlled_islanding.ros.node_common import (
     ClockGate,
     Diagnostics,
     NodeSetupError,
@@ -52,6 +50,8 @@ from controlled_islanding.node_common import (
     qos_for,
     spin_node,
 )
+from controlled_islanding.wire import topics
+from controlled_islanding.wire.messages import MessageError, grid_from_snapshot, stamp_s
 
 _UNUSABLE = 0x8000  # STAT bit 15: 10 = data invalid, 11 = PMU error
 _FIELDS = ('voltage_magnitude_pu', 'voltage_angle_rad', 'current_magnitude_pu', 'current_angle_rad')

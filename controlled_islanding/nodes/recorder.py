@@ -29,9 +29,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.rosbag2 import StoragePlugin, Writer
 
-from controlled_islanding.bagmeta import qos_profile, set_ros_distro
-from controlled_islanding.interfaces import typestore
-from controlled_islanding.node_common import (
+from controlled_islanding.ros.node_common import (
     Diagnostics,
     NodeSetupError,
     declare_bounded,
@@ -39,7 +37,9 @@ from controlled_islanding.node_common import (
     qos_for,
     spin_node,
 )
-from controlled_islanding.topics import relative
+from controlled_islanding.wire.bagmeta import qos_profile, set_ros_distro
+from controlled_islanding.wire.interfaces import typestore
+from controlled_islanding.wire.topics import relative
 
 
 class RecorderNode(Node):

@@ -1,6 +1,6 @@
 """Scenario -> rosbag2 bag (MCAP) with PMU frames, network data, the islanding request and ground truth.
 
-Bag layout (topics from controlled_islanding.topics; times in the header are simulation time plus
+Bag layout (topics from controlled_islanding.wire.topics; times in the header are simulation time plus
 START_TIME_UNIX_S, so the simulation start is 2026-01-01T00:00:00Z):
 
 | topic | message | header.stamp | recorded at |
@@ -31,16 +31,16 @@ from typing import Any
 
 import numpy as np
 
-from controlled_islanding import topics
-from controlled_islanding.bagmeta import qos_profile, set_ros_distro
 from controlled_islanding.core.grid import Grid
-from controlled_islanding.interfaces import msg_type_name, typestore
-from controlled_islanding.messages import dynamic_data_fields
-from controlled_islanding.node_common import qos_for
+from controlled_islanding.ros.node_common import qos_for
 from controlled_islanding.sim.andes_sim import Simulation, simulate
 from controlled_islanding.sim.pmu import PmuData, measure
 from controlled_islanding.sim.scenario import Scenario
 from controlled_islanding.sim.truth import final_separation, truth_groups
+from controlled_islanding.wire import topics
+from controlled_islanding.wire.bagmeta import qos_profile, set_ros_distro
+from controlled_islanding.wire.interfaces import msg_type_name, typestore
+from controlled_islanding.wire.messages import dynamic_data_fields
 
 START_TIME_UNIX_S = 1_767_225_600
 PDC_FRAME_ID = 'pdc'

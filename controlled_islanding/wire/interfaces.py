@@ -7,37 +7,17 @@ share one definition (and one RIHS01 type hash).
 from __future__ import annotations
 
 from functools import lru_cache
-from pathlib import Path
 
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
+
+from controlled_islanding.locations import schema_dir
 
 PACKAGE = 'controlled_islanding_msgs'
 
 
 class InterfacesError(RuntimeError):
-    """The msg_schemas/ definitions cannot be found or parsed."""
-
-
-def schema_dir() -> Path:
-    """Return the directory holding msg/ and srv/ of controlled_islanding_msgs.
-
-    Returns:
-        The source tree's msg_schemas/ in a checkout, else the copy installed
-        under share/controlled_islanding/msg_schemas.
-
-    Raises:
-        InterfacesError: Neither location exists.
-
-    """
-    here = Path(__file__).resolve().parent
-    candidates = [here.parent / 'msg_schemas']
-    if len(here.parents) > 3:  # installed: <prefix>/lib/pythonX.Y/site-packages/controlled_islanding
-        candidates.append(here.parents[3] / 'share' / 'controlled_islanding' / 'msg_schemas')
-    for candidate in candidates:
-        if (candidate / 'msg').is_dir():
-            return candidate
-    raise InterfacesError(f'msg_schemas/ not found; looked in {", ".join(map(str, candidates))}')
+    """The msg_schemas/ definitions cannot be parsed."""
 
 
 def msg_type_name(name: str) -> str:

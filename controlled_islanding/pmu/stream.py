@@ -27,8 +27,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from controlled_islanding import c37118, topics
-from controlled_islanding.pdc_assembly import ChannelMap, ChannelMapEntry, amperes_per_pu, volts_per_pu
+from controlled_islanding.pmu import c37118
+from controlled_islanding.pmu.pdc_assembly import ChannelMap, ChannelMapEntry, amperes_per_pu, volts_per_pu
+from controlled_islanding.wire import topics
 
 VOLTAGE_CHANNEL = 'VPOS'
 CURRENT_CHANNEL = 'IPOS'
@@ -80,7 +81,7 @@ def load_bag_stream(bag: str | Path, *, idcode: int = 1, base_kv: float = 345.0,
     """
     from rosbags.highlevel import AnyReader
 
-    from controlled_islanding.interfaces import typestore
+    from controlled_islanding.wire.interfaces import typestore
 
     frames, base_mva = [], None
     try:

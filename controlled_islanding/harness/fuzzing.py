@@ -25,9 +25,9 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-from controlled_islanding import topics
 from controlled_islanding.core.grid import DYNAMIC_FIELDS
-from controlled_islanding.messages import MAX_MODEL_NAME, MAX_REQUEST_ID
+from controlled_islanding.wire import topics
+from controlled_islanding.wire.messages import MAX_MODEL_NAME, MAX_REQUEST_ID
 
 # Nodes under test and the input topics each one subscribes to.
 RECEIVERS: dict[str, tuple[str, ...]] = {
@@ -279,7 +279,7 @@ def load_seeds(bag: Path, entry: dict) -> Seeds:
     from rclpy.serialization import deserialize_message
     from rosbags.highlevel import AnyReader
 
-    from controlled_islanding.interfaces import typestore
+    from controlled_islanding.wire.interfaces import typestore
 
     classes = {topics.NETWORK_SNAPSHOT: NetworkSnapshot, topics.PMU_FRAMES: PmuFrame,
                topics.BRANCH_STATUS: BranchStatus, topics.ISLANDING_REQUEST: IslandingRequest}
@@ -698,7 +698,7 @@ class Adversary:
         """Return an unsigned or forged IslandingDecision for the manifest's cut (a command if it were signed)."""
         from controlled_islanding_msgs.msg import IslandingDecision
 
-        from controlled_islanding import signing
+        from controlled_islanding.safety import signing
 
         rng = self.rng
         kind = self._choose([('unsigned', 12), ('random_signature', 10), ('short_signature', 6),
@@ -811,10 +811,10 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
     from rclpy.signals import SignalHandlerOptions
     from rosgraph_msgs.msg import Clock
 
-    from controlled_islanding import signing
-    from controlled_islanding.node_common import message_class, qos_for
-    from controlled_islanding.rosenv import isolated_ros_environment
-    from controlled_islanding.supervisor import GRAPH, PIPELINE_POLICY, PLAYER, Supervisor, SupervisorError
+    from controlled_islanding.graph.rosenv import isolated_ros_environment
+    from controlled_islanding.graph.supervisor import GRAPH, PIPELINE_POLICY, PLAYER, Supervisor, SupervisorError
+    from controlled_islanding.ros.node_common import message_class, qos_for
+    from controlled_islanding.safety import signing
 
     t_start = time.monotonic()
     results.mkdir(parents=True, exist_ok=True)
@@ -984,7 +984,7 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
 def _time(t_s: float) -> object:
     from builtin_interfaces.msg import Time
 
-    from controlled_islanding.messages import split_stamp
+    from controlled_islanding.wire.messages import split_stamp
 
     sec, nanosec = split_stamp(t_s)
     return Time(sec=sec, nanosec=nanosec)

@@ -1,8 +1,8 @@
 """Request -> breaker command latency across the emulated WAN, against loopback (`controlled-islanding bench --wan`).
 
 Each setting (one-way delay, loss) replays a bag as fast as possible, `repeat` times, each on a fresh graph on the
-hosts pdc, control and substation (controlled_islanding.wan), and records per replay: the decision (split and cut),
-the latency from the bag's request to the breaker command as the operator's tap sees them (both leave their
+hosts pdc, control and substation (controlled_islanding.graph.wan), and records per replay: the decision (split and
+cut), the latency from the bag's request to the breaker command as the operator's tap sees them (both leave their
 senders then; the path is pdc -> control for the request and control -> substation for the decision, two one-way
 delays), and the breaker commands the audit log holds against those seen: a command seen twice is duplicated, one
 recorded but never seen is lost. The loopback row is the same bag without --hosts, the reference decision.
@@ -27,8 +27,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from controlled_islanding import wan
 from controlled_islanding.cli import CliError
+from controlled_islanding.graph import wan
 
 DELAYS_MS = (0.0, 10.0, 50.0)
 LOSSES_PCT = (0.0, 1.0, 5.0)
@@ -136,8 +136,8 @@ def render(rows: list[Row], repeat: int) -> str:
 _CONTROL_CENTRE = """
 import rclpy
 from controlled_islanding_msgs.msg import IslandingDecision
-from controlled_islanding import topics
-from controlled_islanding.node_common import qos_for
+from controlled_islanding.wire import topics
+from controlled_islanding.ros.node_common import qos_for
 rclpy.init()
 node = rclpy.create_node('partitioning')
 node.create_publisher(IslandingDecision, topics.relative(topics.ISLANDING_DECISION), qos_for(topics.ISLANDING_DECISION))
@@ -146,7 +146,7 @@ rclpy.spin(node)
 _OBSERVER = """
 import json, time, rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from controlled_islanding.node_common import qos_for
+from controlled_islanding.ros.node_common import qos_for
 rclpy.init()
 node = rclpy.create_node('observer')
 def on(msg):
@@ -167,9 +167,9 @@ def silence_detection(link: wan.LinkModel, work: Path, alive_s: float = 30.0) ->
         CliError: The emulated WAN cannot be built here.
 
     """
-    from controlled_islanding import signing
-    from controlled_islanding.rosenv import isolated_ros_environment
-    from controlled_islanding.supervisor import GRAPH, node_command
+    from controlled_islanding.graph.rosenv import isolated_ros_environment
+    from controlled_islanding.graph.supervisor import GRAPH, node_command
+    from controlled_islanding.safety import signing
 
     work.mkdir(parents=True, exist_ok=True)
     keys = work / 'keys'
@@ -219,7 +219,7 @@ def silence_detection(link: wan.LinkModel, work: Path, alive_s: float = 30.0) ->
 
 def silence_table(results: Path, repeat: int, settings=((0.0, 0.0), (10.0, 1.0), (50.0, 5.0))) -> str:
     """Return the silent-control-centre detection times, `repeat` runs per (delay ms, loss %), as markdown."""
-    from controlled_islanding.node_common import DECISION_LEASE_S
+    from controlled_islanding.ros.node_common import DECISION_LEASE_S
 
     lines = [f'Time for breaker_command to report a killed control centre (liveliness lease {DECISION_LEASE_S:g} s), '
              f'{repeat} runs per setting, each after 30 s alive:', '',

@@ -21,10 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from controlled_islanding import topics
 from controlled_islanding.core.grid import DYNAMIC_FIELDS, Branch, Generator, Grid, Load
-from controlled_islanding.interfaces import typestore
-from controlled_islanding.messages import MessageError, decode_dynamic_data
+from controlled_islanding.wire import topics
+from controlled_islanding.wire.interfaces import typestore
+from controlled_islanding.wire.messages import MessageError, decode_dynamic_data
 
 # STAT bits 15-14 set to 10 or 11 mean "do not use" (PmuMeasurement.msg).
 _STAT_UNUSABLE_MASK = 0x8000

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from controlled_islanding.benchmarks import load_average
+from controlled_islanding.harness.benchmarks import load_average
 
 
 class LatencyBenchError(RuntimeError):

@@ -50,9 +50,9 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
 
-from controlled_islanding import topics
-from controlled_islanding.messages import Limits
-from controlled_islanding.timebounds import StampError, StampGate
+from controlled_islanding.wire import topics
+from controlled_islanding.wire.messages import Limits
+from controlled_islanding.wire.timebounds import StampError, StampGate
 
 
 class NodeSetupError(ValueError):

@@ -19,7 +19,7 @@ import bisect
 from dataclasses import dataclass, field
 
 from controlled_islanding.core.grid import Grid
-from controlled_islanding.timebounds import StampError, check_not_future
+from controlled_islanding.wire.timebounds import StampError, check_not_future
 
 _KEEP_SNAPSHOTS = 4
 

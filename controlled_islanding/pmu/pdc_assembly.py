@@ -37,7 +37,7 @@ from pathlib import Path
 
 import yaml
 
-from controlled_islanding import c37118
+from controlled_islanding.pmu import c37118
 
 SQRT3 = math.sqrt(3.0)
 
@@ -92,7 +92,8 @@ class ChannelMap:
                         'current_channel': e.current_channel, 'current_direction': 'out' if e.current_out else 'in',
                         'station_id': e.station_id})
             rows.append(row)
-        head = '# pdc_client channel map (controlled_islanding/pdc_assembly.py): C37.118 channels -> generator buses\n'
+        head = ('# pdc_client channel map (controlled_islanding/pmu/pdc_assembly.py): C37.118 channels -> generator '
+                'buses\n')
         return head + yaml.safe_dump({'base_mva': self.base_mva, 'pmus': rows}, sort_keys=False)
 
 

@@ -5,7 +5,7 @@ executables and parameter files: launch/islanding.launch.py reads the same table
 same processes with the same parameters.
 
 With a RestartPolicy, `Supervisor.supervise` restarts a pipeline node that died, with backoff, and SIGKILLs
-and restarts one whose /diagnostics heartbeat stopped (controlled_islanding.watchdog decides), recording
+and restarts one whose /diagnostics heartbeat stopped (controlled_islanding.graph.watchdog decides), recording
 each in `restarts` and `hangs` so that a run can report that it did not come from a healthy graph.
 """
 
@@ -24,7 +24,8 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
-from controlled_islanding.watchdog import Action, ActionKind, RestartPolicy, Watchdog
+from controlled_islanding.graph.watchdog import Action, ActionKind, RestartPolicy, Watchdog
+from controlled_islanding.locations import config_dir
 
 
 class SupervisorError(RuntimeError):
@@ -108,23 +109,6 @@ class HangRecord:
     detected_utc: str
 
 
-def config_dir() -> Path:
-    """Return config/ of a checkout, else the installed share/controlled_islanding/config.
-
-    Raises:
-        SupervisorError: Neither exists.
-
-    """
-    here = Path(__file__).resolve().parent
-    candidates = [here.parent / 'config']
-    if len(here.parents) > 3:
-        candidates.append(here.parents[3] / 'share' / 'controlled_islanding' / 'config')
-    for candidate in candidates:
-        if candidate.is_dir():
-            return candidate
-    raise SupervisorError(f'config/ not found; looked in {", ".join(map(str, candidates))}')
-
-
 def node_command(spec: NodeSpec, overrides: Mapping[str, object] | None = None, namespace: str = '',
                  remaps: Mapping[str, str] | None = None) -> list[str]:
     """Return the command line that runs one executable with its parameter file and overrides.
@@ -187,7 +171,7 @@ class Supervisor:
     """Owns child node processes; `with Supervisor(...)` stops them all on exit, Ctrl-C, SIGTERM or error.
 
     Args:
-        env: Environment for the children (from controlled_islanding.rosenv).
+        env: Environment for the children (from controlled_islanding.graph.rosenv).
         log_dir: Each child's stdout and stderr go to <log_dir>/<name>.log.
         policy: Which children `supervise` restarts and watches for hangs, and how; None: none (a dead
             child is only seen by `check_alive`).
@@ -232,7 +216,7 @@ class Supervisor:
             name: The child's name here (its log file); default the executable's.
             namespace: The node's namespace; default the supervisor's.
             prefix: Command that runs the node, e.g. `ip netns exec <netns>` to put it on an emulated host
-                (controlled_islanding.wan); a restart uses it again.
+                (controlled_islanding.graph.wan); a restart uses it again.
 
         Raises:
             SupervisorError: A child of that name is already running.

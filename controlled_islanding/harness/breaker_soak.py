@@ -23,8 +23,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from controlled_islanding import signing, topics
 from controlled_islanding.core.grid import Branch, Grid
+from controlled_islanding.safety import signing
+from controlled_islanding.wire import topics
 
 MAX_BREAKERS = 8
 MAX_DECISION_AGE_S = 30.0
@@ -203,9 +204,9 @@ def run_breaker_soak(trials: int, seed: int, key_dir: Path, results: Path,
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.signals import SignalHandlerOptions
 
-    from controlled_islanding.node_common import qos_for
-    from controlled_islanding.rosenv import isolated_ros_environment
-    from controlled_islanding.supervisor import GRAPH, Supervisor
+    from controlled_islanding.graph.rosenv import isolated_ros_environment
+    from controlled_islanding.graph.supervisor import GRAPH, Supervisor
+    from controlled_islanding.ros.node_common import qos_for
 
     spec = next(s for s in GRAPH if s.executable == 'breaker_command')
     rng = random.Random(seed)

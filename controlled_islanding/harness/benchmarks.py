@@ -270,11 +270,11 @@ def estimator_decisions(bag_path: Path, entry: dict | None, *, window_s: float, 
     """
     import dataclasses
 
-    from controlled_islanding import coherency_rules as study
-    from controlled_islanding.bagdata import load_bag
     from controlled_islanding.core.coherency import DTWCoherency
     from controlled_islanding.core.dse import MachineData
     from controlled_islanding.core.islanding import decide
+    from controlled_islanding.evaluation import coherency_rules as study
+    from controlled_islanding.wire.bagdata import load_bag
 
     bag = load_bag(bag_path)
     steady = study.scenario_from_bag(bag, entry)
@@ -332,8 +332,8 @@ def decimation_effect(scenario, target_fps: float, *, window_s: float = 3.0, ban
         fit_s (full, decimated: DTWCoherency's fit of the request window with every pair computed, best of 3).
 
     """
-    from controlled_islanding.coherency_rules import blocks, detect, groups_at
     from controlled_islanding.core.coherency import DTWCoherency, decimation_factor
+    from controlled_islanding.evaluation.coherency_rules import blocks, detect, groups_at
 
     q = decimation_factor(scenario.t_s, target_fps)
     t = scenario.t_s

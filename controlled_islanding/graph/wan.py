@@ -1,7 +1,7 @@
 """An emulated wide-area network between the hosts of the node graph, built in user space.
 
 Each host is a Linux network namespace of its own whose only interfaces are `lo` and a TUN device `wan0`. The
-other end of every `wan0` is one emulator process (`python -m controlled_islanding.wan`, `run_emulator`), which
+other end of every `wan0` is one emulator process (`python -m controlled_islanding.graph.wan`, `run_emulator`), which
 reads each IPv4 packet a host sends and writes it into the destination host's `wan0` after a one-way delay with
 jitter, or drops it (seeded Bernoulli loss per packet and destination). A packet to a multicast or broadcast
 address (DDS discovery uses 239.255.0.1) is copied to every other host. This replaces `tc netem` on veth links,
@@ -275,7 +275,7 @@ class EmulatedWan:
                   'link': asdict(self.link), 'stats_file': str(self.work_dir / 'wan_stats.json')}
         log = open(self.work_dir / 'wan_emulator.log', 'ab')
         self._emulator = subprocess.Popen(
-            [sys.executable, '-m', 'controlled_islanding.wan', json.dumps(config)], stdout=subprocess.PIPE,
+            [sys.executable, '-m', 'controlled_islanding.graph.wan', json.dumps(config)], stdout=subprocess.PIPE,
             stderr=log, stdin=subprocess.DEVNULL, preexec_fn=_die_with_parent)
         log.close()
         ready, _, _ = select.select([self._emulator.stdout], [], [], 30.0)
