@@ -16,9 +16,9 @@ from pathlib import Path
 import pytest
 from nodes_harness import graph
 
-from controlled_islanding.commands.demo import default_bag
 from controlled_islanding.graph.supervisor import GRAPH
 from controlled_islanding.harness import fuzzing
+from controlled_islanding.sim.manifest import default_bag
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.messages import MessageError, grid_from_snapshot
 

@@ -25,8 +25,8 @@ from nodes_harness import graph
 from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
 
-from controlled_islanding.commands.demo import default_bag, manifest_entries
 from controlled_islanding.graph.supervisor import GRAPH
+from controlled_islanding.sim.manifest import default_bag, manifest_entries
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.interfaces import typestore
 from controlled_islanding.wire.messages import MAX_REQUEST_ID

@@ -7,8 +7,8 @@ from controlled_islanding_msgs.msg import CoherentGroups, NetworkSnapshot, PmuFr
 from nodes_harness import graph
 from test_nodes_bad_input import bag_messages
 
-from controlled_islanding.commands.demo import manifest_entries
 from controlled_islanding.graph.supervisor import GRAPH
+from controlled_islanding.sim.manifest import manifest_entries
 from controlled_islanding.wire import topics
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]

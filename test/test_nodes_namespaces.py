@@ -27,9 +27,9 @@ from rclpy._rclpy_pybind11 import NodeNameNonExistentError
 from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
 
-from controlled_islanding.commands.demo import default_bag, manifest_entries
 from controlled_islanding.graph.supervisor import GRAPH
 from controlled_islanding.locations import config_dir
+from controlled_islanding.sim.manifest import default_bag, manifest_entries
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.interfaces import typestore
 

@@ -277,7 +277,7 @@ def children_of(pid: int) -> dict[str, int]:
 @pytest.mark.ros
 def test_the_replay_cli_fails_loudly_when_a_node_died_during_it():
     """breaker_command is killed as the bag starts: the replay still ends, lists it and exits 1."""
-    from controlled_islanding.commands.demo import default_bag
+    from controlled_islanding.sim.manifest import default_bag
 
     bag = REPO / 'bags' / default_bag()['bag']
     if not bag.exists():
@@ -312,7 +312,7 @@ def test_the_replay_cli_fails_loudly_when_a_node_died_during_it():
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['ctrl_c', 'sigterm'])
 def test_an_interrupted_replay_says_so_in_its_results_and_leaves_no_node(sig):
     """Interrupted while the bag plays in real time: no summary, a marker saying why, every node ended."""
-    from controlled_islanding.commands.demo import default_bag
+    from controlled_islanding.sim.manifest import default_bag
 
     bag = REPO / 'bags' / default_bag()['bag']
     if not bag.exists():

@@ -34,10 +34,10 @@ from controlled_islanding_msgs.srv import SetArmed
 from nodes_harness import BUILD, graph
 from rosgraph_msgs.msg import Clock
 
-from controlled_islanding.commands.demo import default_bag
 from controlled_islanding.graph.supervisor import GRAPH, PLAYER, NodeSpec
 from controlled_islanding.ros.node_common import qos_for
 from controlled_islanding.safety import signing
+from controlled_islanding.sim.manifest import default_bag
 from controlled_islanding.wire import topics
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]

@@ -136,15 +136,11 @@ def bench_dtw(quick: bool, repeat: int) -> None:
 
 def _bag_case(bags: Path):
     """Return (label, grid with trips, rotor angle series) from the first split bag, or None."""
-    import yaml
-
     from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
+    from controlled_islanding.sim.manifest import manifest_entries
     from controlled_islanding.wire.bagdata import load_bag
 
-    index = bags / 'index.yaml'
-    if not index.exists():
-        return None
-    for entry in yaml.safe_load(index.read_text()).get('bags', []):
+    for entry in manifest_entries(bags / 'index.yaml'):
         if entry.get('synchronous', True) or not (bags / entry['bag']).exists():
             continue
         bag = load_bag(bags / entry['bag'])
@@ -212,18 +208,16 @@ def bench_pipeline(bags: Path, repeat: int) -> None:
 
 def bench_rotor_angle_error(bags: Path) -> None:
     """Print the rotor angle estimation error against the simulator's truth on every bag without impairments."""
-    import yaml
-
     from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
+    from controlled_islanding.sim.manifest import manifest_entries
     from controlled_islanding.wire.bagdata import load_bag
 
-    index = bags / 'index.yaml'
-    if not index.exists():
+    if not (bags / 'index.yaml').exists():
         print('Rotor angle error: no bags/index.yaml')
         return
     print('Rotor angle estimation error |angle(V + (ra + j xq) I) - ANDES delta|, deg, p50 / p99 / max:')
     print(f'  {"bag":<30} {"before the first event":>24} {"after it":>24}')
-    for entry in yaml.safe_load(index.read_text()).get('bags', []):
+    for entry in manifest_entries(bags / 'index.yaml'):
         if entry.get('impairments') or not (bags / entry['bag']).exists():
             continue
         bag = load_bag(bags / entry['bag'])
@@ -525,10 +519,10 @@ def bench_wan(bags: Path, repeat: int, results: Path | None) -> None:
     """Print the latency table across the emulated WAN (controlled_islanding.harness.wan_bench)."""
     from datetime import UTC, datetime
 
-    from controlled_islanding.commands.demo import default_bag
     from controlled_islanding.harness.wan_bench import render, run_bench, silence_table
+    from controlled_islanding.sim.manifest import default_bag
 
-    bag = bags / default_bag()['bag']
+    bag = bags / default_bag(bags / 'index.yaml')['bag']
     stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
     results = (results or Path('build') / f'bench_wan-{stamp}').resolve()
     print(f'request -> breaker command across the emulated WAN, bag {bag.name}, {repeat} fast replays per setting '
@@ -544,12 +538,12 @@ def bench_latency(bags: Path, rounds: int, repeat: int) -> None:
     """Print the request latency table as it is, with one core busy, and so with SCHED_FIFO nodes (latency_bench)."""
     from datetime import UTC, datetime
 
-    from controlled_islanding.commands.demo import default_bag
     from controlled_islanding.harness.latency_bench import LatencyBenchError, check_fifo_permitted, render, run_bench
+    from controlled_islanding.sim.manifest import default_bag
 
     if rounds < 1:
         raise CliError(f'--rounds must be >= 1, got {rounds}')
-    bag = bags / default_bag()['bag']
+    bag = bags / default_bag(bags / 'index.yaml')['bag']
     results = (Path('build') / f'bench_latency-{datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")}').resolve()
     try:
         check_fifo_permitted(5)

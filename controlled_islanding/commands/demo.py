@@ -6,9 +6,9 @@ import argparse
 from datetime import UTC
 from pathlib import Path
 
-import yaml
-
 from controlled_islanding.cli import CliError
+from controlled_islanding.locations import bags_dir
+from controlled_islanding.sim.manifest import ManifestError, default_bag
 
 HELP = 'replay the default IEEE 39 bag through the ROS 2 nodes and print the islanding decision'
 DESCRIPTION = """\
@@ -22,38 +22,6 @@ the breaker audit log, node logs, rotor_angles.png, network.png and summary.json
 
 Same as `controlled-islanding replay BAG` on the default bag; see that command for more options.
 """
-
-REPO = Path(__file__).resolve().parents[2]
-INDEX = REPO / 'bags' / 'index.yaml'
-
-
-def manifest_entries() -> list[dict]:
-    """Return the bags listed in bags/index.yaml (empty if there is no manifest)."""
-    if not INDEX.exists():
-        return []
-    data = yaml.safe_load(INDEX.read_text()) or {}
-    return list(data.get('bags') or [])
-
-
-def default_bag() -> dict:
-    """Return the manifest entry of the default bag: `default:` in bags/index.yaml, else the first split bag.
-
-    Raises:
-        CliError: No manifest, or it names no usable bag.
-
-    """
-    entries = manifest_entries()
-    if not entries:
-        raise CliError(f'{INDEX} lists no bags; run `make setup` in a full clone, or `controlled-islanding simulate`')
-    data = yaml.safe_load(INDEX.read_text()) or {}
-    wanted = data.get('default')
-    for entry in entries:
-        if entry.get('name') == wanted:
-            return entry
-    if wanted:
-        raise CliError(f'{INDEX}: default bag {wanted!r} is not among its bags')
-    return next((e for e in entries if e.get('expected_decision', {}).get('split')), entries[0])
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the demo options."""
@@ -70,8 +38,11 @@ def run(args: argparse.Namespace) -> int:
 
     from controlled_islanding.commands.replay import graph_failure, refused, render, replay
 
-    entry = default_bag()
-    bag = REPO / 'bags' / entry['bag']
+    try:
+        entry = default_bag()
+    except ManifestError as exc:
+        raise CliError(str(exc)) from exc
+    bag = bags_dir() / entry['bag']
     if not bag.exists():
         raise CliError(f'default bag {bag} is missing; regenerate it with `controlled-islanding simulate`')
     results = args.results

@@ -4,10 +4,8 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 import sys
-import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -16,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from controlled_islanding import atomic
 from controlled_islanding.cli import CliError
 
 if TYPE_CHECKING:
@@ -211,7 +210,9 @@ def add_arguments(parser) -> None:
 
 def _coherency_node_parameters() -> dict[str, Any]:
     """Return the coherency node's parameters from config/coherency.yaml, so evaluate groups as the node does."""
-    path = Path(__file__).resolve().parents[2] / 'config' / 'coherency.yaml'
+    from controlled_islanding.locations import config_dir
+
+    path = config_dir() / 'coherency.yaml'
     if not path.is_file():
         return {}
     import yaml
@@ -343,9 +344,9 @@ def _sweep_observability(args, bags) -> int:
 
 def _manifest_entry(bag) -> dict | None:
     """Return the bag's entry in the bags/index.yaml beside it (None if there is none)."""
-    from controlled_islanding.evaluation.coherency_rules import manifest_entries
+    from controlled_islanding.sim.manifest import entry_for_bag
 
-    return manifest_entries(bag.path.parent / 'index.yaml').get(bag.path.name)
+    return entry_for_bag(bag.path)
 
 
 def _progress(text: str) -> None:
@@ -844,20 +845,8 @@ def write_report(cases: Sequence[CaseReport], path: Path, figures_for: set[str] 
         for key in ('rotor_angles', 'network_dtw_paper_groups_spectral', 'network_dtw_spectral', 'shedding'):
             if key in case.figures:
                 target = folder / f'{case.name}_{key}.png'
-                _atomic_write(target, case.figures[key].read_bytes())
+                atomic.write_bytes(target, case.figures[key].read_bytes())
                 written.append(target)
                 lines += [f'![{case.name}: {key.replace("_", " ")}]({path.stem}/{target.name})', '']
-    _atomic_write(path, '\n'.join(lines).encode())
+    atomic.write_bytes(path, '\n'.join(lines).encode())
     return [path, *written]
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', dir=path.parent)
-    try:
-        with os.fdopen(fd, 'wb') as handle:
-            handle.write(data)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

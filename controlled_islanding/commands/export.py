@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 from pathlib import Path
 
+from controlled_islanding import atomic
 from controlled_islanding.cli import CliError
 
 HELP = 'write a decision as a MATPOWER case or a pandapower net with the cut applied, or as ANDES Toggle events'
@@ -33,9 +33,6 @@ Examples:
   controlled-islanding export summary.json --to matpower --case ieee14/ieee14_full.xlsx --outage 2-4 -o cut.m
 """
 
-REPO = Path(__file__).resolve().parents[2]
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the export options."""
     parser.add_argument('decision', type=Path, help='summary.json written by replay or demo')
@@ -54,14 +51,15 @@ def _manifest_case(bag: str) -> tuple[str | None, str | None, list[str]]:
     """Return the case, addfile and outages of the manifest entry whose bag the summary names, if any."""
     import yaml
 
+    from controlled_islanding.locations import bags_dir
+    from controlled_islanding.sim.manifest import manifest_entries
     from controlled_islanding.sim.scenario import resolve_case
 
-    index = REPO / 'bags' / 'index.yaml'
-    if not bag or not index.is_file():
+    if not bag:
         return None, None, []
-    for entry in yaml.safe_load(index.read_text()).get('bags', []):
+    for entry in manifest_entries():
         if Path(bag).name == entry.get('bag'):
-            scenario_path = REPO / 'bags' / entry['scenario']
+            scenario_path = bags_dir() / entry['scenario']
             scenario = yaml.safe_load(scenario_path.read_text())
             case = str(resolve_case(scenario['case'], scenario_path.parent))
             addfile = (str(resolve_case(scenario['addfile'], scenario_path.parent, 'addfile'))
@@ -96,9 +94,7 @@ def run(args: argparse.Namespace) -> int:
             export.pandapower_json(export.pandapower_net(ss, decision), args.output)
         else:
             rows = export.andes_toggles(ss, decision, args.at_s)
-            tmp = args.output.with_name(f'.{args.output.name}.partial-{os.getpid()}')
-            tmp.write_text(json.dumps(rows, indent=2) + '\n')
-            os.replace(tmp, args.output)
+            atomic.write_text(args.output, json.dumps(rows, indent=2) + '\n')
     except export.ExportError as exc:
         raise CliError(str(exc)) from exc
     print(f'{args.output}: {len(decision.cut_branch_ids)} cut branch(es) {", ".join(decision.cut_branch_ids)}, '

@@ -9,6 +9,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from controlled_islanding.cli import CliError
+from controlled_islanding.locations import bags_dir, build_dir
 
 HELP = 'soak the live node graph with malformed and adversarial messages, then check a good replay'
 DESCRIPTION = """\
@@ -48,7 +49,6 @@ Examples:
   controlled-islanding fuzz --per-topic 30 --namespace /area1
 """
 
-REPO = Path(__file__).resolve().parents[2]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -75,11 +75,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _manifest_entry(bag: Path | None) -> tuple[Path, dict]:
-    from controlled_islanding.commands.demo import default_bag, manifest_entries
+    from controlled_islanding.sim.manifest import ManifestError, default_bag, manifest_entries
 
     if bag is None:
-        entry = default_bag()
-        return REPO / 'bags' / entry['bag'], entry
+        try:
+            entry = default_bag()
+        except ManifestError as exc:
+            raise CliError(str(exc)) from exc
+        return bags_dir() / entry['bag'], entry
     for entry in manifest_entries():
         if Path(entry['bag']).name == bag.name:
             return bag, entry
@@ -103,11 +106,11 @@ def run(args: argparse.Namespace) -> int:
     bag, entry = _manifest_entry(args.bag)
     if not bag.exists():
         raise CliError(f'bag {bag} does not exist')
-    results = args.results or REPO / 'build' / 'fuzz' / datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
+    results = args.results or build_dir() / 'fuzz' / datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
     results = results.resolve()
     if results.exists() and any(results.iterdir()):
         raise CliError(f'results folder {results} exists and is not empty; name a new one')
-    keys = (args.keys or REPO / 'build' / 'fuzz' / 'keys').resolve()
+    keys = (args.keys or build_dir() / 'fuzz' / 'keys').resolve()
 
     def progress(line: str) -> None:
         print(line, file=sys.stderr if args.json else sys.stdout, flush=True)
@@ -131,8 +134,8 @@ def _run_breaker_soak(args: argparse.Namespace) -> int:
 
     if args.breaker_trials < 1:
         raise CliError(f'--breaker-trials {args.breaker_trials} must be at least 1')
-    results = (args.results or REPO / 'build' / 'fuzz' / f'breaker-{datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")}')
-    keys = (args.keys or REPO / 'build' / 'fuzz' / 'keys').resolve()
+    results = (args.results or build_dir() / 'fuzz' / f'breaker-{datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")}')
+    keys = (args.keys or build_dir() / 'fuzz' / 'keys').resolve()
     try:
         report = breaker_soak.run_breaker_soak(args.breaker_trials, args.seed, keys, results.resolve(),
                                                lambda line: print(line, file=sys.stderr, flush=True))

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from controlled_islanding.cli import CliError
+from controlled_islanding.locations import checkout
 from controlled_islanding.safety import signing
 
 HELP = 'make the Ed25519 keys that sign decisions and arm/disarm requests'
@@ -36,8 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Make or show the keys."""
     directory = args.directory or signing.default_key_dir()
-    repo = Path(__file__).resolve().parents[2]
-    if directory.resolve().is_relative_to(repo) and (repo / '.git').exists() and \
+    repo = checkout()
+    if repo is not None and directory.resolve().is_relative_to(repo) and \
             not directory.resolve().is_relative_to(repo / 'build'):
         raise CliError(f'{directory} is inside the repository; keep private keys out of it')
     try:

@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
+from controlled_islanding import atomic
 from controlled_islanding.cli import CliError
 from controlled_islanding.graph import wan
 from controlled_islanding.wire import topics
@@ -67,7 +68,6 @@ Examples (bag names from bags/index.yaml):
       --wan-delay-ms 20 --wan-jitter-ms 5 --wan-loss-pct 1
 """
 
-REPO = Path(__file__).resolve().parents[2]
 # After the bag ends, a request still unanswered this long (wall, s) is reported as undecided. The nodes
 # give up after at most 2 s (coherency request_wait_s, partitioning groups_wait_s), so this is ample.
 SETTLE_S = 8.0
@@ -331,9 +331,7 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
                         break
                     spin_for(0.1)
                 obs.phases_unix['wired'] = time.time()
-                go_tmp = go_file.with_suffix('.tmp')
-                go_tmp.write_text(json.dumps({'min_subscribers': [f'{t}={n}' for t, n in counts.items()]}))
-                os.replace(go_tmp, go_file)
+                atomic.write_text(go_file, json.dumps({'min_subscribers': [f'{t}={n}' for t, n in counts.items()]}))
                 settle_heap()  # this observer's timestamps must not wait on a full garbage collection either
                 deadline = time.monotonic() + timeout_s
                 probe_period = 1.0 / probe_hz if probe_hz > 0 else None
@@ -679,7 +677,7 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
     except KeyboardInterrupt:
         # Ctrl-C or SIGTERM (the supervisor turns it into this), its nodes stopped by now: without summary.json the
         # folder is unfinished, and this file says so to a reader, as a testbed's does.
-        _write_atomic(results / INTERRUPTED, json.dumps({
+        atomic.write_text(results / INTERRUPTED, json.dumps({
             'interrupted_utc': datetime.now(UTC).isoformat(timespec='seconds'), 'bag': str(bag)}, indent=1) + '\n')
         raise
 
@@ -706,15 +704,8 @@ def _replay_here(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz:
 
 
 def _write_summary(results: Path, summary: dict) -> None:
-    _write_atomic(results / 'summary.json', json.dumps(summary, indent=2, default=str))
-    _write_atomic(results / 'summary.txt', render(summary) + '\n')
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    # An interrupted write must not leave a truncated file that reads as a result.
-    tmp = path.with_name(f'.{path.name}.tmp')
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    atomic.write_text(results / 'summary.json', json.dumps(summary, indent=2, default=str))
+    atomic.write_text(results / 'summary.txt', render(summary) + '\n')
 
 
 def _replay_on_hosts(bag: Path, results: Path, hosts: dict[str, tuple[str, ...]], link: wan.LinkModel,
@@ -939,12 +930,6 @@ def _interrupt(child: subprocess.Popen) -> None:
             child.wait(timeout=20.0)
 
 
-def _manifest_entry(bag: Path) -> dict | None:
-    from controlled_islanding.commands.demo import INDEX, manifest_entries
-
-    return next((e for e in manifest_entries() if (INDEX.parent / e['bag']).resolve() == bag.resolve()), None)
-
-
 def _suite_row(run: SuiteRun, base: Path, done: dict) -> dict:
     """Return one run's row: decision, agreement with the manifest, speed and wall time, or what went wrong."""
     row = {'name': run.name, 'bag': str(run.bag), 'results_dir': str(base / run.name),
@@ -964,7 +949,9 @@ def _suite_row(run: SuiteRun, base: Path, done: dict) -> dict:
                 'bag_duration_s': rep.get('bag_duration_s'), 'play_wall_s': rep.get('wall_s'),
                 'error': graph_failure(summary) or (f'undecided requests {summary["undecided_requests"]}'
                                                     if summary.get('undecided_requests') else None)})
-    entry = _manifest_entry(run.bag)
+    from controlled_islanding.sim.manifest import entry_for_bag
+
+    entry = entry_for_bag(run.bag.resolve())
     if entry is not None and 'split' in entry.get('expected_decision', {}):
         expected = entry['expected_decision']
         row['manifest'] = ('agrees' if row['split'] == expected['split']

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from controlled_islanding.cli import CliError
+from controlled_islanding.locations import bags_dir
 
 HELP = 'simulate a scenario YAML in ANDES and record PMU frames and ground truth in a bag'
 
@@ -40,7 +41,7 @@ The full schema is in controlled_islanding/sim/scenario.py. Same YAML and seed g
   controlled-islanding simulate --update-manifest            # rewrite bags/index.yaml from the bags
 """
 
-DEFAULT_BAGS_DIR = Path(__file__).resolve().parents[2] / 'bags'
+DEFAULT_BAGS_DIR = bags_dir()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

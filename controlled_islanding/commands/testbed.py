@@ -13,6 +13,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from controlled_islanding import atomic
 from controlled_islanding.cli import CliError
 from controlled_islanding.wire import topics
 
@@ -48,8 +49,6 @@ Examples:
                                       every manifest scenario whose expected decision splits (long: minutes each)
 """
 
-REPO = Path(__file__).resolve().parents[2]
-INDEX = REPO / 'bags' / 'index.yaml'
 INTERRUPTED = 'INTERRUPTED.json'  # in a results folder: the run was stopped before its end
 
 
@@ -105,16 +104,6 @@ class LoopObservation:
 def _say(quiet: bool, text: str) -> None:
     if not quiet:
         print(text, file=sys.stderr, flush=True)
-
-
-def unstable_scenarios() -> list[Path]:
-    """Return the scenario files of every manifest entry whose expected decision splits."""
-    import yaml
-
-    if not INDEX.exists():
-        raise CliError(f'{INDEX} does not exist')
-    entries = (yaml.safe_load(INDEX.read_text()) or {}).get('bags') or []
-    return [INDEX.parent / e['scenario'] for e in entries if (e.get('expected_decision') or {}).get('split')]
 
 
 def run_closed_loop(scenario: Path, results: Path, *, rate: float, params: dict[str, float], timeout_s: float,
@@ -339,15 +328,8 @@ def run_scenario(path: Path, results: Path, args: argparse.Namespace, quiet: boo
                 result['runs']['milp'] = m.summary()
                 trajectories['milp'] = {'t_s': m.t_s, 'delta_rad': m.delta_rad, 'bus_v_pu': m.bus_v_pu}
     result['figure'] = str(_figure(scenario, result, trajectories, traj, out / f'{scenario.name}_closed_loop.png'))
-    _write(out / 'result.json', json.dumps(result, indent=1, default=str))
+    atomic.write_text(out / 'result.json', json.dumps(result, indent=1, default=str))
     return result
-
-
-def _write(path: Path, text: str) -> None:
-    # An interrupted run must not leave a truncated file that reads as a result (--render trusts result.json).
-    tmp = path.with_name(f'.{path.name}.tmp')
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def _figure(scenario: Any, result: dict, trajectories: dict, loop_traj: dict, path: Path) -> Path:
@@ -601,7 +583,16 @@ def _publish(results: list[dict], args: argparse.Namespace, missing: list[str]) 
         text = markdown(results, args, figures, args.markdown)
         if missing:
             text += f'\nNot in this table (not run, failed, or unfinished when written): {", ".join(missing)}.\n'
-        _write(args.markdown, text)
+        atomic.write_text(args.markdown, text)
+
+
+def _unstable() -> list[Path]:
+    from controlled_islanding.sim.manifest import ManifestError, unstable_scenarios
+
+    try:
+        return unstable_scenarios()
+    except ManifestError as exc:
+        raise CliError(str(exc)) from exc
 
 
 def run(args: argparse.Namespace) -> int:
@@ -611,12 +602,12 @@ def run(args: argparse.Namespace) -> int:
         if not done:
             raise CliError(f'{args.render}: no */result.json; is it a testbed results folder?')
         results = [json.loads(p.read_text()) for p in done]
-        wanted = [p.stem for p in (list(args.scenarios) + (unstable_scenarios() if args.all_unstable else []))]
+        wanted = [p.stem for p in (list(args.scenarios) + (_unstable() if args.all_unstable else []))]
         missing = [n for n in wanted if n not in {r['scenario'] for r in results}]
         _publish(results, args, missing)
         print(json.dumps(results, default=str) if args.json else render(results))
         return 0
-    paths = list(args.scenarios) + (unstable_scenarios() if args.all_unstable else [])
+    paths = list(args.scenarios) + (_unstable() if args.all_unstable else [])
     if not paths:
         raise CliError('name at least one scenario YAML, or --all-unstable')
     for p in paths:
@@ -654,13 +645,13 @@ def _run_all(paths: list[Path], results_dir: Path, args: argparse.Namespace) -> 
         except KeyboardInterrupt:
             # Ctrl-C or SIGTERM (the supervisor turns it into this): its nodes are stopped by now. Without a
             # testbed.json the folder is unfinished; this file says so and why, for a reader and for --render.
-            _write(results_dir / INTERRUPTED, json.dumps({
+            atomic.write_text(results_dir / INTERRUPTED, json.dumps({
                 'interrupted_utc': datetime.now(UTC).isoformat(timespec='seconds'), 'during': path.stem,
                 'finished': [r['scenario'] for r in results], 'failed': failures,
                 'not_run': [p.stem for p in paths[i + 1:]]}, indent=1) + '\n')
             raise
         _publish(results, args, [p.stem for p in paths[i + 1:]] + failures)
-    _write(results_dir / 'testbed.json', json.dumps(results, indent=1, default=str))
+    atomic.write_text(results_dir / 'testbed.json', json.dumps(results, indent=1, default=str))
     if args.json:
         print(json.dumps(results, default=str))
     else:

@@ -20,10 +20,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from controlled_islanding.core.coherency import DTWCoherency
 from controlled_islanding.core.k_rules import RULES
+from controlled_islanding.sim.manifest import entries_by_bag
 
 
 @dataclass
@@ -89,10 +89,8 @@ def group_text(groups: Mapping[str, int]) -> str:
 
 
 def manifest_entries(index: Path) -> dict[str, dict]:
-    """Return the manifest's entries by bag directory name ({} if there is no manifest)."""
-    if not index.is_file():
-        return {}
-    return {e['bag']: e for e in (yaml.safe_load(index.read_text()) or {}).get('bags') or []}
+    """Return the entries of the manifest `index` by bag directory name ({} if there is no manifest)."""
+    return entries_by_bag(index)
 
 
 def scenario_from_bag(bag, entry: Mapping | None = None) -> Scenario:

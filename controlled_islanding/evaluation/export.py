@@ -16,13 +16,14 @@ formats), so branch ids are matched in either orientation: ANDES names transform
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from controlled_islanding import atomic
 
 # MATPOWER columns (0-based), from the MATPOWER case format documentation.
 _BUS_I, _BUS_TYPE, _BUS_PD, _BUS_QD, _BUS_BS, _BUS_BASE_KV = 0, 1, 2, 3, 5, 9
@@ -232,10 +233,7 @@ def pandapower_json(net: Any, path: Path) -> Path:
     """Write a pandapower net as the JSON `pandapower.from_json` reads, atomically."""
     import pandapower as pp
 
-    tmp = path.with_name(f'.{path.name}.partial-{os.getpid()}')
-    tmp.write_text(pp.to_json(net))
-    os.replace(tmp, path)
-    return path
+    return atomic.write_text(path, pp.to_json(net))
 
 
 def island_cases(ppc: Mapping[str, Any], islands: Sequence[Sequence[int]]) -> list[dict[str, Any]]:
@@ -264,7 +262,4 @@ def write_matpower(ppc: Mapping[str, Any], path: Path) -> Path:
             f'decision applied.\nmpc.version = \'2\';\nmpc.baseMVA = {ppc["baseMVA"]:.10g};\n'
             f'mpc.bus = [\n{rows(ppc["bus"])}\n];\nmpc.gen = [\n{rows(ppc["gen"])}\n];\n'
             f'mpc.branch = [\n{rows(ppc["branch"])}\n];\n')
-    tmp = path.with_name(f'.{path.name}.partial-{os.getpid()}')
-    tmp.write_text(text)
-    os.replace(tmp, path)
-    return path
+    return atomic.write_text(path, text)

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from controlled_islanding import atomic
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.core.islanding import decide
 from controlled_islanding.core.milp import ExactPartition, MilpError, gap_pct
@@ -273,7 +274,5 @@ def write_report(rows: Sequence[SweepRow], path: Path, *, command: str, k_rule: 
         lines += ['Decisions that failed:', '']
         lines += [f'- {name} at {cov}: {err}' for name, cov, err in errors]
         lines.append('')
-    tmp = path.with_name(f'.{path.name}.partial')
-    tmp.write_text('\n'.join(lines))
-    tmp.replace(path)
+    atomic.write_text(path, '\n'.join(lines))
     return path

@@ -6,8 +6,6 @@ state is touched), writes it to a temporary file beside `path` and renames it, a
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +16,8 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
+
+from controlled_islanding import atomic
 
 if TYPE_CHECKING:
     from controlled_islanding.core.grid import Grid
@@ -55,15 +55,8 @@ def group_colour(group: int) -> tuple[float, float, float, float]:
 def _save(fig: Figure, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f'.{path.stem}.', suffix='.png', dir=path.parent)
-    os.close(fd)
-    try:
-        os.chmod(tmp, 0o644)
+    with atomic.replacing(path) as tmp:
         fig.savefig(tmp, format='png', dpi=_DPI, bbox_inches='tight')
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path
 
 

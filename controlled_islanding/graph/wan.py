@@ -39,6 +39,8 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from controlled_islanding import atomic
+
 # Which nodes run on which kind of host in a deployment: the PMU data concentrator's site, the control centre,
 # and the substation that holds the breakers. The bag player stands in for the PDC's stream.
 ROLES: dict[str, tuple[str, ...]] = {
@@ -441,9 +443,7 @@ class _Emulator:
 
         stats = {'link': asdict(self.link), 'pairs': self.pairs, **self.other,
                  'lateness_ms': {'n': len(late), 'median': pct(50), 'p99': pct(99), 'max': late[-1] if late else None}}
-        tmp = self.stats_file.with_suffix('.tmp')
-        tmp.write_text(json.dumps(stats, indent=1))
-        os.replace(tmp, self.stats_file)
+        atomic.write_text(self.stats_file, json.dumps(stats, indent=1))
 
 
 def socket_aton(address: str) -> bytes:

@@ -37,7 +37,6 @@ the flood. Once acknowledged, it is in the reader's history and cannot be lost.
 from __future__ import annotations
 
 import json
-import os
 import struct
 import sys
 import time
@@ -52,6 +51,7 @@ from rclpy.qos import DurabilityPolicy
 from rosbags.highlevel import AnyReader
 from rosgraph_msgs.msg import Clock
 
+from controlled_islanding import atomic
 from controlled_islanding.ros.node_common import Diagnostics, NodeSetupError, message_class, qos_for, spin_node
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.interfaces import typestore
@@ -334,9 +334,7 @@ class BagPlayerNode(Node):
         self.get_logger().info(f'played {len(self.messages)} messages: {bag_s:.2f} s of bag in {wall_s:.2f} s '
                                f'({report["speed_vs_real_time"]:.1f}x real time)')
         if self.report_file:
-            tmp = Path(f'{self.report_file}.tmp')
-            tmp.write_text(json.dumps(report))
-            os.replace(tmp, self.report_file)
+            atomic.write_text(self.report_file, json.dumps(report))
         return report
 
 

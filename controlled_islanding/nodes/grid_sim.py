@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import sys
 import time
 from dataclasses import replace
@@ -63,6 +62,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
+from controlled_islanding import atomic
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.ros.node_common import Diagnostics, NodeSetupError, qos_for, spin_node
 from controlled_islanding.sim.bag import PDC_FRAME_ID, START_TIME_UNIX_S
@@ -458,13 +458,12 @@ class GridSimNode(Node):
                       'request_id': self.request_id, 'held_wall_s': self.held_wall_s,
                       'config': run.config.__dict__, 'rate': self.rate}
             base = Path(self.report_file)
-            np.savez_compressed(f'{base}.npz', t_s=outcome.t_s, delta_rad=outcome.delta_rad, bus_v_pu=outcome.bus_v_pu,
-                                generator_names=np.array(outcome.generator_names),
-                                generator_buses=np.array(outcome.generator_buses),
-                                bus_numbers=np.array(outcome.bus_numbers))
-            tmp = Path(f'{base}.tmp')
-            tmp.write_text(json.dumps(report, indent=1, default=str))
-            os.replace(tmp, base)
+            with atomic.replacing(f'{base}.npz') as tmp, open(tmp, 'wb') as out:
+                np.savez_compressed(out, t_s=outcome.t_s, delta_rad=outcome.delta_rad, bus_v_pu=outcome.bus_v_pu,
+                                    generator_names=np.array(outcome.generator_names),
+                                    generator_buses=np.array(outcome.generator_buses),
+                                    bus_numbers=np.array(outcome.bus_numbers))
+            atomic.write_text(base, json.dumps(report, indent=1, default=str))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -29,6 +29,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.rosbag2 import StoragePlugin, Writer
 
+from controlled_islanding import atomic
 from controlled_islanding.ros.node_common import (
     Diagnostics,
     NodeSetupError,
@@ -135,7 +136,7 @@ class RecorderNode(Node):
             self._flush_early(time.time_ns())
         self.writer.close()
         set_ros_distro(self.tmp / self.output.name)
-        os.replace(self.tmp / self.output.name, self.output)
+        atomic.replace(self.tmp / self.output.name, self.output)
         self.tmp.rmdir()
         self.get_logger().info(f'wrote {self.output}')
 

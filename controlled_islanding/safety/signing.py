@@ -31,6 +31,8 @@ from cryptography.hazmat.primitives.serialization import (
     load_pem_public_key,
 )
 
+from controlled_islanding import atomic
+
 # Who signs what: the decision maker (partitioning) and the operator who arms and disarms.
 ROLES = ('partitioning', 'operator')
 DECISION_DOMAIN = 'controlled_islanding/IslandingDecision/v1'
@@ -98,23 +100,11 @@ def init_keys(directory: str | Path, force: bool = False) -> dict[str, KeyPaths]
             if paths.private.exists() and paths.public.exists() and not force:
                 continue
             key = Ed25519PrivateKey.generate()
-            _write_atomic(paths.private, key.private_bytes(Encoding.PEM, PrivateFormat.PKCS8, NoEncryption()),
-                          0o600)
-            _write_atomic(paths.public,
-                          key.public_key().public_bytes(Encoding.PEM, PublicFormat.SubjectPublicKeyInfo), 0o644)
+            atomic.write_bytes(paths.private, key.private_bytes(Encoding.PEM, PrivateFormat.PKCS8, NoEncryption()),
+                               0o600)
+            atomic.write_bytes(paths.public,
+                               key.public_key().public_bytes(Encoding.PEM, PublicFormat.SubjectPublicKeyInfo), 0o644)
     return made
-
-
-def _write_atomic(path: Path, data: bytes, mode: int) -> None:
-    tmp = path.with_name(f'.{path.name}.partial-{os.getpid()}')
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
-    try:
-        os.write(fd, data)
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    os.chmod(tmp, mode)
-    os.replace(tmp, path)
 
 
 def load_private_key(path: str | Path) -> Ed25519PrivateKey:

@@ -26,7 +26,6 @@ SBASE before setup; the power flow of N44_BC.raw then converges in 3 iterations.
 from __future__ import annotations
 
 import logging
-import os
 import sys
 import time
 from dataclasses import dataclass
@@ -36,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from controlled_islanding.core.grid import DYNAMIC_FIELDS, Branch, Generator, Grid, Load
+from controlled_islanding.locations import build_dir
 from controlled_islanding.sim.scenario import Disable, Scenario, ScenarioError
 
 # Synchronous machine models whose devices are the generators (ANDES group SynGen).
@@ -90,12 +90,7 @@ class Simulation:
 
 def pycode_dir() -> Path:
     """Return the directory for ANDES' generated code, inside the build tree."""
-    root = os.environ.get('CONTROLLED_ISLANDING_BUILD')
-    if root:
-        return Path(root) / 'andes_pycode'
-    checkout = Path(__file__).resolve().parents[2]
-    base = checkout if (checkout / 'msg_schemas').is_dir() else Path.cwd()
-    return base / 'build' / 'andes_pycode'
+    return build_dir() / 'andes_pycode'
 
 
 def ensure_pycode() -> Path:

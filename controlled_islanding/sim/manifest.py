@@ -18,7 +18,6 @@ Diagnostic columns beside the truth:
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -26,6 +25,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from controlled_islanding import atomic
+from controlled_islanding.locations import manifest_path
 from controlled_islanding.sim.scenario import load_scenario
 from controlled_islanding.sim.truth import first_pole_slip_s, pole_slip_groups, separation_visible_s, truth_groups
 from controlled_islanding.wire.bagdata import load_bag
@@ -46,7 +47,77 @@ _DIGITS = 3
 
 
 class ManifestError(RuntimeError):
-    """The manifest cannot be built: a scenario or its bag is missing or unreadable."""
+    """The manifest cannot be built or read: a scenario or its bag is missing or unreadable, or no default bag."""
+
+
+# ------------------------------------------------------------------------------------------------------ reading
+def _load(path: Path | None) -> tuple[Path, dict[str, Any]]:
+    path = manifest_path() if path is None else Path(path)
+    if not path.is_file():
+        return path, {}
+    try:
+        return path, yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ManifestError(f'{path}: not a readable manifest: {exc}') from exc
+
+
+def manifest_entries(path: Path | None = None) -> list[dict[str, Any]]:
+    """Return the bags a manifest lists, in its order (empty if there is no manifest).
+
+    Args:
+        path: The manifest; default bags/index.yaml of the checkout (locations.manifest_path).
+
+    """
+    return list(_load(path)[1].get('bags') or [])
+
+
+def entries_by_bag(path: Path | None = None) -> dict[str, dict[str, Any]]:
+    """Return a manifest's entries by bag directory name ({} if there is no manifest)."""
+    return {e['bag']: e for e in manifest_entries(path)}
+
+
+def entry_for_bag(bag: Path) -> dict[str, Any] | None:
+    """Return the entry of a bag directory in the manifest beside it (its parent's index.yaml), if it has one."""
+    bag = Path(bag)
+    return entries_by_bag(bag.parent / 'index.yaml').get(bag.name)
+
+
+def default_bag(path: Path | None = None) -> dict[str, Any]:
+    """Return the entry of the default bag: the manifest's `default:`, else its first bag that splits.
+
+    Raises:
+        ManifestError: No manifest, or it names no usable bag.
+
+    """
+    path, data = _load(path)
+    entries = list(data.get('bags') or [])
+    if not entries:
+        raise ManifestError(f'{path} lists no bags; run `make setup` in a full clone, or `controlled-islanding '
+                            'simulate`')
+    wanted = data.get('default')
+    for entry in entries:
+        if entry.get('name') == wanted:
+            return entry
+    if wanted:
+        raise ManifestError(f'{path}: default bag {wanted!r} is not among its bags')
+    return next((e for e in entries if e.get('expected_decision', {}).get('split')), entries[0])
+
+
+def unstable_scenarios(path: Path | None = None) -> list[Path]:
+    """Return the scenario files of every entry whose expected decision splits.
+
+    Raises:
+        ManifestError: There is no manifest.
+
+    """
+    path = manifest_path() if path is None else Path(path)
+    if not path.is_file():
+        raise ManifestError(f'{path} does not exist')
+    return [path.parent / e['scenario'] for e in manifest_entries(path)
+            if (e.get('expected_decision') or {}).get('split')]
+
+
+# ------------------------------------------------------------------------------------------------------ writing
 
 
 def _entry(yaml_path: Path, progress: bool) -> dict[str, Any]:
@@ -164,7 +235,5 @@ def write_manifest(path: Path, progress: bool = False) -> Path:
         if default not in {e['name'] for e in manifest['bags']}:
             raise ManifestError(f'{path}: default {default!r} names no scenario of {path.parent}')
         manifest = {'default': default, **manifest}
-    tmp = path.with_name(f'.{path.name}.partial')
-    tmp.write_text(HEADER + yaml.safe_dump(manifest, sort_keys=False, width=110, default_flow_style=None))
-    os.replace(tmp, path)
-    return path
+    return atomic.write_text(path, HEADER + yaml.safe_dump(manifest, sort_keys=False, width=110,
+                                                            default_flow_style=None))

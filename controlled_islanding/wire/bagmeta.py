@@ -9,12 +9,13 @@ copy of the metadata embedded in the MCAP file keeps rosbags' value: rosbag2 rea
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 from typing import Any
 
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+from controlled_islanding import atomic
 
 ROS_DISTRO = 'jazzy'
 _DISTRO_LINE = re.compile(r'^(\s*ros_distro:\s*)\S+\s*$', re.MULTILINE)
@@ -39,9 +40,7 @@ def set_ros_distro(bag: Path, distro: str = ROS_DISTRO) -> None:
     new, n = _DISTRO_LINE.subn(lambda m: m.group(1) + distro, text, count=1)
     if n != 1:
         raise BagMetaError(f'{path}: no ros_distro field')
-    tmp = path.with_name(path.name + '.tmp')
-    tmp.write_text(new)
-    os.replace(tmp, path)
+    atomic.write_text(path, new)
 
 
 def qos_profile(qos: Any) -> Qos:
