@@ -4,16 +4,19 @@ Each subcommand lives in controlled_islanding/commands/<name>.py and exposes
 `HELP` (one line), `DESCRIPTION` (what it teaches in --help), `add_arguments(parser)`
 and `run(args) -> int`. They are imported only when chosen, so `--help` is fast and
 one subcommand's heavy imports (ANDES, rclpy) never slow another.
+
+Results go to stdout; progress and messages go to stderr through `logging`, one line each,
+"<subcommand>: <message>", so that --quiet and --verbose set one level for every part of the package.
+A progress bar (tqdm) shows only on a terminal; log lines written meanwhile go around it.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import sys
 from collections.abc import Sequence
-
-from controlled_islanding.graph.rosenv import RosEnvError
 
 SUBCOMMANDS = ('demo', 'replay', 'partition', 'simulate', 'evaluate', 'bench', 'keys', 'fuzz', 'serve-pmu', 'export',
                'testbed')
@@ -29,6 +32,8 @@ Start with:
       --group 30,37,38 --group 31,32,33,34,35,36,39
                                              split a grid for given coherent groups
 Run `controlled-islanding SUBCOMMAND --help` for each subcommand's options.
+-q/--quiet shows only warnings and errors on stderr, -v/--verbose adds detail; either goes before or after
+the subcommand.
 """
 
 
@@ -44,10 +49,22 @@ def _load(name: str):
     return importlib.import_module(_module_name(name))
 
 
+def _verbosity() -> argparse.ArgumentParser:
+    # SUPPRESS: given after the subcommand, the subparser's value must not be overwritten by the main parser's default.
+    common = argparse.ArgumentParser(add_help=False)
+    group = common.add_mutually_exclusive_group()
+    group.add_argument('-q', '--quiet', dest='log_level', action='store_const', const=logging.WARNING,
+                       default=argparse.SUPPRESS, help='only warnings and errors on stderr')
+    group.add_argument('-v', '--verbose', dest='log_level', action='store_const', const=logging.DEBUG,
+                       default=argparse.SUPPRESS, help='more detail on stderr')
+    return common
+
+
 def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
     """Build the parser; only the chosen subcommand's module is imported for its arguments."""
+    common = _verbosity()
     parser = argparse.ArgumentParser(
-        prog='controlled-islanding', description=DESCRIPTION,
+        prog='controlled-islanding', description=DESCRIPTION, parents=[common],
         formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest='command', metavar='SUBCOMMAND', required=True)
     for name in SUBCOMMANDS:
@@ -57,11 +74,44 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
             if exc.name != _module_name(name):
                 raise
             continue
-        sp = sub.add_parser(name, help=module.HELP, description=module.DESCRIPTION,
+        sp = sub.add_parser(name, help=module.HELP, description=module.DESCRIPTION, parents=[common],
                             formatter_class=argparse.RawDescriptionHelpFormatter)
         if name == chosen or chosen is None:
             module.add_arguments(sp)
     return parser
+
+
+class _Formatter(logging.Formatter):
+    """'<subcommand>: message', and 'warning:' or 'error:' before the message at those levels."""
+
+    def __init__(self, command: str) -> None:
+        super().__init__()
+        self.command = command
+
+    def format(self, record: logging.LogRecord) -> str:
+        level = '' if record.levelno < logging.WARNING else f'{record.levelname.lower()}: '
+        text = f'{self.command}: {level}{record.getMessage()}'
+        if record.exc_info:
+            text += '\n' + self.formatException(record.exc_info)
+        return text
+
+
+def progress_bar(total: int, desc: str, unit: str = 'it'):
+    """Return a tqdm bar for a loop a person waits on: on stderr, on a terminal only, and not with --quiet."""
+    from tqdm import tqdm
+
+    shown = logging.getLogger('controlled_islanding').isEnabledFor(logging.INFO)
+    return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, leave=False, disable=None if shown else True)
+
+
+def configure_logging(command: str, level: int) -> None:
+    """Send the package's log records to stderr at `level`, one line each (what the command line does)."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_Formatter(command))
+    package = logging.getLogger('controlled_islanding')
+    package.handlers[:] = [handler]
+    package.setLevel(level)
+    package.propagate = False
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -69,8 +119,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     chosen = next((a for a in argv if a in SUBCOMMANDS), None)
     args = build_parser(chosen).parse_args(argv)
+    configure_logging(args.command, getattr(args, 'log_level', logging.INFO))
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    from controlled_islanding.graph.rosenv import RosEnvError
+
     try:
-        return int(_load(args.command).run(args) or 0)
+        with logging_redirect_tqdm(loggers=[logging.getLogger('controlled_islanding')]):
+            return int(_load(args.command).run(args) or 0)
     except (CliError, RosEnvError) as exc:
         print(f'controlled-islanding {args.command}: error: {exc}', file=sys.stderr)
         return 2

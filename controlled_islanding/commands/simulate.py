@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
-from controlled_islanding.cli import CliError
+from controlled_islanding.cli import CliError, progress_bar
 from controlled_islanding.locations import bags_dir
 
 HELP = 'simulate a scenario YAML in ANDES and record PMU frames and ground truth in a bag'
@@ -58,7 +57,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--update-manifest', nargs='?', const=DEFAULT_BAGS_DIR / 'index.yaml', type=Path,
                         metavar='INDEX', help='after simulating, rewrite the manifest (default bags/index.yaml) '
                                               'from every bag listed with a YAML beside it')
-    parser.add_argument('--quiet', action='store_true', help='no progress on stderr')
     parser.add_argument('--check', action='store_true',
                         help='simulate into a scratch directory and compare with the committed bags instead of '
                              'writing them: exit 1 if any message differs (the suite regenerates a sample; '
@@ -87,29 +85,31 @@ def run(args: argparse.Namespace) -> int:
     # Scenarios sharing one ANDES run are simulated once when they follow each other.
     scenarios.sort(key=lambda s: (repr(s.simulation_key()), s.name))
     if args.check:
-        return _check(scenarios, quiet=args.quiet)
+        return _check(scenarios)
+    bar = progress_bar(len(scenarios), 'simulate', 'scenario')
     for sc in scenarios:
+        bar.update()
         out = args.out if args.out is not None else sc.path.parent / sc.name
         start = time.monotonic()
         try:
-            result = run_scenario(sc, out, force=args.force, progress=not args.quiet)
+            result = run_scenario(sc, out, force=args.force)
         except (ScenarioError, SimulationError, BagWriteError) as exc:
             raise CliError(str(exc)) from None
         k = max(result.groups.values()) + 1
-        print(f'{result.bag}: {result.n_frames} PMU frames, {k} true group(s), '
-              f'{time.monotonic() - start:.1f} s', file=sys.stderr if args.quiet else sys.stdout)
+        print(f'{result.bag}: {result.n_frames} PMU frames, {k} true group(s), {time.monotonic() - start:.1f} s',
+              flush=True)
     if args.update_manifest is not None:
         from controlled_islanding.sim.manifest import ManifestError, write_manifest
 
         try:
-            path = write_manifest(args.update_manifest, progress=not args.quiet)
+            path = write_manifest(args.update_manifest, progress=True)
         except ManifestError as exc:
             raise CliError(str(exc)) from None
         print(f'{path}: updated')
     return 0
 
 
-def _check(scenarios: list, quiet: bool) -> int:
+def _check(scenarios: list) -> int:
     """Regenerate each scenario into a scratch directory and compare it with its committed bag."""
     import tempfile
 
@@ -126,7 +126,7 @@ def _check(scenarios: list, quiet: bool) -> int:
                 verdict = 'no committed bag'
             else:
                 try:
-                    fresh = run_scenario(sc, Path(scratch) / sc.name, progress=not quiet).bag
+                    fresh = run_scenario(sc, Path(scratch) / sc.name).bag
                 except (ScenarioError, SimulationError) as exc:
                     raise CliError(str(exc)) from None
                 verdict = message_difference(fresh, committed) or 'same messages'

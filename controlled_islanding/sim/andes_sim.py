@@ -26,7 +26,6 @@ SBASE before setup; the power flow of N44_BC.raw then converges in 3 iterations.
 from __future__ import annotations
 
 import logging
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +36,8 @@ import numpy as np
 from controlled_islanding.core.grid import DYNAMIC_FIELDS, Branch, Generator, Grid, Load
 from controlled_islanding.locations import build_dir
 from controlled_islanding.sim.scenario import Disable, Scenario, ScenarioError
+
+log = logging.getLogger(__name__)
 
 # Synchronous machine models whose devices are the generators (ANDES group SynGen).
 _SYNGEN_GROUP = 'SynGen'
@@ -333,16 +334,19 @@ def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
     tds = ss.TDS
     tds.config.tstep = scenario.step_s
     tds.config.criteria = 0  # the default stops at 180 deg of angle spread: the loss of synchronism we record
-    tds.config.no_tqdm = 1
+    # ANDES' own bar, on a terminal only (it writes to stdout); elsewhere a line a simulated second, with -v.
+    tds.config.no_tqdm = 0 if progress and log.isEnabledFor(logging.INFO) else 1
     start = time.monotonic()
     next_report = [_PROGRESS_CHUNK_S]
 
     def report(t: float, _system: Any) -> None:
         if progress and t >= next_report[0]:
-            print(f'simulate {scenario.name}: t = {t:5.2f} / {scenario.end_s:.2f} s '
-                  f'({time.monotonic() - start:.1f} s wall)', file=sys.stderr, flush=True)
+            log.debug('%s: t = %5.2f / %.2f s (%.1f s wall)', scenario.name, t, scenario.end_s,
+                      time.monotonic() - start)
             next_report[0] += _PROGRESS_CHUNK_S
 
+    if progress:
+        log.info('%s: simulating %g s of %s in ANDES', scenario.name, scenario.end_s, scenario.case.name)
     tds.config.tf = scenario.end_s
     tds.callpert = report
     tds.run()

@@ -23,8 +23,8 @@ The bag is written to a temporary directory beside the target and renamed into p
 
 from __future__ import annotations
 
+import logging
 import shutil
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -41,6 +41,8 @@ from controlled_islanding.wire import topics
 from controlled_islanding.wire.bagmeta import qos_profile, set_ros_distro
 from controlled_islanding.wire.interfaces import msg_type_name, typestore
 from controlled_islanding.wire.messages import dynamic_data_fields
+
+log = logging.getLogger(__name__)
 
 START_TIME_UNIX_S = 1_767_225_600
 PDC_FRAME_ID = 'pdc'
@@ -160,7 +162,7 @@ def run_scenario(scenario: Scenario, out: Path, *, force: bool = False, progress
         _SIM_CACHE[key] = simulate(scenario, progress=progress)
         wall = _SIM_CACHE[key].wall_s
     elif progress:
-        print(f'simulate {scenario.name}: reusing the ANDES run of an earlier scenario', file=sys.stderr)
+        log.info('%s: reusing the ANDES run of an earlier scenario', scenario.name)
     sim = _SIM_CACHE[key]
     pmu = measure(sim, scenario)
     groups = truth_groups(pmu.tag_s, pmu.truth_delta_rad)

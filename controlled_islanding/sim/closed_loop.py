@@ -63,8 +63,8 @@ definition.
 
 from __future__ import annotations
 
+import logging
 import math
-import sys
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
@@ -75,6 +75,8 @@ import numpy as np
 
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.sim.scenario import Scenario, ScenarioError
+
+log = logging.getLogger(__name__)
 
 _LOAD_CONSTANTS = ('Ppf', 'Qpf', 'Req', 'Xeq', 'Ipeq', 'Iqeq')
 _PROGRESS_CHUNK_S = 1.0
@@ -587,8 +589,8 @@ class GridRun:
                 entry[1].applied_s = t_s
                 self.actions.append(entry[1])
             if self.progress and t_s >= next_report[0]:
-                print(f'grid {self.scenario.name}: t = {t_s:5.2f} / {self.run_until_s:.2f} s '
-                      f'({time.monotonic() - start:.1f} s wall)', file=sys.stderr, flush=True)
+                log.info('grid %s: t = %5.2f / %.2f s (%.1f s wall)', self.scenario.name, t_s, self.run_until_s,
+                         time.monotonic() - start)
                 next_report[0] += _PROGRESS_CHUNK_S
 
         tds.callpert = pert
