@@ -15,7 +15,8 @@ from rclpy.signals import SignalHandlerOptions
 
 from controlled_islanding.graph.rosenv import isolated_ros_environment
 from controlled_islanding.graph.supervisor import Supervisor
-from controlled_islanding.ros.node_common import qos_for, writers_matched
+from controlled_islanding.ros.diagnostics import writers_matched
+from controlled_islanding.ros.endpoints import qos_for
 from controlled_islanding.wire import topics
 
 BUILD = Path(__file__).resolve().parents[1] / 'build'

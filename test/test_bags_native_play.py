@@ -20,7 +20,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProf
 from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
 
-from controlled_islanding.ros.node_common import message_class, qos_for
+from controlled_islanding.ros.endpoints import qos_for
+from controlled_islanding.ros.params import message_class
 from controlled_islanding.wire.interfaces import typestore
 
 pytestmark = [pytest.mark.ros]

@@ -1,10 +1,10 @@
-"""The diagnostic_updater-style topic status (node_common.TopicStatus) on a driven clock, without processes."""
+"""The diagnostic_updater-style topic status (ros.diagnostics.TopicStatus) on a driven clock, without processes."""
 
 from __future__ import annotations
 
 from diagnostic_msgs.msg import DiagnosticStatus
 
-from controlled_islanding.ros.node_common import TopicStatus
+from controlled_islanding.ros.diagnostics import TopicStatus
 
 T0_S = 1_767_225_600.0  # a node clock that runs (sim or wall time), s
 

@@ -99,7 +99,7 @@ def test_pmu_ingestion_with_dse_publishes_the_filter_and_falls_back_where_data_a
 
     from controlled_islanding.nodes.grid_sim import frame_msg, snapshot_msg
     from controlled_islanding.nodes.pmu_ingestion import PmuIngestionNode
-    from controlled_islanding.ros.node_common import qos_for
+    from controlled_islanding.ros.endpoints import qos_for
     from controlled_islanding.sim.closed_loop import Frame
     from controlled_islanding.wire import topics
 

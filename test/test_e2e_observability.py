@@ -22,7 +22,7 @@ def without_pmu(source: Path, out: Path, generator: str, bus: int) -> None:
     from rosbags.highlevel import AnyReader
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    from controlled_islanding.ros.node_common import qos_for
+    from controlled_islanding.ros.endpoints import qos_for
     from controlled_islanding.wire.bagmeta import qos_profile
     from controlled_islanding.wire.interfaces import typestore
 

@@ -272,7 +272,7 @@ def test_a_burst_into_a_keep_last_1_reader_is_taken_or_counted_as_lost(pipeline)
 
 
 def test_loss_counter_follows_each_writer_by_continuity():
-    from controlled_islanding.ros.node_common import LossCounter
+    from controlled_islanding.ros.diagnostics import LossCounter
 
     counter = LossCounter()
     assert [counter.seen(s) for s in (5, 6, 9)] == [0, 0, 2]  # the first seen is the start; 7 and 8 lost

@@ -21,7 +21,7 @@ from controlled_islanding_msgs.msg import NetworkSnapshot, PmuFrame
 from nodes_harness import BUILD, bag_writer, graph
 
 from controlled_islanding.graph.supervisor import PLAYER
-from controlled_islanding.ros.node_common import qos_for
+from controlled_islanding.ros.endpoints import qos_for
 from controlled_islanding.wire import topics
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
@@ -33,7 +33,7 @@ ACK_TIMEOUT_S = 1.5
 READER = """
 import sys, time, rclpy
 from controlled_islanding_msgs.msg import NetworkSnapshot
-from controlled_islanding.ros.node_common import qos_for
+from controlled_islanding.ros.endpoints import qos_for
 rclpy.init()
 node = rclpy.create_node('stopped_reader')
 sub = node.create_subscription(NetworkSnapshot, '/network/snapshot', lambda m: None, qos_for('/network/snapshot'))

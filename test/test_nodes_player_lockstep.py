@@ -20,7 +20,7 @@ from nodes_harness import BUILD, bag_writer, graph
 from rosgraph_msgs.msg import Clock
 
 from controlled_islanding.graph.supervisor import PLAYER
-from controlled_islanding.ros.node_common import qos_for
+from controlled_islanding.ros.endpoints import qos_for
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.messages import split_stamp, stamp_s
 

@@ -36,7 +36,7 @@ from rosbags.highlevel import AnyReader
 from rosgraph_msgs.msg import Clock
 
 from controlled_islanding.graph.supervisor import GRAPH
-from controlled_islanding.ros.node_common import qos_for
+from controlled_islanding.ros.endpoints import qos_for
 from controlled_islanding.safety import signing
 from controlled_islanding.sim.manifest import default_bag, manifest_entries
 from controlled_islanding.wire import topics

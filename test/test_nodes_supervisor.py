@@ -148,7 +148,7 @@ def watch(sup: Supervisor, probe, policy: RestartPolicy) -> dict[str, float]:
     """Watch the supervisor's children under policy; return the heartbeat times the probe keeps, by node."""
     from diagnostic_msgs.msg import DiagnosticArray
 
-    from controlled_islanding.ros.node_common import qos_for
+    from controlled_islanding.ros.endpoints import qos_for
     from controlled_islanding.wire import topics
 
     beats: dict[str, float] = {}

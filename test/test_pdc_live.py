@@ -35,7 +35,7 @@ from nodes_harness import BUILD, graph
 from rosgraph_msgs.msg import Clock
 
 from controlled_islanding.graph.supervisor import GRAPH, PLAYER, NodeSpec
-from controlled_islanding.ros.node_common import qos_for
+from controlled_islanding.ros.endpoints import qos_for
 from controlled_islanding.safety import signing
 from controlled_islanding.sim.manifest import default_bag
 from controlled_islanding.wire import topics

@@ -19,8 +19,8 @@ from test_e2e_bags import ENTRIES, REPO, check_breaker_rules, check_decision, re
 from controlled_islanding.commands.replay import replay
 from controlled_islanding.graph import wan
 from controlled_islanding.graph.supervisor import GRAPH
-from controlled_islanding.ros.node_common import DECISION_LEASE_S
 from controlled_islanding.sim.manifest import default_bag
+from controlled_islanding.wire.qos import DECISION_LEASE_S
 
 UNAVAILABLE = wan.unavailable_reason()
 
@@ -92,7 +92,7 @@ CONTROL_CENTRE = """
 import rclpy
 from controlled_islanding_msgs.msg import IslandingDecision
 from controlled_islanding.wire import topics
-from controlled_islanding.ros.node_common import qos_for
+from controlled_islanding.ros.endpoints import qos_for
 rclpy.init()
 node = rclpy.create_node('partitioning')
 node.create_publisher(IslandingDecision, topics.relative(topics.ISLANDING_DECISION), qos_for(topics.ISLANDING_DECISION))

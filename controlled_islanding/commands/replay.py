@@ -198,7 +198,9 @@ def run_graph(bag: Path, results: Path, *, fast: bool, rate: float, probe_hz: fl
         Supervisor,
         SupervisorError,
     )
-    from controlled_islanding.ros.node_common import qos_for, settle_heap, writers_matched
+    from controlled_islanding.ros.diagnostics import writers_matched
+    from controlled_islanding.ros.endpoints import qos_for
+    from controlled_islanding.ros.spin import settle_heap
     from controlled_islanding.safety import signing
 
     # The demo and replays sign with the user's keys, made on first use, outside the repository.

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 from pathlib import Path
 
 from controlled_islanding.cli import CliError
+from controlled_islanding.graph.processes import sigterm_as_interrupt
 
 HELP = "play a bag's PMU frames as a C37.118.2 PMU/PDC TCP server (a lab PDC, or pdc_client, connects to it)"
 DESCRIPTION = """\
@@ -56,11 +56,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--once', action='store_true', help='exit after one client has received the whole bag')
 
 
-def _interrupt(*_: object) -> None:
-    # SIGTERM (a supervisor stopping us) ends the loop like Ctrl-C, so every socket is closed.
-    raise KeyboardInterrupt
-
-
 def run(args: argparse.Namespace) -> int:
     """Serve the bag until Ctrl-C (or, with --once, until one stream is complete)."""
     from controlled_islanding.pmu.stream import PmuServer, PmuStreamError, load_bag_stream
@@ -86,9 +81,9 @@ def run(args: argparse.Namespace) -> int:
     def say(line: str) -> None:
         print(f'serve-pmu: {line}', flush=True)
 
-    signal.signal(signal.SIGTERM, _interrupt)
+    # SIGTERM (a supervisor stopping us) ends the loop like Ctrl-C, so every socket is closed.
     try:
-        with PmuServer(stream, args.host, args.port, args.rate, log=say) as server:
+        with sigterm_as_interrupt(), PmuServer(stream, args.host, args.port, args.rate, log=say) as server:
             cfg = stream.config
             say(f'listening on {server.host}:{server.port} (IDCODE {cfg.idcode}, {len(cfg.pmus)} PMUs, '
                 f'{len(stream.frames)} frames at {cfg.data_rate} frames/s, {args.format}, rate {args.rate})'

@@ -125,7 +125,7 @@ def run_closed_loop(scenario: Path, results: Path, *, rate: float, params: dict[
 
     from controlled_islanding.graph.rosenv import graph_environment
     from controlled_islanding.graph.supervisor import GRAPH, PIPELINE_POLICY, NodeSpec, Supervisor, SupervisorError
-    from controlled_islanding.ros.node_common import qos_for
+    from controlled_islanding.ros.endpoints import qos_for
     from controlled_islanding.safety import signing
 
     key_dir = Path(os.environ.get('CONTROLLED_ISLANDING_KEYS') or signing.default_key_dir())
@@ -620,7 +620,7 @@ def run(args: argparse.Namespace) -> int:
     if results_dir.exists():
         raise CliError(f'results folder {results_dir} exists; name a new one')
     results_dir.mkdir(parents=True)
-    from controlled_islanding.graph.supervisor import sigterm_as_interrupt
+    from controlled_islanding.graph.processes import sigterm_as_interrupt
 
     with sigterm_as_interrupt():  # the baselines run with no supervisor open: a SIGTERM there is marked too
         return _run_all(paths, results_dir, args)

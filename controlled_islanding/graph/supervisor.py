@@ -11,19 +11,18 @@ each in `restarts` and `hangs` so that a run can report that it did not come fro
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import os
 import signal
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
+from controlled_islanding.graph.processes import cpu_s, die_with_parent, processes, sigterm_as_interrupt
 from controlled_islanding.graph.watchdog import Action, ActionKind, RestartPolicy, Watchdog
 from controlled_islanding.locations import config_dir
 
@@ -135,38 +134,6 @@ def node_command(spec: NodeSpec, overrides: Mapping[str, object] | None = None, 
     return argv
 
 
-@contextlib.contextmanager
-def sigterm_as_interrupt() -> Iterator[None]:
-    """While open, SIGTERM raises KeyboardInterrupt in the main thread, as Ctrl-C does.
-
-    Python's default SIGTERM ends the process at once, skipping every `finally` and `__exit__`: a `kill PID` left
-    the nodes' forked helpers running and a results folder that did not say it was unfinished. A handler the
-    program set itself, or a call off the main thread, is left alone.
-    """
-    if (threading.current_thread() is not threading.main_thread()
-            or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL):
-        yield
-        return
-    signal.signal(signal.SIGTERM, _terminated)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
-
-
-def _terminated(signum: int, _frame: object) -> None:
-    raise KeyboardInterrupt(f'signal {signum}')
-
-
-def _die_with_parent() -> None:
-    # A SIGKILLed supervisor cannot run its cleanup; the kernel then stops the children instead (only them:
-    # what a child forked is then the child's to end).
-    try:
-        ctypes.CDLL('libc.so.6', use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except OSError:
-        pass
-
-
 class Supervisor:
     """Owns child node processes; `with Supervisor(...)` stops them all on exit, Ctrl-C, SIGTERM or error.
 
@@ -234,7 +201,7 @@ class Supervisor:
         with open(self.log_dir / f'{name}.log', 'ab') as log:
             child = subprocess.Popen([*prefix, *node_command(spec, overrides, namespace, self.remaps)], env=self.env,
                                      stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     start_new_session=True, preexec_fn=_die_with_parent)
+                                     start_new_session=True, preexec_fn=die_with_parent)
         self.children[name] = child
         if self.watchdog is not None:
             self.watchdog.started(name, time.monotonic())
@@ -334,7 +301,7 @@ class Supervisor:
                 self.watchdog.stopped(name)
         for name, child in self.children.items():
             if child.poll() is None:
-                self.cpu_s[name] = _cpu_s(child.pid)
+                self.cpu_s[name] = cpu_s(child.pid)
         held: list[int] = []
         saved = _hold_signals(held)
         try:
@@ -379,34 +346,13 @@ def _live_groups(children: Sequence[subprocess.Popen]) -> list[subprocess.Popen]
     live = [c for c in children if c.pid not in exited]
     if exited:
         groups = set()
-        for pid, state, pgid in _processes():
+        for pid, state, pgid in processes():
             if state != 'Z':
                 groups.add(pgid)
                 # A reaped leader's number is reused only once its group is empty: a live one is someone else.
                 exited.pop(pid, None)
         live += [c for pid, c in exited.items() if pid in groups]
     return live
-
-
-def _processes() -> list[tuple[int, str, int]]:
-    """Return (pid, state, process group) of every process."""
-    out = []
-    for stat in Path('/proc').glob('[0-9]*/stat'):
-        try:
-            fields = stat.read_text().rsplit(')', 1)[1].split()
-            out.append((int(stat.parent.name), fields[0], int(fields[2])))
-        except (OSError, IndexError, ValueError):
-            continue
-    return out
-
-
-def _cpu_s(pid: int) -> float:
-    """Return a live process's CPU time so far (user + system), s; 0 if it cannot be read."""
-    try:
-        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
-    except (OSError, IndexError, ValueError):
-        return 0.0
 
 
 def _utc_now() -> str:

@@ -33,13 +33,13 @@ import signal
 import struct
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from controlled_islanding import atomic
+from controlled_islanding.graph.processes import die_with_parent, sigterm_as_interrupt, status_field
 
 # Which nodes run on which kind of host in a deployment: the PMU data concentrator's site, the control centre,
 # and the substation that holds the breakers. The bag player stands in for the PDC's stream.
@@ -129,16 +129,9 @@ def host_of(hosts: dict[str, tuple[str, ...]], executable: str) -> str:
     return OPERATOR
 
 
-def _effective_caps() -> int:
-    for line in Path('/proc/self/status').read_text().splitlines():
-        if line.startswith('CapEff:'):
-            return int(line.split()[1], 16)
-    return 0
-
-
 def unavailable_reason() -> str | None:
     """Return one line saying why the emulated WAN cannot be built here, or None if it can."""
-    caps = _effective_caps()
+    caps = int(status_field('self', 'CapEff') or '0', 16)
     if not (caps >> _CAP_SYS_ADMIN & 1 and caps >> _CAP_NET_ADMIN & 1):
         return ('the emulated WAN needs root (CAP_SYS_ADMIN and CAP_NET_ADMIN) for network namespaces and TUN '
                 'devices; unprivileged user namespaces are not supported')
@@ -245,7 +238,7 @@ class EmulatedWan:
         self.stats: dict = {}
         self._emulator: subprocess.Popen | None = None
         self._made: list[str] = []
-        self._old_sigterm = None
+        self._sigterm: contextlib.AbstractContextManager | None = None
 
     def __enter__(self) -> EmulatedWan:
         why = unavailable_reason()
@@ -253,9 +246,9 @@ class EmulatedWan:
             raise WanError(why)
         sweep_stale()
         self.work_dir.mkdir(parents=True, exist_ok=True)
-        if threading.current_thread() is threading.main_thread():
-            # SIGTERM would end us without unwinding, leaving the namespaces mounted until a later sweep.
-            self._old_sigterm = signal.signal(signal.SIGTERM, _exit_on_sigterm)
+        # SIGTERM would end us without unwinding, leaving the namespaces mounted until a later sweep.
+        self._sigterm = sigterm_as_interrupt()
+        self._sigterm.__enter__()
         try:
             for host in self.hosts:
                 _ip('netns', 'add', self.namespaces[host])
@@ -278,7 +271,7 @@ class EmulatedWan:
         log = open(self.work_dir / 'wan_emulator.log', 'ab')
         self._emulator = subprocess.Popen(
             [sys.executable, '-m', 'controlled_islanding.graph.wan', json.dumps(config)], stdout=subprocess.PIPE,
-            stderr=log, stdin=subprocess.DEVNULL, preexec_fn=_die_with_parent)
+            stderr=log, stdin=subprocess.DEVNULL, preexec_fn=die_with_parent)
         log.close()
         ready, _, _ = select.select([self._emulator.stdout], [], [], 30.0)
         line = self._emulator.stdout.readline() if ready else b''
@@ -315,18 +308,9 @@ class EmulatedWan:
         for netns in reversed(self._made):
             remove_namespace(netns)
         self._made.clear()
-        if self._old_sigterm is not None:
-            signal.signal(signal.SIGTERM, self._old_sigterm)
-            self._old_sigterm = None
-
-
-def _exit_on_sigterm(signum: int, frame: object) -> None:
-    raise SystemExit(128 + signum)
-
-
-def _die_with_parent() -> None:
-    # A SIGKILLed replay cannot stop the emulator; the kernel then does, and the TUN devices go with it.
-    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+        if self._sigterm is not None:
+            self._sigterm.__exit__(None, None, None)
+            self._sigterm = None
 
 
 # ----- the emulator process -----------------------------------------------------------------------------------

@@ -206,7 +206,7 @@ def run_breaker_soak(trials: int, seed: int, key_dir: Path, results: Path,
 
     from controlled_islanding.graph.rosenv import isolated_ros_environment
     from controlled_islanding.graph.supervisor import GRAPH, Supervisor
-    from controlled_islanding.ros.node_common import qos_for
+    from controlled_islanding.ros.endpoints import qos_for
 
     spec = next(s for s in GRAPH if s.executable == 'breaker_command')
     rng = random.Random(seed)

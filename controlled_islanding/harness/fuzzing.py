@@ -26,6 +26,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from controlled_islanding.core.grid import DYNAMIC_FIELDS
+from controlled_islanding.graph.processes import rss_kb
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.messages import MAX_MODEL_NAME, MAX_REQUEST_ID
 
@@ -238,17 +239,6 @@ class FuzzReport:
 
 class FuzzError(RuntimeError):
     """The soak could not run (graph did not come up, bag unreadable); not a failed check."""
-
-
-def rss_kb(pid: int) -> int | None:
-    """Return VmRSS of a process in kB, or None if it is gone."""
-    try:
-        for line in Path(f'/proc/{pid}/status').read_text().splitlines():
-            if line.startswith('VmRSS:'):
-                return int(line.split()[1])
-    except OSError:
-        return None
-    return None
 
 
 # ---------------------------------------------------------------------------------------------- messages
@@ -813,7 +803,8 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
 
     from controlled_islanding.graph.rosenv import isolated_ros_environment
     from controlled_islanding.graph.supervisor import GRAPH, PIPELINE_POLICY, PLAYER, Supervisor, SupervisorError
-    from controlled_islanding.ros.node_common import message_class, qos_for
+    from controlled_islanding.ros.endpoints import qos_for
+    from controlled_islanding.ros.params import message_class
     from controlled_islanding.safety import signing
 
     t_start = time.monotonic()

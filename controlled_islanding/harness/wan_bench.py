@@ -137,7 +137,7 @@ _CONTROL_CENTRE = """
 import rclpy
 from controlled_islanding_msgs.msg import IslandingDecision
 from controlled_islanding.wire import topics
-from controlled_islanding.ros.node_common import qos_for
+from controlled_islanding.ros.endpoints import qos_for
 rclpy.init()
 node = rclpy.create_node('partitioning')
 node.create_publisher(IslandingDecision, topics.relative(topics.ISLANDING_DECISION), qos_for(topics.ISLANDING_DECISION))
@@ -146,7 +146,7 @@ rclpy.spin(node)
 _OBSERVER = """
 import json, time, rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from controlled_islanding.ros.node_common import qos_for
+from controlled_islanding.ros.endpoints import qos_for
 rclpy.init()
 node = rclpy.create_node('observer')
 def on(msg):
@@ -219,7 +219,7 @@ def silence_detection(link: wan.LinkModel, work: Path, alive_s: float = 30.0) ->
 
 def silence_table(results: Path, repeat: int, settings=((0.0, 0.0), (10.0, 1.0), (50.0, 5.0))) -> str:
     """Return the silent-control-centre detection times, `repeat` runs per (delay ms, loss %), as markdown."""
-    from controlled_islanding.ros.node_common import DECISION_LEASE_S
+    from controlled_islanding.wire.qos import DECISION_LEASE_S
 
     lines = [f'Time for breaker_command to report a killed control centre (liveliness lease {DECISION_LEASE_S:g} s), '
              f'{repeat} runs per setting, each after 30 s alive:', '',

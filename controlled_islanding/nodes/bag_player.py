@@ -28,7 +28,7 @@ than its `future_tolerance_s` ahead (a lockstep wait for data held that way coul
 As fast as possible, after each message of a latched (transient-local) topic - the network snapshot, a branch
 status - the player waits until every matched reader has acknowledged it (`Publisher.wait_for_all_acked`, at most
 `latched_ack_timeout_s`, logged) before it plays on. Such a message is sent once: a reader that misses its first
-delivery gets it again only on the writer's next heartbeat (every 0.1 s in node_common's profile, 3 s by Fast
+delivery gets it again only on the writer's next heartbeat (every 0.1 s in ros/spin.py's profile, 3 s by Fast
 DDS's default, which an outside graph may keep), and its fragments (270 kB for the 2224-bus snapshot) share the
 player's shared-memory segment with the PMU frames that follow at full speed, so a slow reader can lose them to
 the flood. Once acknowledged, it is in the reader's history and cannot be lost.
@@ -52,7 +52,10 @@ from rosbags.highlevel import AnyReader
 from rosgraph_msgs.msg import Clock
 
 from controlled_islanding import atomic
-from controlled_islanding.ros.node_common import Diagnostics, NodeSetupError, message_class, qos_for, spin_node
+from controlled_islanding.ros.diagnostics import Diagnostics
+from controlled_islanding.ros.endpoints import qos_for
+from controlled_islanding.ros.params import NodeSetupError, message_class
+from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.interfaces import typestore
 

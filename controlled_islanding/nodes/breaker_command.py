@@ -31,20 +31,19 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from controlled_islanding.locations import config_dir
-from controlled_islanding.ros.node_common import (
-    DECISION_LEASE_S,
-    ClockGate,
-    Diagnostics,
-    NodeSetupError,
-    qos_for,
-    spin_node,
-)
+from controlled_islanding.ros.clock_gate import ClockGate
+from controlled_islanding.ros.diagnostics import Diagnostics
+from controlled_islanding.ros.endpoints import qos_for
+from controlled_islanding.ros.intake import SnapshotIntake
+from controlled_islanding.ros.params import NodeSetupError
+from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.safety import signing
 from controlled_islanding.safety.actuation import Refusal, plan_commands
 from controlled_islanding.safety.audit import AuditError, AuditLog
 from controlled_islanding.safety.topology import Topology, TopologyError
 from controlled_islanding.wire import topics
-from controlled_islanding.wire.messages import Limits, MessageError, grid_from_snapshot, stamp_s
+from controlled_islanding.wire.messages import stamp_s
+from controlled_islanding.wire.qos import DECISION_LEASE_S
 
 _MAX_ID_CHARS = 128
 _NOT_DECIDED = {
@@ -124,17 +123,14 @@ class BreakerCommandNode(Node):
         self.declare_parameter('max_remembered_decisions', 100000, _descriptor(
             'decision ids kept in memory; beyond, ids too old to pass the age rule are forgotten', 100, 10**7,
             integer=True))
-        self.declare_parameter('max_buses', Limits().max_buses, _descriptor(
-            'largest network snapshot or island map accepted, buses', 2, 10**7, integer=True))
         p = {name: self.get_parameter(name).value for name in (
             'breakers_file', 'audit_log', 'key_dir', 'max_decision_age_s', 'future_tolerance_s',
-            'max_arm_request_age_s', 'max_breakers', 'max_remembered_decisions', 'max_buses')}
+            'max_arm_request_age_s', 'max_breakers', 'max_remembered_decisions')}
         self.max_age_s = float(p['max_decision_age_s'])
         self.future_tolerance_s = float(p['future_tolerance_s'])
         self.max_arm_age_s = float(p['max_arm_request_age_s'])
         self.max_breakers = int(p['max_breakers'])
         self.max_remembered = int(p['max_remembered_decisions'])
-        self.limits = Limits(max_buses=int(p['max_buses']))
         self.override: dict[str, str] = {}
         if p['breakers_file']:
             path = Path(p['breakers_file'])
@@ -150,6 +146,8 @@ class BreakerCommandNode(Node):
 
         self.armed = False
         self.diag = Diagnostics(self)
+        self.intake = SnapshotIntake(self, self.diag)
+        self.limits = self.intake.limits
         self.diag.values['armed'] = 'false'
         self.audit: AuditLog | None = None
         try:
@@ -201,10 +199,8 @@ class BreakerCommandNode(Node):
     # --- network ------------------------------------------------------------------------------------------------
     def on_snapshot(self, msg: NetworkSnapshotMsg) -> None:
         """Hold the network the decisions are checked against."""
-        try:
-            grid = grid_from_snapshot(msg, self.limits)
-        except MessageError as exc:
-            self.diag.reject(exc.reason, f'network snapshot: {exc}')
+        grid = self.intake.grid(msg)
+        if grid is None:
             return
         stamp = stamp_s(msg.header.stamp)
         self.inputs.admit('network snapshot', stamp, ('snapshot', grid, stamp))

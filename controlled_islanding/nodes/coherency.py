@@ -30,17 +30,15 @@ from rclpy.node import Node
 
 from controlled_islanding.core.coherency import DTWCoherency, decimation_factor
 from controlled_islanding.core.k_rules import DEFAULT_RULE, RULES
-from controlled_islanding.ros.node_common import (
-    ClockGate,
-    Diagnostics,
-    NodeSetupError,
-    declare_bounded,
-    declare_limits,
-    qos_for,
-    spin_node,
-)
+from controlled_islanding.ros.clock_gate import ClockGate
+from controlled_islanding.ros.diagnostics import Diagnostics
+from controlled_islanding.ros.endpoints import qos_for
+from controlled_islanding.ros.intake import SnapshotIntake
+from controlled_islanding.ros.params import NodeSetupError, declare_bounded
+from controlled_islanding.ros.pending import PendingRequests
+from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.wire import topics
-from controlled_islanding.wire.messages import MAX_REQUEST_ID, MessageError, grid_from_snapshot, split_stamp, stamp_s
+from controlled_islanding.wire.messages import MAX_REQUEST_ID, split_stamp, stamp_s
 
 
 class CoherencyNode(Node):
@@ -89,7 +87,6 @@ class CoherencyNode(Node):
         if self.max_window_samples < self.min_samples:
             raise NodeSetupError(f'max_window_samples={self.max_window_samples} < min_samples={self.min_samples}: '
                                  'no window could ever be grouped')
-        self.limits = declare_limits(self)
         self.early: deque[RotorAngles] = deque()  # samples that overtook the snapshot
         self.snapshot_stamp_s = -math.inf
         self.names: tuple[str, ...] | None = None  # the snapshot's generators, in window column order
@@ -100,8 +97,9 @@ class CoherencyNode(Node):
         self.dirty = False
         self.computed_end_s = -1.0  # newest sample time of the last published groups, s
         self.late_inserts_before_s = -1.0  # newest time tag of a sample inserted behind that, s
-        self.pending: list[tuple[IslandingRequest, float]] = []
         self.diag = Diagnostics(self)
+        self.intake = SnapshotIntake(self, self.diag)
+        self.limits = self.intake.limits
         self.inputs = ClockGate(self, self.diag, future_tolerance_s, self.max_held, self._use)
         self.pub = self.create_publisher(CoherentGroups, topics.relative(topics.COHERENT_GROUPS),
                                          qos_for(topics.COHERENT_GROUPS))
@@ -114,8 +112,7 @@ class CoherencyNode(Node):
         self.diag.subscribe(IslandingRequest, topics.ISLANDING_REQUEST, self.on_request)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(float(self.get_parameter('period_s').value), self.diag.guard(self.on_period), clock=steady)
-        # Polls for the wait deadlines only while a request waits (no 100 Hz wake-ups when idle).
-        self.pending_timer = self.create_timer(0.01, self.diag.guard(self._serve_pending), clock=steady)
+        self.pending = PendingRequests(self, self.diag.guard, self.request_wait_s, self._has_data_for, self._serve)
         self._warm_up_engine()
 
     def _use(self, item: tuple[str, object]) -> None:
@@ -132,10 +129,8 @@ class CoherencyNode(Node):
         self.inputs.admit('network snapshot', stamp_s(msg.header.stamp), ('snapshot', msg))
 
     def _take_snapshot(self, msg: NetworkSnapshot) -> None:
-        try:
-            grid = grid_from_snapshot(msg, self.limits)
-        except MessageError as exc:
-            self.diag.reject(exc.reason, f'network snapshot: {exc}')
+        grid = self.intake.grid(msg)
+        if grid is None:
             return
         t = stamp_s(msg.header.stamp)
         if t < self.snapshot_stamp_s:
@@ -148,7 +143,7 @@ class CoherencyNode(Node):
             if self.names is not None:
                 # Samples of another generator set cannot share a DTW window with the new one.
                 self.get_logger().info(f'generator set changed ({len(self.names)} -> {len(bus_of)}); window reset')
-                self.diag.values['window_resets'] = str(int(self.diag.values.get('window_resets', 0)) + 1)
+                self.diag.counts['window_resets'] += 1
             self.names = tuple(g.name for g in grid.generators)
             self.column = {n: i for i, n in enumerate(self.names)}
             self.t_s, self.angles, self.dirty = [], [], False
@@ -239,7 +234,7 @@ class CoherencyNode(Node):
             del self.t_s[:cut], self.angles[:cut]
         self.dirty = True
         if self.pending:
-            self._serve_pending()
+            self.pending.serve()
 
     def on_request(self, msg: IslandingRequest) -> None:
         """Check a request's stamp; queue it, hold it, or refuse it."""
@@ -254,29 +249,21 @@ class CoherencyNode(Node):
 
     def _take_request(self, msg: IslandingRequest) -> None:
         """Queue a request; it is served once data up to its stamp is in (or the wait ends)."""
-        self.pending.append((msg, time.monotonic() + self.request_wait_s))
-        self.pending_timer.reset()
-        self._serve_pending()
+        self.pending.add(msg)
 
-    def _serve_pending(self) -> None:
-        if not self.pending:
-            self.pending_timer.cancel()
+    def _has_data_for(self, request: IslandingRequest) -> bool:
+        return bool(self.t_s) and self.t_s[-1] >= stamp_s(request.header.stamp) - self.tolerance_s
+
+    def _serve(self, request: IslandingRequest) -> None:
+        t = stamp_s(request.header.stamp)
+        if not self.t_s or self.t_s[0] > t:
+            self.diag.reject('no_data', f'request {request.request_id}: no rotor angles before its stamp')
             return
-        now = time.monotonic()
-        for item in list(self.pending):
-            request, deadline = item
-            t = stamp_s(request.header.stamp)
-            if (not self.t_s or self.t_s[-1] < t - self.tolerance_s) and now < deadline:
-                continue
-            self.pending.remove(item)
-            if not self.t_s or self.t_s[0] > t:
-                self.diag.reject('no_data', f'request {request.request_id}: no rotor angles before its stamp')
-                continue
-            if abs(self.computed_end_s - t) <= self.tolerance_s and not self._changed_before(t):
-                continue  # the latched groups end at this request: nothing new to compute
-            # Groups ending later than the request are no answer to it: partitioning takes only groups whose
-            # samples end at the request, so that a grouping stamped ahead of it can never be the one used.
-            self._compute(t, request.request_id)
+        if abs(self.computed_end_s - t) <= self.tolerance_s and not self._changed_before(t):
+            return  # the latched groups end at this request: nothing new to compute
+        # Groups ending later than the request are no answer to it: partitioning takes only groups whose
+        # samples end at the request, so that a grouping stamped ahead of it can never be the one used.
+        self._compute(t, request.request_id)
 
     def _changed_before(self, t: float) -> bool:
         return self.late_inserts_before_s >= 0 and self.late_inserts_before_s <= t
@@ -290,7 +277,7 @@ class CoherencyNode(Node):
         hi = bisect.bisect_right(self.t_s, end_s)
         lo = bisect.bisect_left(self.t_s, end_s - self.window_s)
         if hi - lo < self.min_samples:
-            self.diag.values['skipped_short_window'] = str(int(self.diag.values.get('skipped_short_window', 0)) + 1)
+            self.diag.counts['skipped_short_window'] += 1
             return
         t0 = time.perf_counter()
         block = np.vstack(self.angles[lo:hi])

@@ -64,7 +64,10 @@ from rosgraph_msgs.msg import Clock
 
 from controlled_islanding import atomic
 from controlled_islanding.core.grid import Grid
-from controlled_islanding.ros.node_common import Diagnostics, NodeSetupError, qos_for, spin_node
+from controlled_islanding.ros.diagnostics import Diagnostics
+from controlled_islanding.ros.endpoints import qos_for
+from controlled_islanding.ros.params import NodeSetupError
+from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.sim.bag import PDC_FRAME_ID, START_TIME_UNIX_S
 from controlled_islanding.sim.closed_loop import (
     ClosedLoopError,

@@ -30,38 +30,32 @@ import sys
 import time
 import uuid
 from collections import OrderedDict, deque
-from dataclasses import dataclass
 from pathlib import Path
 
 from controlled_islanding_msgs.msg import BranchStatus, CoherentGroups, IslandingDecision, IslandingRequest
 from controlled_islanding_msgs.msg import NetworkSnapshot as NetworkSnapshotMsg
 from controlled_islanding_msgs.srv import RequestIslanding
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from controlled_islanding.core.islanding import IslandingDecision as Decision
 from controlled_islanding.core.islanding import decide, warm_up
 from controlled_islanding.core.portfolio import PortfolioPartition
 from controlled_islanding.core.spectral import ConstrainedSpectralPartition
-from controlled_islanding.ros.node_common import (
-    ClockGate,
-    Diagnostics,
-    NodeSetupError,
-    declare_bounded,
-    qos_for,
-    settle_heap,
-    spin_node,
-)
+from controlled_islanding.ros.clock_gate import ClockGate
+from controlled_islanding.ros.diagnostics import Diagnostics
+from controlled_islanding.ros.endpoints import qos_for
+from controlled_islanding.ros.intake import SnapshotIntake
+from controlled_islanding.ros.params import NodeSetupError, declare_bounded
+from controlled_islanding.ros.pending import PendingRequests
+from controlled_islanding.ros.spin import settle_heap, spin_node
 from controlled_islanding.safety import signing
 from controlled_islanding.safety.topology import Topology, TopologyError
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.messages import (
     MAX_REQUEST_ID,
     Groups,
-    Limits,
     MessageError,
-    grid_from_snapshot,
     groups_from_msg,
     stamp_s,
 )
@@ -70,12 +64,6 @@ _KEEP_GROUPS = 16
 _KEEP_ANSWERED = 10_000
 _KEEP_CACHED = 64
 PARTITIONERS = {'spectral': ConstrainedSpectralPartition, 'portfolio': PortfolioPartition}
-
-
-@dataclass
-class _Pending:
-    request: IslandingRequest
-    deadline: float
 
 
 def decision_to_msg(decision: Decision, request: IslandingRequest, method: str, compute_time_s: float,
@@ -145,10 +133,10 @@ class PartitioningNode(Node):
         self.topology = Topology(future_tolerance_s=self.future_tolerance_s)
         self.groups: list[Groups] = []  # recent groups, ordered by stamp
         self.cache: OrderedDict[tuple, Decision] = OrderedDict()
-        self.pending: list[_Pending] = []
         self.answered: deque[str] = deque(maxlen=_KEEP_ANSWERED)
         self.answered_set: set[str] = set()
         self.diag = Diagnostics(self)
+        self.intake = SnapshotIntake(self, self.diag)
         self.diag.values['partitioner'] = self.partitioner
         self.inputs = ClockGate(self, self.diag, self.future_tolerance_s, 1000, self._apply_input)
         self.decision_pub = self.create_publisher(IslandingDecision, topics.relative(topics.ISLANDING_DECISION),
@@ -161,9 +149,7 @@ class PartitioningNode(Node):
         self.diag.subscribe(IslandingRequest, topics.ISLANDING_REQUEST, self.on_request)
         guard = self.diag.guard
         self.create_service(RequestIslanding, '~/request', guard(self.on_service))
-        steady = Clock(clock_type=ClockType.STEADY_TIME)
-        # Polls for the wait deadlines only while a request waits (no 100 Hz wake-ups when idle).
-        self.pending_timer = self.create_timer(0.01, guard(self._serve_pending), clock=steady)
+        self.pending = PendingRequests(self, guard, self.wait_s, self._ready, self._serve)
         t0 = time.perf_counter()
         try:
             # before spinning: within the supervisor's start-up grace, not in a callback
@@ -203,10 +189,8 @@ class PartitioningNode(Node):
 
     def on_snapshot(self, msg: NetworkSnapshotMsg) -> None:
         """Take a new network snapshot."""
-        try:
-            grid = grid_from_snapshot(msg, Limits())
-        except MessageError as exc:
-            self.diag.reject(exc.reason, f'network snapshot: {exc}')
+        grid = self.intake.grid(msg)
+        if grid is None:
             return
         stamp = stamp_s(msg.header.stamp)
         self.inputs.admit('network snapshot', stamp, ('snapshot', grid, stamp))
@@ -220,7 +204,7 @@ class PartitioningNode(Node):
     def on_groups(self, msg: CoherentGroups) -> None:
         """Take new coherent groups; compute their decision ahead of a request."""
         try:
-            groups = groups_from_msg(msg)
+            groups = groups_from_msg(msg, self.intake.limits)
         except MessageError as exc:
             self.diag.reject(exc.reason, f'coherent groups: {exc}')
             return
@@ -262,15 +246,13 @@ class PartitioningNode(Node):
         self.inputs.admit(f'request {msg.request_id}', stamp_s(msg.header.stamp), ('request', msg))
 
     def _queue(self, msg: IslandingRequest) -> None:
-        if msg.request_id in self.answered_set or any(p.request.request_id == msg.request_id for p in self.pending):
+        if msg.request_id in self.answered_set or any(p.request_id == msg.request_id for p in self.pending):
             return  # our own service requests come back on the topic; a repeat is answered once
         if len(self.pending) >= self.max_pending:
             self.diag.reject('overloaded', f'request {msg.request_id}: {len(self.pending)} requests already wait '
                                            f'(max_pending_requests)')
             return
-        self.pending.append(_Pending(msg, time.monotonic() + self.wait_s))
-        self.pending_timer.reset()
-        self._serve_pending()
+        self.pending.add(msg)
 
     def on_service(self, request: RequestIslanding.Request, response: RequestIslanding.Response,
                    ) -> RequestIslanding.Response:
@@ -324,19 +306,13 @@ class PartitioningNode(Node):
             return
         self.diag.values['warm_compute_ms'] = f'{seconds * 1e3:.1f}'
 
-    def _serve_pending(self) -> None:
-        if not self.pending:
-            self.pending_timer.cancel()
-            return
-        now = time.monotonic()
-        for item in list(self.pending):
-            t_s = stamp_s(item.request.header.stamp)
-            groups = self._groups_for(t_s, item.request.request_id)
-            if (groups is None or self._topology_pending(item.request)) and now < item.deadline:
-                continue
-            groups = groups or self._groups_for(t_s)
-            self.pending.remove(item)
-            self._answer(item.request, groups)
+    def _ready(self, request: IslandingRequest) -> bool:
+        groups = self._groups_for(stamp_s(request.header.stamp), request.request_id)
+        return groups is not None and not self._topology_pending(request)
+
+    def _serve(self, request: IslandingRequest) -> None:
+        t_s = stamp_s(request.header.stamp)
+        self._answer(request, self._groups_for(t_s, request.request_id) or self._groups_for(t_s))
 
     def _topology_pending(self, request: IslandingRequest) -> bool:
         """Whether fewer branch changes up to the request are applied than the requester knows of.

@@ -29,7 +29,10 @@ from rclpy.node import Node
 
 from controlled_islanding.pmu import c37118
 from controlled_islanding.pmu.pdc_assembly import PdcAssembler, PdcAssemblyError, TimeAligner, load_channel_map
-from controlled_islanding.ros.node_common import Diagnostics, NodeSetupError, declare_bounded, qos_for, spin_node
+from controlled_islanding.ros.diagnostics import Diagnostics
+from controlled_islanding.ros.endpoints import qos_for
+from controlled_islanding.ros.params import NodeSetupError, declare_bounded
+from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.wire import topics
 
 _CONFIG_WAIT_S = 5.0  # ask again for CFG-2 after this long without one

@@ -41,17 +41,14 @@ from rclpy.node import Node
 from controlled_islanding.core.dse import DSEError, MachineData, StreamingDSE, TagGrid
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.core.rotor_angle import RotorAngleError, estimate_rotor_angle_rad
-from controlled_islanding.ros.node_common import (
-    ClockGate,
-    Diagnostics,
-    NodeSetupError,
-    declare_bounded,
-    declare_limits,
-    qos_for,
-    spin_node,
-)
+from controlled_islanding.ros.clock_gate import ClockGate
+from controlled_islanding.ros.diagnostics import Diagnostics
+from controlled_islanding.ros.endpoints import qos_for
+from controlled_islanding.ros.intake import SnapshotIntake
+from controlled_islanding.ros.params import NodeSetupError, declare_bounded
+from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.wire import topics
-from controlled_islanding.wire.messages import MessageError, grid_from_snapshot, stamp_s
+from controlled_islanding.wire.messages import stamp_s
 
 _UNUSABLE = 0x8000  # STAT bit 15: 10 = data invalid, 11 = PMU error
 _FIELDS = ('voltage_magnitude_pu', 'voltage_angle_rad', 'current_magnitude_pu', 'current_angle_rad')
@@ -87,7 +84,6 @@ class PmuIngestionNode(Node):
         self.max_stations = int(declare_bounded(
             self, 'max_stations_remembered', 10_000, 1, 1_000_000,
             'PMU stations remembered for staleness; beyond it the least recently heard is forgotten'))
-        self.limits = declare_limits(self)
         self.declare_parameter('estimator', 'dse')
         self.estimator = str(self.get_parameter('estimator').value)
         if self.estimator not in _ESTIMATORS:
@@ -107,6 +103,7 @@ class PmuIngestionNode(Node):
             'answered at once; a longer wait uses more late frames, at the cost of more work while it waits)'))
         self.stream: StreamingDSE | None = None
         self.diag = Diagnostics(self)
+        self.intake = SnapshotIntake(self, self.diag)
         self.diag.values['estimator'] = self.estimator
         self.grid: Grid | None = None
         self.grid_stamp_s = -math.inf
@@ -146,10 +143,8 @@ class PmuIngestionNode(Node):
         self.inputs.admit('network snapshot', stamp_s(msg.header.stamp), ('snapshot', msg))
 
     def _take_snapshot(self, msg: NetworkSnapshot) -> None:
-        try:
-            grid = grid_from_snapshot(msg, self.limits)
-        except MessageError as exc:
-            self.diag.reject(exc.reason, f'network snapshot: {exc}')
+        grid = self.intake.grid(msg)
+        if grid is None:
             return
         t = stamp_s(msg.header.stamp)
         if t < self.grid_stamp_s:

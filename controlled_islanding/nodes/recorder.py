@@ -30,14 +30,10 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.rosbag2 import StoragePlugin, Writer
 
 from controlled_islanding import atomic
-from controlled_islanding.ros.node_common import (
-    Diagnostics,
-    NodeSetupError,
-    declare_bounded,
-    message_class,
-    qos_for,
-    spin_node,
-)
+from controlled_islanding.ros.diagnostics import Diagnostics
+from controlled_islanding.ros.endpoints import qos_for
+from controlled_islanding.ros.params import NodeSetupError, declare_bounded, message_class
+from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.wire.bagmeta import qos_profile, set_ros_distro
 from controlled_islanding.wire.interfaces import typestore
 from controlled_islanding.wire.topics import relative

@@ -16,7 +16,7 @@ The truth groups are the final grouping of sim/truth.py (the clusters of the rot
 the run), published at the request because that is what the nodes should find then; `distance` is the final
 separation |d_p(T) - d_q(T)| (rad) and `window_s` the end time T.
 PMU channels: `PMU_<bus>`, or `PMU_<bus>/<generator>` per machine where several share a bus (sim/pmu.py).
-Every topic records the QoS the nodes use (node_common.qos_for) as its offered QoS, so `ros2 bag play` offers
+Every topic records the QoS the nodes use (wire/qos.py) as its offered QoS, so `ros2 bag play` offers
 it again and the latched readers match.
 The bag is written to a temporary directory beside the target and renamed into place only when complete.
 """
@@ -32,15 +32,15 @@ from typing import Any
 import numpy as np
 
 from controlled_islanding.core.grid import Grid
-from controlled_islanding.ros.node_common import qos_for
 from controlled_islanding.sim.andes_sim import Simulation, simulate
 from controlled_islanding.sim.pmu import PmuData, measure
 from controlled_islanding.sim.scenario import Scenario
 from controlled_islanding.sim.truth import final_separation, truth_groups
 from controlled_islanding.wire import topics
-from controlled_islanding.wire.bagmeta import qos_profile, set_ros_distro
+from controlled_islanding.wire.bagmeta import set_ros_distro
 from controlled_islanding.wire.interfaces import msg_type_name, typestore
 from controlled_islanding.wire.messages import dynamic_data_fields
+from controlled_islanding.wire.qos import bag_qos
 
 log = logging.getLogger(__name__)
 
@@ -216,7 +216,7 @@ def run_scenario(scenario: Scenario, out: Path, *, force: bool = False, progress
             for stamp, _, topic, msg in records:
                 if topic not in conns:
                     conns[topic] = writer.add_connection(topic, msg.__msgtype__, typestore=m.store,
-                                                         offered_qos_profiles=[qos_profile(qos_for(topic))])
+                                                         offered_qos_profiles=[bag_qos(topic)])
                 writer.write(conns[topic], stamp, m.store.serialize_cdr(msg, msg.__msgtype__))
         set_ros_distro(tmp)
         if out.exists():

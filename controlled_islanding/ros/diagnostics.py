@@ -1,120 +1,20 @@
-"""What every node shares: per-topic QoS, bad-input accounting with /diagnostics, and the process main loop.
-
-QoS per topic (reliable everywhere: a lost request, decision or command is a lost control action):
-- /pmu/frames, /rotor_angles: KEEP_LAST 1000, volatile. Deep enough that an as-fast-as-possible replay
-  of a whole window never drops a frame; live, a late frame is useless, so nothing is latched.
-- /network/snapshot: KEEP_LAST 1, transient local: a late joiner gets the latest state.
-- /coherent_groups: KEEP_LAST 16, transient local: coherency publishes the groups ending at a request and,
-  moments later, periodic ones on newer data; with KEEP_LAST 1 a busy partitioning node lost the first to the
-  second and refused the request as stale. 16 = the groupings partitioning keeps, each for its own time.
-- /network/branch_status: KEEP_LAST 100, transient local: a late partitioning node still learns every trip.
-- /islanding/request, /islanding/decision, /breaker/commands: KEEP_LAST 100, volatile. Never latched: a
-  breaker node that starts late must not execute a decision made before it existed.
-- /islanding/decision also has an AUTOMATIC liveliness lease of DECISION_LEASE_S: the topic is silent between
-  requests by design, so only liveliness tells a breaker node that the control centre is gone (process dead,
-  host or WAN down). A reader matches only writers offering a lease no longer than the one it requests.
-- /diagnostics: KEEP_LAST 10, volatile (the diagnostic_aggregator convention).
-- /clock: KEEP_LAST 1, volatile; rclpy's time source subscribes best effort, which a reliable writer serves.
-
-Readers and writers allocate each DDS sample's buffer when it arrives and free it when it is taken
-(Fast DDS history memory policy DYNAMIC, see `_dds_memory_profile`): under rmw_fastrtps' default
-(PREALLOCATED_WITH_REALLOC) every pooled buffer keeps the largest size it ever held, so a KEEP_LAST 1000
-reader that now and then gets a frame of 10,000 PMUs grows towards 1000 x 720 kB.
-
-Reliable writers send a heartbeat every 0.1 s while a reader has not acknowledged a sample (same profile; Fast
-DDS's default is 3 s). A reader that misses a sample's first delivery asks for it again only after a heartbeat:
-in three IEEE 14 fast replays, each of the 6 branch statuses played was acknowledged by every reader only after
-0.6-3.0 s with 3 s (bag_player's acknowledgement wait), after 0.04-0.17 s with 0.1 s; a request, decision or
-command lost live would be as late.
-"""
+"""Bad-input accounting and /diagnostics, in diagnostic_updater's conventions: what every node counts, and how."""
 
 from __future__ import annotations
 
 import functools
-import gc
-import importlib
-import os
-import tempfile
 import time
 import traceback
 from collections import Counter, deque
 from collections.abc import Callable
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.clock import Clock, ClockType
-from rclpy.duration import Duration
-from rclpy.exceptions import InvalidParameterValueException, ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
 
+from controlled_islanding.ros.endpoints import qos_for
+from controlled_islanding.ros.params import declare_bounded
 from controlled_islanding.wire import topics
-from controlled_islanding.wire.messages import Limits
-from controlled_islanding.wire.timebounds import StampError, StampGate
-
-
-class NodeSetupError(ValueError):
-    """A node's parameters or message types are unusable."""
-
-
-# rmw_fastrtps asserts AUTOMATIC liveliness every 2/3 of the lease, so one lost assertion outlasts it; a lease of
-# 3 s at 2 s assertions gives a writer's silence away within 3-5 s (measured in docs/deployment.md).
-DECISION_LEASE_S = 3.0
-
-
-def _qos(depth: int, latched: bool = False, lease_s: float | None = None) -> QoSProfile:
-    qos = QoSProfile(
-        history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
-    if lease_s is not None:
-        qos.liveliness = LivelinessPolicy.AUTOMATIC
-        qos.liveliness_lease_duration = Duration(nanoseconds=int(lease_s * 1e9))
-    return qos
-
-
-TOPIC_QOS: dict[str, QoSProfile] = {
-    topics.PMU_FRAMES: _qos(1000),
-    topics.ROTOR_ANGLES: _qos(1000),
-    topics.NETWORK_SNAPSHOT: _qos(1, latched=True),
-    topics.COHERENT_GROUPS: _qos(16, latched=True),
-    topics.BRANCH_STATUS: _qos(100, latched=True),
-    topics.ISLANDING_REQUEST: _qos(100),
-    topics.ISLANDING_DECISION: _qos(100, lease_s=DECISION_LEASE_S),
-    topics.BREAKER_COMMANDS: _qos(100),
-    topics.DIAGNOSTICS: _qos(10),
-    topics.CLOCK: _qos(1),
-    topics.TRUTH_ROTOR_ANGLES: _qos(1000),
-    topics.TRUTH_COHERENT_GROUPS: _qos(1, latched=True),
-}
-
-
-def qos_for(topic: str) -> QoSProfile:
-    """Return the documented QoS of a topic; unknown topics get reliable, volatile, depth 100.
-
-    The topic may be named as in the root namespace (/pmu/frames), relative (pmu/frames) or in any namespace
-    (/area1/pmu/frames): a name ending in a documented one has its QoS.
-    """
-    name = topic if topic.startswith('/') else f'/{topic}'
-    known = [k for k in TOPIC_QOS if name.endswith(k)]
-    return TOPIC_QOS[max(known, key=len)] if known else _qos(100)
-
-
-def message_class(type_name: str) -> type:
-    """Return the rclpy message class of a full ROS 2 type name such as 'std_msgs/msg/String'.
-
-    Raises:
-        NodeSetupError: The type name is malformed or its package is not installed.
-
-    """
-    parts = type_name.split('/')
-    if len(parts) != 3:
-        raise NodeSetupError(f'message type {type_name!r} is not of the form package/msg/Name')
-    try:
-        return getattr(importlib.import_module(f'{parts[0]}.{parts[1]}'), parts[2])
-    except (ImportError, AttributeError) as exc:
-        raise NodeSetupError(f'message type {type_name!r} is not installed: {exc}') from exc
 
 
 class LossCounter:
@@ -269,6 +169,7 @@ class Diagnostics:
         self.compute_last_s = 0.0
         self.compute_max_s = 0.0
         self.values: dict[str, str] = {}
+        self.counts: Counter[str] = Counter()  # the node's own counters, published beside the values
         self.errors: Counter[str] = Counter()
         self.faults: dict[str, str] = {}
         self.warnings: dict[str, str] = {}
@@ -293,7 +194,7 @@ class Diagnostics:
         """
         counter = LossCounter()
         key = f'lost.{topic}'
-        self.values[key] = '0'
+        self.counts[key] = 0
         guarded = self.guard(callback)
         status = None
         if rate_hz is not None:
@@ -304,7 +205,7 @@ class Diagnostics:
 
         def take(msg: object, info: dict) -> None:
             if counter.seen(info.get('publication_sequence_number')):
-                self.values[key] = str(counter.lost)
+                self.counts[key] = counter.lost
             self.arrived()
             if status is not None:
                 stamp = getattr(getattr(msg, 'header', None), 'stamp', None)
@@ -427,6 +328,7 @@ class Diagnostics:
         pairs.update({f'fault.{k}': v for k, v in sorted(self.faults.items())})
         pairs.update({f'warn.{k}': v for k, v in sorted(self.warnings.items())})
         pairs.update(self.values)
+        pairs.update({k: str(v) for k, v in self.counts.items()})
         # How many readers each writer has matched: another process can tell from it that this node's output
         # reaches its readers (the graph it sees only says that both ends exist).
         pairs.update({f'matched.{p.topic_name}': str(p.get_subscription_count()) for p in self._node.publishers
@@ -440,63 +342,6 @@ class Diagnostics:
         array = DiagnosticArray(status=statuses)
         array.header.stamp = self._node.get_clock().now().to_msg()
         self._pub.publish(array)
-
-
-class ClockGate:
-    """Judges every stamped input against the node clock (timebounds.StampGate) for one node.
-
-    An input is used at once, held until the node clock reaches it, or refused and counted as `future_stamp`.
-    Held inputs are judged again, in arrival order, before every new input (so nothing overtakes a held value)
-    and on a steady timer that runs only while something is held.
-
-    Args:
-        node: The node; its clock is the reference.
-        diag: Its diagnostics: refusals, and `held_for_clock` / `dropped_before_clock`.
-        future_tolerance_s: How far a stamp may lead the clock and be used at once, s.
-        max_held: How many inputs may wait; the oldest is dropped beyond.
-        use: Called with each input that may be used.
-        period_s: Wall time between looks at held inputs, s.
-
-    """
-
-    def __init__(self, node: Node, diag: Diagnostics, future_tolerance_s: float, max_held: int,
-                 use: Callable[[object], None], period_s: float = 0.05) -> None:
-        self._node, self._diag, self._use = node, diag, use
-        self.gate: StampGate = StampGate(future_tolerance_s, max_held)
-        self._timer = node.create_timer(period_s, diag.guard(self.release),
-                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
-        self._timer.cancel()
-
-    def _now_s(self) -> float:
-        return self._node.get_clock().now().nanoseconds * 1e-9
-
-    def _refuse(self, exc: StampError) -> None:
-        self._diag.reject(exc.reason, str(exc))
-
-    def admit(self, what: str, stamp_s: float, item: object) -> None:
-        """Use an input now, hold it until the clock reaches it, or refuse it as future-stamped."""
-        self.release()
-        try:
-            usable = self.gate.offer(what, stamp_s, self._now_s(), item)
-        except StampError as exc:
-            self._refuse(exc)
-            return
-        if usable:
-            self._use(item)
-            return
-        self._timer.reset()
-        self._diag.values['held_for_clock'] = str(self.gate.held)
-        self._diag.values['dropped_before_clock'] = str(self.gate.dropped_while_held)
-
-    def release(self) -> None:
-        """Use, in arrival order, every held input the clock has reached."""
-        if not self.gate.held:
-            self._timer.cancel()
-            return
-        self.gate.release(self._now_s(), self._use, self._refuse)
-        self._diag.values['held_for_clock'] = str(self.gate.held)
-        if not self.gate.held:
-            self._timer.cancel()
 
 
 def writers_matched(values: dict[str, str], count_subscribers: Callable[[str], int]) -> bool:
@@ -513,131 +358,3 @@ def writers_matched(values: dict[str, str], count_subscribers: Callable[[str], i
     """
     found = [(k[len('matched.'):], int(v)) for k, v in values.items() if k.startswith('matched.')]
     return bool(found) and all(n >= count_subscribers(t) for t, n in found)
-
-
-def declare_bounded(node: Node, name: str, default: float | int, low: float | int, high: float | int,
-                    description: str, read_only: bool = False) -> float | int:
-    """Declare a parameter with its range and meaning (read-only: never changed at run time); return its value.
-
-    Raises:
-        NodeSetupError: The configured value is outside [low, high].
-
-    """
-    if isinstance(default, int):
-        bound = {'integer_range': [IntegerRange(from_value=int(low), to_value=int(high), step=1)]}
-    else:
-        bound = {'floating_point_range': [FloatingPointRange(from_value=float(low), to_value=float(high))]}
-    try:
-        node.declare_parameter(name, default,
-                               ParameterDescriptor(description=description, read_only=read_only, **bound))
-    except InvalidParameterValueException as exc:
-        raise NodeSetupError(f'parameter {name}: {exc}; it must be in [{low}, {high}]') from exc
-    return node.get_parameter(name).value
-
-
-def declare_limits(node: Node) -> Limits:
-    """Declare the snapshot size caps as parameters; return them as Limits."""
-    default = Limits()
-    return Limits(**{
-        field: int(declare_bounded(node, field, getattr(default, field), 1, 10 * getattr(default, field),
-                                   f'largest number of {field[4:]} accepted in one network snapshot; a '
-                                   'larger one is refused (too_large) before any per-element work'))
-        for field in ('max_buses', 'max_branches', 'max_generators', 'max_loads')})
-
-
-def settle_heap() -> None:
-    """Move everything alive now out of the garbage collector's view.
-
-    The libraries a node imports (scipy, scikit-learn, pypower) leave hundreds of thousands of objects; a
-    full collection that walks them all stalls the node for tens of ms, in the middle of a request.
-    """
-    gc.collect()
-    gc.freeze()
-
-
-_DDS_MEMORY_XML = """<?xml version="1.0" encoding="UTF-8" ?>
-<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
-  <data_reader profile_name="controlled_islanding_reader" is_default_profile="true">
-    <historyMemoryPolicy>DYNAMIC</historyMemoryPolicy>
-  </data_reader>
-  <data_writer profile_name="controlled_islanding_writer" is_default_profile="true">
-    <historyMemoryPolicy>DYNAMIC</historyMemoryPolicy>
-    <times>
-      <heartbeatPeriod><sec>0</sec><nanosec>100000000</nanosec></heartbeatPeriod>
-    </times>
-  </data_writer>
-</profiles>
-"""
-
-
-def _dds_memory_profile() -> str | None:
-    """Point Fast DDS at a profile with the DYNAMIC history memory policy; return the file to delete.
-
-    rmw_fastrtps forces PREALLOCATED_WITH_REALLOC unless RMW_FASTRTPS_USE_QOS_FROM_XML is set, and takes the
-    XML defaults only for what the ROS QoS does not set (history, depth, reliability and durability still
-    come from TOPIC_QOS). A user who configured Fast DDS through either variable keeps their own setup.
-    The file is private to this process and deleted once the node exists (Fast DDS reads it when the first
-    participant is created).
-    """
-    if 'RMW_FASTRTPS_USE_QOS_FROM_XML' in os.environ or 'FASTRTPS_DEFAULT_PROFILES_FILE' in os.environ:
-        return None
-    fd, path = tempfile.mkstemp(prefix='controlled_islanding_fastdds_', suffix='.xml')
-    with os.fdopen(fd, 'w') as handle:
-        handle.write(_DDS_MEMORY_XML)
-    os.environ['RMW_FASTRTPS_USE_QOS_FROM_XML'] = '1'
-    os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = path
-    return path
-
-
-def spin_node(factory: Callable[[], Node], args: list[str] | None = None,
-              run: Callable[[Node, SingleThreadedExecutor], None] | None = None) -> int:
-    """Init rclpy, build the node, spin it single-threaded until Ctrl-C or shutdown, then clean up.
-
-    Args:
-        factory: Builds the node; called after rclpy.init.
-        args: Command line arguments (for --ros-args).
-        run: What to do with the node and its executor instead of spinning forever (a node with an end,
-            like the bag player).
-
-    Returns:
-        Process exit status: 0 after a clean stop, 1 when the node failed to start.
-
-    """
-    profile = _dds_memory_profile()
-    rclpy.init(args=args)
-    node = None
-    status = 0
-    try:
-        node = factory()
-        if profile is not None:
-            os.unlink(profile)
-            profile = None
-        settle_heap()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        if run is None:
-            executor.spin()
-        else:
-            run(node, executor)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except RuntimeError:
-        # Seen once in ~300 graph runs: a message take in flight when SIGINT shut the context down failed in
-        # rclpy's C layer ("Unable to convert call argument") after the node's work was done. Only then is it
-        # quiet; on a live context it is a real failure.
-        if rclpy.ok():
-            raise
-    except (NodeSetupError, ParameterException) as exc:
-        print(f'error: {type(exc).__name__}: {exc}' if isinstance(exc, ParameterException) else f'error: {exc}',
-              flush=True)
-        status = 1
-    finally:
-        if profile is not None:
-            os.unlink(profile)
-        if node is not None:
-            close = getattr(node, 'close', None)
-            if close is not None:
-                close()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return status

@@ -1,0 +1,68 @@
+"""Every stamped input judged against the node clock before it is used (wire.timebounds.StampGate, per node)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+
+from controlled_islanding.ros.diagnostics import Diagnostics
+from controlled_islanding.wire.timebounds import StampError, StampGate
+
+
+class ClockGate:
+    """Judges every stamped input against the node clock (timebounds.StampGate) for one node.
+
+    An input is used at once, held until the node clock reaches it, or refused and counted as `future_stamp`.
+    Held inputs are judged again, in arrival order, before every new input (so nothing overtakes a held value)
+    and on a steady timer that runs only while something is held.
+
+    Args:
+        node: The node; its clock is the reference.
+        diag: Its diagnostics: refusals, and `held_for_clock` / `dropped_before_clock`.
+        future_tolerance_s: How far a stamp may lead the clock and be used at once, s.
+        max_held: How many inputs may wait; the oldest is dropped beyond.
+        use: Called with each input that may be used.
+        period_s: Wall time between looks at held inputs, s.
+
+    """
+
+    def __init__(self, node: Node, diag: Diagnostics, future_tolerance_s: float, max_held: int,
+                 use: Callable[[object], None], period_s: float = 0.05) -> None:
+        self._node, self._diag, self._use = node, diag, use
+        self.gate: StampGate = StampGate(future_tolerance_s, max_held)
+        self._timer = node.create_timer(period_s, diag.guard(self.release),
+                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._timer.cancel()
+
+    def _now_s(self) -> float:
+        return self._node.get_clock().now().nanoseconds * 1e-9
+
+    def _refuse(self, exc: StampError) -> None:
+        self._diag.reject(exc.reason, str(exc))
+
+    def admit(self, what: str, stamp_s: float, item: object) -> None:
+        """Use an input now, hold it until the clock reaches it, or refuse it as future-stamped."""
+        self.release()
+        try:
+            usable = self.gate.offer(what, stamp_s, self._now_s(), item)
+        except StampError as exc:
+            self._refuse(exc)
+            return
+        if usable:
+            self._use(item)
+            return
+        self._timer.reset()
+        self._diag.values['held_for_clock'] = str(self.gate.held)
+        self._diag.values['dropped_before_clock'] = str(self.gate.dropped_while_held)
+
+    def release(self) -> None:
+        """Use, in arrival order, every held input the clock has reached."""
+        if not self.gate.held:
+            self._timer.cancel()
+            return
+        self.gate.release(self._now_s(), self._use, self._refuse)
+        self._diag.values['held_for_clock'] = str(self.gate.held)
+        if not self.gate.held:
+            self._timer.cancel()
