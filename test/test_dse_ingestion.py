@@ -100,7 +100,7 @@ def test_pmu_ingestion_with_dse_publishes_the_filter_and_falls_back_where_data_a
     from controlled_islanding.nodes.grid_sim import frame_msg, snapshot_msg
     from controlled_islanding.nodes.pmu_ingestion import PmuIngestionNode
     from controlled_islanding.ros.endpoints import qos_for
-    from controlled_islanding.sim.closed_loop import Frame
+    from controlled_islanding.sim.pmu import Frame
     from controlled_islanding.wire import topics
 
     bare = bag.grid.generators[3].name
@@ -208,7 +208,7 @@ def test_pmu_ingestion_counts_missing_frames_on_the_streams_own_tag_grid(rclpy_c
 
     from controlled_islanding.nodes.grid_sim import frame_msg, snapshot_msg
     from controlled_islanding.nodes.pmu_ingestion import PmuIngestionNode
-    from controlled_islanding.sim.closed_loop import Frame
+    from controlled_islanding.sim.pmu import Frame
 
     kundur = load_bag(BAG.parent / 'kundur_bus9_unstable')
     assert kundur.rate_fps == 30

@@ -251,10 +251,11 @@ def _milp_cut(scenario: Any, decision: dict) -> dict:
     """Return the exact minimum-disruption partition for the decision's generator groups, on its network."""
     from controlled_islanding.core.islanding import evaluate_partition
     from controlled_islanding.core.milp import ExactPartition
-    from controlled_islanding.sim.closed_loop import _prepare
+    from controlled_islanding.sim.andes_sim import prepare_case
 
-    _, grid, _, _, changes = _prepare(scenario)
-    tripped = [bid for t, bid, up in changes if not up and t <= scenario.request_s]
+    case = prepare_case(scenario)
+    grid = case.grid
+    tripped = [bid for t, bid, up in case.scheduled_changes(scenario) if not up and t <= scenario.request_s]
     grid = grid.with_outages(tripped)
     bus_island = {b: isl['island'] for isl in decision['islands'] for b in isl['buses']}
     groups = {g.name: bus_island[g.bus] for g in grid.generators}

@@ -1,7 +1,7 @@
 """grid_sim: an ANDES time-domain simulation of a scenario as the grid the pipeline listens to and acts on.
 
 It publishes what the field would: the pre-fault network snapshot, PMU frames at the scenario's rate (with its
-noise and impairments, sim/closed_loop.PmuStream), branch status changes (the scenario's trips, and every branch
+noise and impairments, sim/pmu.PmuStream), branch status changes (the scenario's trips, and every branch
 it opens on command), the scenario's islanding request, and /clock. It executes /breaker/commands: an OPEN
 command opens its branch in the running simulation `breaker_operating_s` after the command, then
 `shed_delay_s` later sheds the load the decision named in each island short of generation and trips machines
@@ -71,14 +71,13 @@ from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.sim.bag import PDC_FRAME_ID, START_TIME_UNIX_S
 from controlled_islanding.sim.closed_loop import (
     ClosedLoopError,
-    Frame,
     GridRun,
     LoopConfig,
-    PmuStream,
     Sample,
     apply_decision,
     out_of_step,
 )
+from controlled_islanding.sim.pmu import Frame, PmuStream
 from controlled_islanding.sim.scenario import ScenarioError, load_scenario
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.messages import dynamic_data_fields

@@ -231,7 +231,7 @@ class PartitioningNode(Node):
             self.groups.insert(i, groups)
         del self.groups[:-_KEEP_GROUPS]
         self.diag.values['k'] = str(groups.k)
-        self._serve_pending()
+        self.pending.serve()
         self._warm()
 
     def on_request(self, msg: IslandingRequest) -> None:

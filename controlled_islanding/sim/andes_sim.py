@@ -237,19 +237,57 @@ def _case_events(ss: Any, scenario: Scenario, ids: list[str], line_idx: list[Any
     return changes
 
 
-def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
-    """Run the scenario's power flow and time-domain simulation.
+@dataclass
+class PreparedCase:
+    """A scenario's ANDES System, set up and power-flowed, with its events added: ready for a time-domain run.
 
-    Args:
-        scenario: The scenario.
-        progress: Print simulated time / end time on stderr as the run goes.
+    Attributes:
+        ss: The ANDES System.
+        grid: The pre-fault power flow as the core Grid a network snapshot carries.
+        bus_numbers: The case's buses (a mid-line fault's extra bus is not one).
+        branch_ids: Branch id of each case line, in ANDES' Line order.
+        branch_ends: Branch id -> (from bus, to bus).
+        line_idx: ANDES Line idx of each case line.
+        trip_rows: Line row of each scenario trip.
+        midline_off: Line rows split into two sections for a mid-line fault.
+        case_changes: (time s, branch id, in service after) of the case's own kept events.
+        syn_models: The synchronous machine models in service.
 
-    Returns:
-        The results.
+    """
+
+    ss: Any
+    grid: Grid
+    bus_numbers: list[int]
+    branch_ids: list[str]
+    branch_ends: dict[str, tuple[int, int]]
+    line_idx: list[Any]
+    trip_rows: list[int]
+    midline_off: list[int]
+    case_changes: list[tuple[float, str, bool]]
+    syn_models: list[Any]
+
+    def scheduled_changes(self, scenario: Scenario) -> list[tuple[float, str, bool]]:
+        """Return (time s, branch id, in service after) of the scenario's trips and the kept case events, in order."""
+        trips = [(trip.t_s, self.branch_ids[row], False) for trip, row in zip(scenario.trips, self.trip_rows,
+                                                                                  strict=True)]
+        return sorted(trips + list(self.case_changes))
+
+    def line_of(self) -> dict[str, Any]:
+        """Return branch id -> the ANDES Line idx that opens it (a mid-line-faulted line's first section)."""
+        return {bid: (f'{self.line_idx[k]}_section1' if k in self.midline_off else self.line_idx[k])
+                for k, bid in enumerate(self.branch_ids)}
+
+
+def prepare_case(scenario: Scenario) -> PreparedCase:
+    """Load the scenario's case, check the scenario against it, add its faults and trips, solve the power flow.
+
+    The one setup of a scenario's case: `simulate` runs it in the time domain, sim.closed_loop steps it with a
+    hook, and a baseline or an export takes its grid.
 
     Raises:
-        ScenarioError: The scenario names a bus or branch the case does not have.
-        SimulationError: The power flow or the time-domain simulation failed.
+        ScenarioError: The scenario names a bus or branch the case does not have, or asks for what the case cannot
+            do (a mid-line fault on a transformer, a PMU on no bus).
+        SimulationError: The power flow did not converge.
 
     """
     ss = _load_case(scenario)
@@ -330,6 +368,30 @@ def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
     if not ss.PFlow.run() or not ss.PFlow.converged:
         raise SimulationError(f'{where}: the ANDES power flow of {scenario.case.name} did not converge')
     grid = _snapshot(ss, scenario.case.name, bus_numbers, ids, pairs, midline_off)
+    return PreparedCase(ss=ss, grid=grid, bus_numbers=bus_numbers, branch_ids=ids,
+                        branch_ends=dict(zip(ids, pairs, strict=True)), line_idx=line_idx, trip_rows=trip_rows,
+                        midline_off=midline_off, case_changes=list(case_changes), syn_models=syn_models)
+
+
+def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
+    """Run the scenario's power flow and time-domain simulation.
+
+    Args:
+        scenario: The scenario.
+        progress: Print simulated time / end time on stderr as the run goes.
+
+    Returns:
+        The results.
+
+    Raises:
+        ScenarioError: The scenario names a bus or branch the case does not have.
+        SimulationError: The power flow or the time-domain simulation failed.
+
+    """
+    case = prepare_case(scenario)
+    ss, grid, bus_numbers, ids, trip_rows = case.ss, case.grid, case.bus_numbers, case.branch_ids, case.trip_rows
+    syn_models, case_changes = case.syn_models, case.case_changes
+    where = f'{scenario.path}'
 
     tds = ss.TDS
     tds.config.tstep = scenario.step_s
@@ -375,7 +437,7 @@ def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
         t_s=t[keep], freq_hz=float(ss.config.freq), bus_numbers=tuple(bus_numbers), bus_v_pu=bus_v,
         bus_angle_rad=bus_a, generator_names=tuple(names), generator_buses=tuple(gbus),
         delta_rad=np.hstack(delta), p_pu=np.hstack(pe), q_pu=np.hstack(qe), grid=grid,
-        branch_ends=dict(zip(ids, pairs, strict=True)), trip_branch_ids=tuple(ids[r] for r in trip_rows),
+        branch_ends=case.branch_ends, trip_branch_ids=tuple(ids[r] for r in trip_rows),
         wall_s=wall, case_branch_changes=tuple(case_changes))
 
 

@@ -73,8 +73,8 @@ from typing import Any
 
 import numpy as np
 
-from controlled_islanding.core.grid import Grid
-from controlled_islanding.sim.scenario import Scenario, ScenarioError
+from controlled_islanding.sim.andes_sim import prepare_case
+from controlled_islanding.sim.scenario import Scenario
 
 log = logging.getLogger(__name__)
 
@@ -313,7 +313,9 @@ class GridRun:
         self.scenario = scenario
         self.config = config
         self.progress = progress
-        self.ss, self.grid, self.branch_ends, self.line_of, self.scheduled_changes = _prepare(scenario)
+        case = prepare_case(scenario)
+        self.ss, self.grid, self.branch_ends = case.ss, case.grid, case.branch_ends
+        self.line_of, self.scheduled_changes = case.line_of(), case.scheduled_changes(scenario)
         self.run_until_s = max(scenario.end_s, scenario.request_s + config.run_after_s)
         self.bus_numbers = tuple(self.grid.buses)
         self._syn = [m for m in self.ss.groups['SynGen'].models.values() if m.n > 0 and any(m.u.v)]
@@ -895,184 +897,3 @@ def run_offline(scenario: Scenario, label: str, *, cut_branch_ids: Sequence[str]
     opened = next((a.applied_s for a in run.actions if a.what == 'open cut'), None)
     start = judged_from_s if judged_from_s is not None else (opened if opened is not None else scenario.request_s)
     return run.outcome(label, cut_branch_ids, bus_island if cut_branch_ids else None, opened, start, shed)
-
-
-def _prepare(scenario: Scenario) -> tuple[Any, Grid, dict[str, tuple[int, int]], dict[str, Any],
-                                          list[tuple[float, str, bool]]]:
-    """Load the case, add the scenario's events, solve the power flow: what sim.andes_sim.simulate does first.
-
-    The steps are andes_sim's own helpers, in its order; only the time-domain run differs.
-    """
-    from controlled_islanding.sim import andes_sim as A
-
-    ss = A._load_case(scenario)
-    where = f'{scenario.path}'
-    try:
-        bus_numbers = [int(b) for b in ss.Bus.idx.v]
-    except (TypeError, ValueError):
-        raise ScenarioError(f'{where}: case: bus idx must be integer bus numbers') from None
-    line_idx = list(ss.Line.idx.v)
-    pairs = [(int(a), int(b)) for a, b in zip(ss.Line.bus1.v, ss.Line.bus2.v, strict=True)]
-    ids = A.branch_ids(pairs)
-    A._apply_disable(ss, where, scenario.disable)
-    case_changes = A._case_events(ss, scenario, ids, line_idx)
-    trip_rows = [A._find_branch(f'{where}: {t.source}.branch', t.branch, ids, pairs) for t in scenario.trips]
-    midline_off: list[int] = []
-    next_bus = max(bus_numbers) + 1
-    fault_buses: list[int] = []
-    for fault in scenario.faults:
-        if fault.bus is not None:
-            if fault.bus not in bus_numbers:
-                raise ScenarioError(f'{where}: {fault.source}.bus: unknown bus {fault.bus}')
-            fault_buses.append(fault.bus)
-            continue
-        row = A._find_branch(f'{where}: {fault.source}.branch', fault.branch or '', ids, pairs)
-        fault_buses.append(A._split_line(ss, row, next_bus, fault.position))
-        midline_off.append(row)
-        next_bus += 1
-    for i, (fault, bus) in enumerate(zip(scenario.faults, fault_buses, strict=True)):
-        ss.add('Fault', dict(idx=f'ScenarioFault_{i}', name=f'ScenarioFault_{i}', bus=bus, tf=fault.start_s,
-                             tc=fault.clear_s, xf=A._FAULT_REACTANCE_PU, rf=0.0))
-    for i, (trip, row) in enumerate(zip(scenario.trips, trip_rows, strict=True)):
-        ss.add('Toggle', dict(idx=f'ScenarioTrip_{i}', name=f'ScenarioTrip_{i}', model='Line', dev=line_idx[row],
-                              t=trip.t_s))
-    dispatch = A._dispatch_plan(ss, scenario) if scenario.dispatch else None
-    ss.setup()
-    if dispatch is not None:
-        for model, name, idx, value in dispatch:
-            getattr(ss, model).set(name, idx, value)
-    for row in midline_off:
-        ss.Line.set_status(line_idx[row], 0)
-    if scenario.load_scale != 1.0:
-        for model, params in ((ss.PQ, ('p0', 'q0')), (ss.PV, ('p0',))):
-            for name in params:
-                values = np.array(getattr(model, name).v, dtype=float) * scenario.load_scale
-                for idx, value in zip(model.idx.v, values, strict=True):
-                    model.set(name, idx, float(value))
-    if not ss.PFlow.run() or not ss.PFlow.converged:
-        raise A.SimulationError(f'{where}: the ANDES power flow of {scenario.case.name} did not converge')
-    grid = A._snapshot(ss, scenario.case.name, bus_numbers, ids, pairs, midline_off)
-    changes = [(trip.t_s, ids[row], False) for trip, row in zip(scenario.trips, trip_rows, strict=True)]
-    changes = sorted(changes + list(case_changes))
-    # A mid-line-faulted line is two sections in the simulation: opening it opens the first section.
-    line_of = {bid: (f'{line_idx[k]}_section1' if k in midline_off else line_idx[k]) for k, bid in enumerate(ids)}
-    return ss, grid, dict(zip(ids, pairs, strict=True)), line_of, changes
-
-
-@dataclass(frozen=True)
-class Frame:
-    """One PMU frame, as sim/pmu.py models it (NaN and STAT_DATA_INVALID where lost).
-
-    Attributes:
-        tag_s: Time tag, s.
-        delivery_s: When it reaches the PDC, s (tag + delay).
-        station_ids, buses: Channel station ids and buses.
-        v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, frequency_hz, rocof_hz_per_s: Per channel.
-        stat: STAT word per channel.
-
-    """
-
-    tag_s: float
-    delivery_s: float
-    station_ids: tuple[str, ...]
-    buses: tuple[int, ...]
-    v_mag_pu: np.ndarray
-    v_angle_rad: np.ndarray
-    i_mag_pu: np.ndarray
-    i_angle_rad: np.ndarray
-    frequency_hz: np.ndarray
-    rocof_hz_per_s: np.ndarray
-    stat: np.ndarray
-
-
-class PmuStream:
-    """Turns the run's samples into PMU frames as they come, with sim/pmu.py's channels, noise and impairments.
-
-    Differences from sim/pmu.py, which sees the whole run at once: frequency is the backward difference of the
-    noise-free voltage angle between consecutive tags (not a central difference, which needs the next tag) and
-    ROCOF the backward difference of that; noise draws come from the same seeded streams but in frame order.
-    """
-
-    def __init__(self, scenario: Scenario, generator_names: Sequence[str], generator_buses: Sequence[int],
-                 bus_numbers: Sequence[int], f0_hz: float) -> None:
-
-        self.scenario = scenario
-        self.f0_hz = f0_hz
-        buses = tuple(dict.fromkeys(generator_buses)) if scenario.pmu_buses is None else scenario.pmu_buses
-        self.bus_cols = [list(bus_numbers).index(b) for b in buses]
-        stations, channel_bus, channel_gens = [], [], []
-        for j, bus in enumerate(buses):
-            gens = [g for g, gb in enumerate(generator_buses) if gb == bus]
-            for group in ([gens] if len(gens) <= 1 else [[g] for g in gens]):
-                stations.append(f'PMU_{bus}' if len(gens) <= 1 else f'PMU_{bus}/{generator_names[group[0]]}')
-                channel_bus.append(j)
-                channel_gens.append(group)
-        self.station_ids = tuple(stations)
-        self.channel_bus = channel_bus
-        self.channel_gens = channel_gens
-        self.buses = tuple(buses[j] for j in channel_bus)
-        self.pmu_buses = buses
-        self.next_k = 0
-        self.prev: Sample | None = None
-        self.streams = [np.random.default_rng(s) for s in np.random.SeedSequence(scenario.seed).spawn(6)]
-        self._last_angle: np.ndarray | None = None
-        self._last_freq: np.ndarray | None = None
-        self._last_i_angle: np.ndarray | None = None
-
-    def feed(self, sample: Sample) -> list[Frame]:
-        """Take the next step's state; return the frames whose tags it passed (possibly none)."""
-        from controlled_islanding.sim.pmu import FREQUENCY_NOISE_HZ, ROCOF_NOISE_HZ_PER_S, STAT_DATA_INVALID, _noisy
-
-        out = []
-        rate = self.scenario.rate_fps
-        while self.next_k / rate <= sample.t_s + 1e-9:
-            tag = self.next_k / rate
-            prev = self.prev if self.prev is not None and self.prev.t_s < sample.t_s else sample
-            w = 0.0 if sample.t_s <= prev.t_s else (tag - prev.t_s) / (sample.t_s - prev.t_s)
-            w = min(1.0, max(0.0, w))
-
-            def at(name: str, p: Sample = prev, x: float = w) -> np.ndarray:
-                return (1 - x) * getattr(p, name) + x * getattr(sample, name)
-
-            v = at('bus_v_pu')[self.bus_cols]
-            a = at('bus_angle_rad')[self.bus_cols]
-            p, q = at('p_pu'), at('q_pu')
-            current = np.zeros(len(self.station_ids), dtype=complex)
-            for c, (j, gens) in enumerate(zip(self.channel_bus, self.channel_gens, strict=True)):
-                for g in gens:
-                    current[c] += np.conj((p[g] + 1j * q[g]) / (v[j] * np.exp(1j * a[j])))
-            i_ang = np.angle(current)
-            if self._last_i_angle is not None:  # keep the current angle continuous, as np.unwrap would
-                i_ang = self._last_i_angle + np.angle(np.exp(1j * (i_ang - self._last_i_angle)))
-            self._last_i_angle = i_ang
-            s = self.streams
-            v_mag, v_ang = _noisy(s[0], v, a, self.scenario.noise_tve)
-            i_mag, i_ang_n = _noisy(s[1], np.abs(current), i_ang, self.scenario.noise_tve)
-            f_clean = (np.full(len(v), self.f0_hz) if self._last_angle is None else
-                       self.f0_hz + (a - self._last_angle) * rate / (2 * np.pi))
-            rocof_clean = np.zeros(len(v)) if self._last_freq is None else (f_clean - self._last_freq) * rate
-            self._last_angle, self._last_freq = a, f_clean
-            freq = f_clean + s[2].normal(0.0, FREQUENCY_NOISE_HZ, f_clean.shape)
-            rocof = rocof_clean + s[3].normal(0.0, ROCOF_NOISE_HZ_PER_S, f_clean.shape)
-            imp = self.scenario.impairments
-            lost = s[4].random(len(v)) < imp.frame_loss_rate
-            if tag < imp.initial_gap_s:
-                lost[:] = True
-            if imp.silent_pmu_bus is not None and tag >= imp.silent_from_s:
-                lost[list(self.pmu_buses).index(imp.silent_pmu_bus)] = True
-            delay = (max(0.0, float(s[5].normal(imp.delay_mean_s, imp.delay_jitter_s)))
-                     if imp.delay_mean_s > 0 or imp.delay_jitter_s > 0 else 0.0)
-            cb = self.channel_bus
-            lost_c = lost[cb]
-            arrays = [x.copy() for x in (v_mag[cb], v_ang[cb], i_mag, i_ang_n, freq[cb], rocof[cb])]
-            for arr in arrays:
-                arr[lost_c] = np.nan
-            self.next_k += 1
-            if lost_c.all():
-                continue  # a frame in which every PMU's data is lost is not sent at all
-            out.append(Frame(tag_s=tag, delivery_s=tag + delay, station_ids=self.station_ids, buses=self.buses,
-                             v_mag_pu=arrays[0], v_angle_rad=arrays[1], i_mag_pu=arrays[2], i_angle_rad=arrays[3],
-                             frequency_hz=arrays[4], rocof_hz_per_s=arrays[5],
-                             stat=np.where(lost_c, STAT_DATA_INVALID, 0).astype(np.uint16)))
-        self.prev = sample
-        return out

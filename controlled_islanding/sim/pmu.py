@@ -25,12 +25,17 @@ is per channel):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from controlled_islanding.sim.andes_sim import Simulation
 from controlled_islanding.sim.scenario import Scenario
+
+if TYPE_CHECKING:
+    from controlled_islanding.sim.closed_loop import Sample
 
 STAT_DATA_INVALID = 0x8000
 FREQUENCY_NOISE_HZ = 0.001
@@ -38,24 +43,22 @@ ROCOF_NOISE_HZ_PER_S = 0.01
 
 
 @dataclass(frozen=True)
-class PmuData:
-    """Every PMU's measurements on the time-tag grid.
+class PmuChannels:
+    """What the PMU channels measured: one value per channel (a frame), or per time tag and channel (a run).
 
     Attributes:
-        tag_s: Time tags, s, shape (n,).
-        delivery_s: Delivery time of each frame, s, shape (n,).
+        tag_s: Time tag, s; shape (n,) for a run.
+        delivery_s: When it reaches the PDC, s (tag + delay); shape (n,) for a run.
         station_ids: Station id of each channel (see the module docstring).
         buses: Bus of each channel; a bus with several generators has several channels.
-        v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, frequency_hz, rocof_hz_per_s: shape (n, n_channel); NaN where
-            lost.
-        stat: STAT word, shape (n, n_channel).
-        frame_present: Whether the frame is recorded at all, shape (n,).
-        truth_delta_rad: Simulated rotor angles at the time tags, rad, shape (n, n_gen).
+        v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, frequency_hz, rocof_hz_per_s: Per channel (last axis); NaN
+            where lost.
+        stat: STAT word per channel; STAT_DATA_INVALID where lost.
 
     """
 
-    tag_s: np.ndarray
-    delivery_s: np.ndarray
+    tag_s: float | np.ndarray
+    delivery_s: float | np.ndarray
     station_ids: tuple[str, ...]
     buses: tuple[int, ...]
     v_mag_pu: np.ndarray
@@ -65,6 +68,21 @@ class PmuData:
     frequency_hz: np.ndarray
     rocof_hz_per_s: np.ndarray
     stat: np.ndarray
+
+
+Frame = PmuChannels  # one frame of the closed loop's stream
+
+
+@dataclass(frozen=True)
+class PmuData(PmuChannels):
+    """Every PMU's measurements on the time-tag grid of a whole run (PmuChannels with a leading time axis).
+
+    Attributes:
+        frame_present: Whether the frame is recorded at all, shape (n,).
+        truth_delta_rad: Simulated rotor angles at the time tags, rad, shape (n, n_gen).
+
+    """
+
     frame_present: np.ndarray
     truth_delta_rad: np.ndarray
 
@@ -148,3 +166,94 @@ def measure(sim: Simulation, scenario: Scenario) -> PmuData:
         v_mag_pu=out[0], v_angle_rad=out[1], i_mag_pu=out[2], i_angle_rad=out[3], frequency_hz=out[4],
         rocof_hz_per_s=out[5], stat=stat, frame_present=~lost.all(axis=1),
         truth_delta_rad=_interp(tags, sim.t_s, sim.delta_rad))
+
+
+class PmuStream:
+    """Turns the run's samples into PMU frames as they come, with `measure`'s channels, noise and impairments.
+
+    Differences from `measure`, which sees the whole run at once: frequency is the backward difference of the
+    noise-free voltage angle between consecutive tags (not a central difference, which needs the next tag) and
+    ROCOF the backward difference of that; noise draws come from the same seeded streams but in frame order.
+    """
+
+    def __init__(self, scenario: Scenario, generator_names: Sequence[str], generator_buses: Sequence[int],
+                 bus_numbers: Sequence[int], f0_hz: float) -> None:
+
+        self.scenario = scenario
+        self.f0_hz = f0_hz
+        buses = tuple(dict.fromkeys(generator_buses)) if scenario.pmu_buses is None else scenario.pmu_buses
+        self.bus_cols = [list(bus_numbers).index(b) for b in buses]
+        stations, channel_bus, channel_gens = [], [], []
+        for j, bus in enumerate(buses):
+            gens = [g for g, gb in enumerate(generator_buses) if gb == bus]
+            for group in ([gens] if len(gens) <= 1 else [[g] for g in gens]):
+                stations.append(f'PMU_{bus}' if len(gens) <= 1 else f'PMU_{bus}/{generator_names[group[0]]}')
+                channel_bus.append(j)
+                channel_gens.append(group)
+        self.station_ids = tuple(stations)
+        self.channel_bus = channel_bus
+        self.channel_gens = channel_gens
+        self.buses = tuple(buses[j] for j in channel_bus)
+        self.pmu_buses = buses
+        self.next_k = 0
+        self.prev: Sample | None = None
+        self.streams = [np.random.default_rng(s) for s in np.random.SeedSequence(scenario.seed).spawn(6)]
+        self._last_angle: np.ndarray | None = None
+        self._last_freq: np.ndarray | None = None
+        self._last_i_angle: np.ndarray | None = None
+
+    def feed(self, sample: Sample) -> list[Frame]:
+        """Take the next step's state; return the frames whose tags it passed (possibly none)."""
+        out = []
+        rate = self.scenario.rate_fps
+        while self.next_k / rate <= sample.t_s + 1e-9:
+            tag = self.next_k / rate
+            prev = self.prev if self.prev is not None and self.prev.t_s < sample.t_s else sample
+            w = 0.0 if sample.t_s <= prev.t_s else (tag - prev.t_s) / (sample.t_s - prev.t_s)
+            w = min(1.0, max(0.0, w))
+
+            def at(name: str, p: Sample = prev, x: float = w) -> np.ndarray:
+                return (1 - x) * getattr(p, name) + x * getattr(sample, name)
+
+            v = at('bus_v_pu')[self.bus_cols]
+            a = at('bus_angle_rad')[self.bus_cols]
+            p, q = at('p_pu'), at('q_pu')
+            current = np.zeros(len(self.station_ids), dtype=complex)
+            for c, (j, gens) in enumerate(zip(self.channel_bus, self.channel_gens, strict=True)):
+                for g in gens:
+                    current[c] += np.conj((p[g] + 1j * q[g]) / (v[j] * np.exp(1j * a[j])))
+            i_ang = np.angle(current)
+            if self._last_i_angle is not None:  # keep the current angle continuous, as np.unwrap would
+                i_ang = self._last_i_angle + np.angle(np.exp(1j * (i_ang - self._last_i_angle)))
+            self._last_i_angle = i_ang
+            s = self.streams
+            v_mag, v_ang = _noisy(s[0], v, a, self.scenario.noise_tve)
+            i_mag, i_ang_n = _noisy(s[1], np.abs(current), i_ang, self.scenario.noise_tve)
+            f_clean = (np.full(len(v), self.f0_hz) if self._last_angle is None else
+                       self.f0_hz + (a - self._last_angle) * rate / (2 * np.pi))
+            rocof_clean = np.zeros(len(v)) if self._last_freq is None else (f_clean - self._last_freq) * rate
+            self._last_angle, self._last_freq = a, f_clean
+            freq = f_clean + s[2].normal(0.0, FREQUENCY_NOISE_HZ, f_clean.shape)
+            rocof = rocof_clean + s[3].normal(0.0, ROCOF_NOISE_HZ_PER_S, f_clean.shape)
+            imp = self.scenario.impairments
+            lost = s[4].random(len(v)) < imp.frame_loss_rate
+            if tag < imp.initial_gap_s:
+                lost[:] = True
+            if imp.silent_pmu_bus is not None and tag >= imp.silent_from_s:
+                lost[list(self.pmu_buses).index(imp.silent_pmu_bus)] = True
+            delay = (max(0.0, float(s[5].normal(imp.delay_mean_s, imp.delay_jitter_s)))
+                     if imp.delay_mean_s > 0 or imp.delay_jitter_s > 0 else 0.0)
+            cb = self.channel_bus
+            lost_c = lost[cb]
+            arrays = [x.copy() for x in (v_mag[cb], v_ang[cb], i_mag, i_ang_n, freq[cb], rocof[cb])]
+            for arr in arrays:
+                arr[lost_c] = np.nan
+            self.next_k += 1
+            if lost_c.all():
+                continue  # a frame in which every PMU's data is lost is not sent at all
+            out.append(Frame(tag_s=tag, delivery_s=tag + delay, station_ids=self.station_ids, buses=self.buses,
+                             v_mag_pu=arrays[0], v_angle_rad=arrays[1], i_mag_pu=arrays[2], i_angle_rad=arrays[3],
+                             frequency_hz=arrays[4], rocof_hz_per_s=arrays[5],
+                             stat=np.where(lost_c, STAT_DATA_INVALID, 0).astype(np.uint16)))
+        self.prev = sample
+        return out
