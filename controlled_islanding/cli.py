@@ -61,13 +61,14 @@ def _verbosity() -> argparse.ArgumentParser:
 
 
 def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
-    """Build the parser; only the chosen subcommand's module is imported for its arguments."""
+    """Build the parser: every subcommand's help, or, with one chosen, only it and its arguments."""
     common = _verbosity()
     parser = argparse.ArgumentParser(
         prog='controlled-islanding', description=DESCRIPTION, parents=[common],
         formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest='command', metavar='SUBCOMMAND', required=True)
-    for name in SUBCOMMANDS:
+    # A chosen subcommand needs only its own module: a regression run starts one CLI process per bag.
+    for name in (chosen,) if chosen else SUBCOMMANDS:
         try:
             module = _load(name)
         except ModuleNotFoundError as exc:
@@ -76,7 +77,7 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
             continue
         sp = sub.add_parser(name, help=module.HELP, description=module.DESCRIPTION, parents=[common],
                             formatter_class=argparse.RawDescriptionHelpFormatter)
-        if name == chosen or chosen is None:
+        if chosen:
             module.add_arguments(sp)
     return parser
 

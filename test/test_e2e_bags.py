@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from controlled_islanding.commands.replay import SuiteRun, replay_suite
+from controlled_islanding.graph.suite import SuiteRun, replay_suite
 from controlled_islanding.sim.manifest import default_bag, manifest_entries
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from controlled_islanding.commands.replay import replay
+from controlled_islanding.graph.replay import replay
 from controlled_islanding.sim.manifest import default_bag
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.bagdata import load_bag

@@ -232,7 +232,8 @@ RECORD = {'name': 'coherency', 'cause': 'hung', 'reason': 'coherency hung: no he
 
 
 def test_a_clean_replay_reports_no_restarts_and_keeps_its_output(tmp_path):
-    from controlled_islanding.commands.replay import Observation, graph_failure, render, summarize
+    from controlled_islanding.graph.observer import Observation
+    from controlled_islanding.graph.summary import graph_failure, render, summarize
 
     summary = summarize(tmp_path / 'bag', tmp_path, Observation(), {})
     assert summary['restarts'] == [] and summary['hangs'] == []
@@ -244,7 +245,8 @@ def test_a_replay_whose_graph_lost_a_node_exits_non_zero_with_one_line_why(monke
     import argparse
 
     from controlled_islanding.commands import replay
-    from controlled_islanding.commands.replay import Observation, graph_failure, summarize
+    from controlled_islanding.graph.observer import Observation
+    from controlled_islanding.graph.summary import graph_failure, summarize
 
     summary = summarize(tmp_path / 'bag', tmp_path, Observation(restarts=[RestartRecord(**RECORD)]), {})
     monkeypatch.setattr(replay, 'replay', lambda *args, **kwargs: summary)

@@ -7,7 +7,8 @@ import argparse
 import pytest
 
 from controlled_islanding.commands import replay
-from controlled_islanding.commands.replay import SuiteRun, phases, render_suite, replay_suite
+from controlled_islanding.graph.suite import SuiteRun, render_suite, replay_suite
+from controlled_islanding.graph.summary import phases
 
 
 def test_phases_follow_the_marks_in_order_and_add_up_to_the_total():

@@ -16,8 +16,8 @@ import pytest
 from nodes_harness import graph
 from test_e2e_bags import ENTRIES, REPO, check_breaker_rules, check_decision, results_dir
 
-from controlled_islanding.commands.replay import replay
 from controlled_islanding.graph import wan
+from controlled_islanding.graph.replay import replay
 from controlled_islanding.graph.supervisor import GRAPH
 from controlled_islanding.sim.manifest import default_bag
 from controlled_islanding.wire.qos import DECISION_LEASE_S

@@ -7,6 +7,9 @@ from datetime import UTC
 from pathlib import Path
 
 from controlled_islanding.cli import CliError
+from controlled_islanding.graph import GraphError
+from controlled_islanding.graph.replay import replay
+from controlled_islanding.graph.summary import graph_failure, refused, render
 from controlled_islanding.locations import bags_dir
 from controlled_islanding.sim.manifest import ManifestError, default_bag
 
@@ -36,8 +39,6 @@ def run(args: argparse.Namespace) -> int:
     import json
     from datetime import datetime
 
-    from controlled_islanding.commands.replay import graph_failure, refused, render, replay
-
     try:
         entry = default_bag()
     except ManifestError as exc:
@@ -51,7 +52,10 @@ def run(args: argparse.Namespace) -> int:
     if not args.json:
         print(f'demo: {entry["name"]}: {" ".join(str(entry.get("description", "")).split())}\n', flush=True)
     # The demo never joins the user's domain: it must behave the same on every machine.
-    summary = replay(bag, results, fast=args.fast, quiet=args.json, isolate=True)
+    try:
+        summary = replay(bag, results, fast=args.fast, quiet=args.json, isolate=True)
+    except GraphError as exc:
+        raise CliError(str(exc)) from exc
     expected = entry.get('expected_decision', {})
     summary['manifest_agrees'] = (summary['split'] == expected.get('split')
                                   and sorted(summary.get('cut_branch_ids', [])) ==

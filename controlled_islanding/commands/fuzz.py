@@ -91,10 +91,14 @@ def _manifest_entry(bag: Path | None) -> tuple[Path, dict]:
 
 def run(args: argparse.Namespace) -> int:
     """Run the soak and print its tables (or JSON)."""
-    from controlled_islanding.commands.replay import namespace_name
+    from controlled_islanding.graph import GraphError
+    from controlled_islanding.graph.replay import namespace_name
     from controlled_islanding.harness import fuzzing
 
-    namespace = namespace_name(args.namespace)
+    try:
+        namespace = namespace_name(args.namespace)
+    except GraphError as exc:
+        raise CliError(str(exc)) from exc
     if args.breaker_trials:
         if namespace:
             raise CliError('--namespace applies to the graph soak, not to --breaker-trials')

@@ -18,6 +18,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from controlled_islanding.graph import GraphError
+
 # Fast DDS maps a domain id to UDP ports; ids 0..232 are valid. Low ids are left
 # to users' own ROS graphs on the same machine.
 FIRST_DOMAIN_ID = 100
@@ -25,7 +27,7 @@ LAST_DOMAIN_ID = 232
 LOCK_DIR = Path(tempfile.gettempdir()) / 'controlled_islanding_domains'
 
 
-class RosEnvError(RuntimeError):
+class RosEnvError(GraphError):
     """No free ROS_DOMAIN_ID could be reserved."""
 
 

@@ -22,12 +22,13 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
+from controlled_islanding.graph import GraphError
 from controlled_islanding.graph.processes import cpu_s, die_with_parent, processes, sigterm_as_interrupt
 from controlled_islanding.graph.watchdog import Action, ActionKind, RestartPolicy, Watchdog
 from controlled_islanding.locations import config_dir
 
 
-class SupervisorError(RuntimeError):
+class SupervisorError(GraphError):
     """A child process could not be started or died unexpectedly."""
 
 

@@ -39,6 +39,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from controlled_islanding import atomic
+from controlled_islanding.graph import GraphError
 from controlled_islanding.graph.processes import die_with_parent, sigterm_as_interrupt, status_field
 
 # Which nodes run on which kind of host in a deployment: the PMU data concentrator's site, the control centre,
@@ -65,7 +66,7 @@ _CAP_NET_ADMIN = 12
 _CAP_SYS_ADMIN = 21
 
 
-class WanError(RuntimeError):
+class WanError(GraphError):
     """The emulated network could not be built or failed."""
 
 

@@ -27,8 +27,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from controlled_islanding.cli import CliError
-from controlled_islanding.graph import wan
+from controlled_islanding.graph import GraphError, wan
 
 DELAYS_MS = (0.0, 10.0, 50.0)
 LOSSES_PCT = (0.0, 1.0, 5.0)
@@ -61,11 +60,12 @@ def _commands(summary: dict) -> tuple[int, int]:
 
 
 def _replay_into(row: Row, bag: Path, results: Path, hosts: str | None, link: wan.LinkModel | None) -> None:
-    from controlled_islanding.commands.replay import graph_failure, replay
+    from controlled_islanding.graph.replay import replay
+    from controlled_islanding.graph.summary import graph_failure
 
     try:
         summary = replay(bag, results, fast=True, figures=False, quiet=True, record=False, hosts=hosts, link=link)
-    except CliError as exc:
+    except GraphError as exc:
         row.failures.append(str(exc).splitlines()[0])
         return
     failure = graph_failure(summary)
@@ -90,12 +90,12 @@ def run_bench(bag: Path, results: Path, repeat: int, delays_ms=DELAYS_MS, losses
     """Replay `bag` on loopback and across the emulated WAN in every setting; return one row per setting.
 
     Raises:
-        CliError: The emulated WAN cannot be built here.
+        WanError: The emulated WAN cannot be built here.
 
     """
     why = wan.unavailable_reason()
     if why:
-        raise CliError(why)
+        raise wan.WanError(why)
     rows = [Row('loopback')]
     for i in range(repeat):
         _replay_into(rows[0], bag, results / f'loopback-{i}', None, None)
@@ -164,7 +164,7 @@ def silence_detection(link: wan.LinkModel, work: Path, alive_s: float = 30.0) ->
     """Return (s from killing the control centre to the breaker's warning, or None; false alarms while alive).
 
     Raises:
-        CliError: The emulated WAN cannot be built here.
+        WanError: The emulated WAN cannot be built here.
 
     """
     from controlled_islanding.graph.rosenv import isolated_ros_environment

@@ -15,7 +15,9 @@ command lost live would be as late.
 from __future__ import annotations
 
 import gc
+import logging
 import os
+import sys
 import tempfile
 from collections.abc import Callable
 
@@ -71,6 +73,16 @@ def _dds_memory_profile() -> str | None:
     return path
 
 
+def _log_to_stderr() -> None:
+    # The library code a node runs (sim/ in grid_sim) logs through `logging`; its lines go to the node's log.
+    package = logging.getLogger('controlled_islanding')
+    if not package.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter('%(message)s'))
+        package.addHandler(handler)
+        package.setLevel(logging.INFO)
+
+
 def spin_node(factory: Callable[[], Node], args: list[str] | None = None,
               run: Callable[[Node, SingleThreadedExecutor], None] | None = None) -> int:
     """Init rclpy, build the node, spin it single-threaded until Ctrl-C or shutdown, then clean up.
@@ -85,6 +97,7 @@ def spin_node(factory: Callable[[], Node], args: list[str] | None = None,
         Process exit status: 0 after a clean stop, 1 when the node failed to start.
 
     """
+    _log_to_stderr()
     profile = _dds_memory_profile()
     rclpy.init(args=args)
     node = None

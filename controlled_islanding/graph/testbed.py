@@ -1,0 +1,271 @@
+"""Scenarios closed-loop: ANDES as the grid (grid_sim), the four nodes deciding, the breakers opening in it.
+
+Each scenario then runs with no action and with the exact MILP cut, in-process, as baselines.
+
+grid_sim publishes the snapshot, PMU frames, trips and the scenario's islanding request, executes the breaker
+commands in the simulation (breaker operating time, then the decision's load shed and generation rejection),
+keeps simulating and judges every island (sim/closed_loop.py). The result of a scenario is its decision, the
+three runs and a figure; evaluation/testbed_report.py makes the table and the page from the results.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from controlled_islanding import atomic
+from controlled_islanding.graph import GraphError
+from controlled_islanding.graph.observer import INTERNAL_TOPICS, Observation, Observer, start_pipeline
+from controlled_islanding.graph.replay import namespace_name
+from controlled_islanding.graph.summary import decision_dict
+from controlled_islanding.wire import topics
+
+log = logging.getLogger(__name__)
+
+INTERRUPTED = 'INTERRUPTED.json'  # in a results folder: the run was stopped before its end
+
+
+@dataclass(frozen=True)
+class TestbedSettings:
+    """How the scenarios run.
+
+    Attributes:
+        rate: 0 = lockstep (the simulation waits for the graph at the request), R > 0 = R x real time.
+        breaker_operating_s: Breaker command -> branch open, s.
+        shed_delay_s: Branch open -> load shed, s.
+        run_after_s: Simulate at least this long after the request, s.
+        trigger: Where the request comes from: 'scenario' (its time) or 'out-of-step' (grid_sim's trigger).
+        timeout_s: Give up on one closed-loop run after this, wall s.
+        namespace: The graph's and grid_sim's namespace ('' = the root one).
+        estimator: pmu_ingestion's rotor angle estimator; None: its parameter file's.
+        no_baselines: Skip the no-action and MILP runs.
+        quiet: Progress at debug level, not info.
+
+    """
+
+    __test__ = False  # not a pytest test class, for all its name
+
+    rate: float = 0.0
+    breaker_operating_s: float = 0.05
+    shed_delay_s: float = 0.2
+    run_after_s: float = 3.0
+    trigger: str = 'scenario'
+    timeout_s: float = 900.0
+    namespace: str = ''
+    estimator: str | None = None
+    no_baselines: bool = False
+    quiet: bool = False
+
+
+def _say(quiet: bool, text: str) -> None:
+    (log.debug if quiet else log.info)('%s', text)
+
+
+def run_closed_loop(scenario: Path, results: Path, *, rate: float, params: dict[str, float], timeout_s: float,
+                    quiet: bool, namespace: str = '', estimator: str | None = None) -> tuple[Observation, dict]:
+    """Run the four nodes and grid_sim on one scenario; return what the observer saw and grid_sim's report.
+
+    The graph runs in `namespace` ('' = the root one, else e.g. '/area1'), its clock on <namespace>/clock.
+    `estimator` overrides pmu_ingestion's (None: its parameter file's).
+
+    Raises:
+        GraphError: A node died, or grid_sim gave no report within timeout_s.
+
+    """
+    from controlled_islanding.graph.rosenv import graph_environment
+    from controlled_islanding.graph.supervisor import GRAPH, PIPELINE_POLICY, NodeSpec, Supervisor
+    from controlled_islanding.safety import signing
+
+    key_dir = signing.default_key_dir()
+    signing.init_keys(key_dir)
+    operator_key = signing.load_private_key(signing.key_paths(key_dir, 'operator').private)
+    obs = Observation()
+    logs = results / 'logs'
+    report_file = results / 'grid_sim.json'
+    remaps = {topics.CLOCK: f'{namespace}{topics.CLOCK}'} if namespace else {}
+    with graph_environment(results / 'ros_log', True) as env, Observer(env, 'testbed_observer', namespace, obs) as \
+            observer, Supervisor(env, logs, PIPELINE_POLICY, namespace=namespace, remaps=remaps) as sup:
+        obs.restarts, obs.hangs = sup.restarts, sup.hangs
+        start_pipeline(sup, results, key_dir, estimator)
+        _say(quiet, f'started {len(GRAPH)} nodes (logs in {logs})')
+        observer.arm(operator_key, True, 30.0, sup.check_alive)
+        played = (topics.PMU_FRAMES, topics.NETWORK_SNAPSHOT, topics.BRANCH_STATUS, topics.ISLANDING_REQUEST,
+                  topics.CLOCK)
+        counts = observer.wait_until_wired(played, INTERNAL_TOPICS, 30.0,
+                                           lambda t: remaps.get(t, topics.in_namespace(t, namespace)))
+        # grid_sim's own subscriptions (decision, commands, angles) add one subscriber to none of these.
+        grid = sup.start(NodeSpec('grid_sim', 'grid_sim.yaml'), {
+            'use_sim_time': False, 'scenario': scenario.resolve(), 'rate': rate, 'report_file': report_file,
+            'progress': not quiet, **params, 'min_subscribers': str([f'{t}={n}' for t, n in counts.items()])})
+        _say(quiet, f'breaker_command armed; grid_sim simulating {scenario.name}')
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            observer.spin_for(0.05)
+            sup.supervise(obs.heartbeats_s)
+            if grid.poll() is not None:
+                observer.spin_for(0.3)
+                break
+        else:
+            raise GraphError(f'grid_sim did not finish within --timeout {timeout_s} s; logs in {logs}')
+        if grid.returncode != 0 or not report_file.exists():
+            raise GraphError(f'grid_sim failed (exit {grid.returncode}):\n{sup.log_tail("grid_sim")}')
+    return obs, json.loads(report_file.read_text())
+
+
+def _decision(obs: Observation, request_id: str) -> dict | None:
+    return decision_dict(request_id, obs) if request_id in obs.decisions else None
+
+
+def _milp_cut(scenario: Any, decision: dict) -> dict:
+    """Return the exact minimum-disruption partition for the decision's generator groups, on its network."""
+    from controlled_islanding.core.islanding import evaluate_partition
+    from controlled_islanding.core.milp import ExactPartition
+    from controlled_islanding.sim.andes_sim import prepare_case
+
+    case = prepare_case(scenario)
+    grid = case.grid
+    tripped = [bid for t, bid, up in case.scheduled_changes(scenario) if not up and t <= scenario.request_s]
+    grid = grid.with_outages(tripped)
+    bus_island = {b: isl['island'] for isl in decision['islands'] for b in isl['buses']}
+    groups = {g.name: bus_island[g.bus] for g in grid.generators}
+    model = ExactPartition(time_limit_s=60.0).fit(grid, groups)
+    milp_island = dict(zip(grid.buses, (int(x) for x in model.labels_), strict=True))
+    ev = evaluate_partition(grid, milp_island)
+    return {'bus_island': milp_island, 'cut_branch_ids': list(ev.cut_branch_ids),
+            'island_shed_mw': list(ev.island_shed_mw), 'disrupted_mw': ev.disrupted_mw, 'optimal': model.optimal_}
+
+
+def run_scenario(path: Path, results: Path, args: TestbedSettings, cache: dict) -> dict:
+    """Run one scenario closed-loop, then the baselines; return its result (figures go under results).
+
+    `cache` keeps the no-action runs of the scenarios seen so far, by their simulation (variants share one).
+
+    Raises:
+        GraphError: The scenario is unreadable, a node died, or grid_sim gave no report in time.
+
+    """
+    import numpy as np
+
+    from controlled_islanding.sim.closed_loop import LoopConfig, run_offline
+    from controlled_islanding.sim.scenario import ScenarioError, load_scenario
+
+    quiet = args.quiet
+    try:
+        scenario = load_scenario(path)
+    except ScenarioError as exc:
+        raise GraphError(str(exc)) from exc
+    out = results / scenario.name
+    out.mkdir(parents=True)
+    config = LoopConfig(breaker_operating_s=args.breaker_operating_s, shed_delay_s=args.shed_delay_s,
+                        run_after_s=args.run_after_s)
+    params = {'breaker_operating_s': args.breaker_operating_s, 'shed_delay_s': args.shed_delay_s,
+              'run_after_s': args.run_after_s, 'trigger': args.trigger.replace('-', '_')}
+    _say(quiet, f'{scenario.name}: closed loop')
+    obs, report = run_closed_loop(path, out, rate=args.rate, params=params, timeout_s=args.timeout_s, quiet=quiet,
+                                  namespace=namespace_name(args.namespace), estimator=args.estimator)
+    decision = _decision(obs, report['request_id'])
+    loop = report['outcome']
+    if args.trigger != 'scenario':
+        # The baselines and the figure answer the request grid_sim's trigger made, not the scenario's.
+        scenario = replace(scenario, request_s=loop['request_s'],
+                           end_s=max(scenario.end_s, loop['request_s'] + args.run_after_s))
+    result: dict[str, Any] = {'scenario': scenario.name, 'path': str(path), 'decision': decision,
+                              'closed_loop': loop, 'events': report['events'],
+                              'restarts': [r.__dict__ for r in obs.restarts], 'runs': {'dtw': loop},
+                              'graph_topics': obs.graph_topics,
+                              'estimator': next((d['estimator'] for name, d in obs.diagnostics.items()
+                                                 if name.endswith('pmu_ingestion') and 'estimator' in d), None)}
+    traj = dict(np.load(f'{out / "grid_sim.json"}.npz'))
+    trajectories = {'dtw': traj}
+    if not args.no_baselines:
+        key = (scenario.simulation_key(), args.run_after_s)
+        if key not in cache:
+            _say(quiet, f'{scenario.name}: no action (ANDES in-process)')
+            cache[key] = run_offline(scenario, 'no action', judged_from_s=loop['opened_s'] or scenario.request_s,
+                                     config=config, progress=not quiet)
+        none = cache[key]
+        if loop['opened_s'] is not None and none.judged_from_s != loop['opened_s']:
+            # The same run, judged over the closed loop's window: only the window start differs.
+            none_summary = none.rejudged(loop['opened_s'], config).summary()
+        else:
+            none_summary = none.summary()
+        result['runs']['no action'] = none_summary
+        trajectories['no action'] = {'t_s': none.t_s, 'delta_rad': none.delta_rad, 'bus_v_pu': none.bus_v_pu}
+        if decision and decision['split'] and loop['opened_s'] is not None:
+            milp = _milp_cut(scenario, decision)
+            result['milp_cut'] = milp
+            same = (sorted(milp['cut_branch_ids']) == sorted(decision['cut_branch_ids']))
+            if same:
+                result['runs']['milp'] = dict(loop, label='milp (same cut as dtw: the closed-loop run)')
+            else:
+                _say(quiet, f'{scenario.name}: MILP cut {milp["cut_branch_ids"]} (ANDES in-process)')
+                m = run_offline(scenario, 'milp', cut_branch_ids=milp['cut_branch_ids'], bus_island=milp['bus_island'],
+                                island_shed_mw=milp['island_shed_mw'], opened_s=loop['opened_s'], config=config,
+                                progress=not quiet)
+                result['runs']['milp'] = m.summary()
+                trajectories['milp'] = {'t_s': m.t_s, 'delta_rad': m.delta_rad, 'bus_v_pu': m.bus_v_pu}
+    result['figure'] = str(_figure(scenario, result, trajectories, traj, out / f'{scenario.name}_closed_loop.png'))
+    atomic.write_text(out / 'result.json', json.dumps(result, indent=1, default=str))
+    return result
+
+
+def _figure(scenario: Any, result: dict, trajectories: dict, loop_traj: dict, path: Path) -> Path:
+    from controlled_islanding.evaluation import plots
+
+    decision = result['decision'] or {}
+    bus_island = {b: isl['island'] for isl in decision.get('islands', []) for b in isl['buses']}
+    names = [str(n) for n in loop_traj['generator_names']]
+    gen_island = [bus_island.get(int(b), 0) for b in loop_traj['generator_buses']]
+    panels = []
+    for label in ('no action', 'dtw', 'milp'):
+        if label not in trajectories or (label == 'milp' and 'milp' not in result['runs']):
+            continue
+        run = result['runs'][label]
+        tr = trajectories[label]
+        panels.append(plots.ClosedLoopPanel(
+            label={'dtw': 'closed loop (DTW decision)', 'milp': 'exact MILP cut', 'no action': 'no action'}[label],
+            t_s=tr['t_s'], delta_rad=tr['delta_rad'], bus_v_pu=tr['bus_v_pu'], opened_s=run.get('opened_s'),
+            survived=run['all_survived']))
+    return plots.plot_closed_loop(panels, names, gen_island, path, request_s=scenario.request_s,
+                                  title=f'{scenario.name}: rotor angles by island and bus voltages')
+
+
+def run_all(paths: list[Path], results_dir: Path, settings: TestbedSettings,
+            after_each: Callable[[list[dict], list[str]], None] = lambda results, missing: None) -> tuple[
+                list[dict], list[str]]:
+    """Run every scenario into results_dir (made already); return the results and the failures, one line each.
+
+    One scenario's failure is a line of the failures, not the end of the run (unless it is the only scenario: then
+    its GraphError is raised). `after_each(results, missing)` is called after each scenario, `missing` naming
+    those not in `results` (yet). Ctrl-C or SIGTERM marks the folder (INTERRUPTED.json) and is raised on.
+    """
+    cache: dict = {}
+    results: list[dict] = []
+    failures: list[str] = []
+    for i, path in enumerate(paths):
+        _say(settings.quiet, f'scenario {i + 1}/{len(paths)}: {path}')
+        try:
+            results.append(run_scenario(path, results_dir, settings, cache))
+        except GraphError as exc:
+            if len(paths) == 1:
+                raise
+            _say(settings.quiet, f'{path.stem}: FAILED: {exc}')
+            failures.append(f'{path.stem}: {str(exc).splitlines()[0]}')
+            continue
+        except KeyboardInterrupt:
+            # Ctrl-C or SIGTERM (the supervisor turns it into this): its nodes are stopped by now. Without a
+            # testbed.json the folder is unfinished; this file says so and why, for a reader and for --render.
+            atomic.write_text(results_dir / INTERRUPTED, json.dumps({
+                'interrupted_utc': datetime.now(UTC).isoformat(timespec='seconds'), 'during': path.stem,
+                'finished': [r['scenario'] for r in results], 'failed': failures,
+                'not_run': [p.stem for p in paths[i + 1:]]}, indent=1) + '\n')
+            raise
+        after_each(results, [p.stem for p in paths[i + 1:]] + failures)
+    atomic.write_text(results_dir / 'testbed.json', json.dumps(results, indent=1, default=str))
+    return results, failures
