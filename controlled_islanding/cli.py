@@ -37,10 +37,6 @@ the subcommand.
 """
 
 
-class CliError(Exception):
-    """A user-facing error: printed as one line, exit status 2."""
-
-
 def _module_name(name: str) -> str:
     return f"controlled_islanding.commands.{name.replace('-', '_')}"  # serve-pmu lives in serve_pmu.py
 
@@ -97,14 +93,6 @@ class _Formatter(logging.Formatter):
         return text
 
 
-def progress_bar(total: int, desc: str, unit: str = 'it'):
-    """Return a tqdm bar for a loop a person waits on: on stderr, on a terminal only, and not with --quiet."""
-    from tqdm import tqdm
-
-    shown = logging.getLogger('controlled_islanding').isEnabledFor(logging.INFO)
-    return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, leave=False, disable=None if shown else True)
-
-
 def configure_logging(command: str, level: int) -> None:
     """Send the package's log records to stderr at `level`, one line each (what the command line does)."""
     handler = logging.StreamHandler(sys.stderr)
@@ -123,6 +111,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     configure_logging(args.command, getattr(args, 'log_level', logging.INFO))
     from tqdm.contrib.logging import logging_redirect_tqdm
 
+    from controlled_islanding.commands import CliError
     from controlled_islanding.graph.rosenv import RosEnvError
 
     try:
@@ -137,7 +126,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == '__main__':
-    # Run the imported module, not this __main__ copy, so CliError raised by subcommands is the class caught here.
-    from controlled_islanding.cli import main as imported_main
-
-    sys.exit(imported_main())
+    sys.exit(main())

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from controlled_islanding.cli import CliError
+from controlled_islanding.commands import CliError
 from controlled_islanding.harness.benchmarks import case_path, load_average, time_call, time_interleaved
 
 HELP = ('benchmark: DTW against dtaidistance, the core pipeline, a whole decision on any case, partition '

@@ -6,7 +6,7 @@ import argparse
 from datetime import UTC
 from pathlib import Path
 
-from controlled_islanding.cli import CliError
+from controlled_islanding.commands import CliError
 from controlled_islanding.graph import GraphError
 from controlled_islanding.graph.replay import replay
 from controlled_islanding.graph.summary import graph_failure, refused, render

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from controlled_islanding import atomic
-from controlled_islanding.cli import CliError
+from controlled_islanding.commands import CliError
 
 if TYPE_CHECKING:
     from controlled_islanding.core.grid import Grid

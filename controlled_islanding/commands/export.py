@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from controlled_islanding import atomic
-from controlled_islanding.cli import CliError
+from controlled_islanding.commands import CliError
 
 HELP = 'write a decision as a MATPOWER case or a pandapower net with the cut applied, or as ANDES Toggle events'
 DESCRIPTION = """\

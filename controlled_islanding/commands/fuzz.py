@@ -8,7 +8,7 @@ import sys
 from datetime import UTC, datetime
 from pathlib import Path
 
-from controlled_islanding.cli import CliError
+from controlled_islanding.commands import CliError
 from controlled_islanding.locations import bags_dir, build_dir
 
 HELP = 'soak the live node graph with malformed and adversarial messages, then check a good replay'

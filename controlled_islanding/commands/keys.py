@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from controlled_islanding.cli import CliError
+from controlled_islanding.commands import CliError
 from controlled_islanding.locations import checkout
 from controlled_islanding.safety import signing
 

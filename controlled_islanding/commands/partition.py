@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from controlled_islanding.cli import CliError
+from controlled_islanding.commands import CliError
 
 HELP = 'split a grid into islands for given coherent generator groups (constrained spectral clustering)'
 

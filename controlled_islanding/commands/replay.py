@@ -8,7 +8,7 @@ import sys
 from datetime import UTC, datetime
 from pathlib import Path
 
-from controlled_islanding.cli import CliError, progress_bar
+from controlled_islanding.commands import CliError, progress_bar
 from controlled_islanding.graph import GraphError, wan
 from controlled_islanding.graph.replay import replay, replay_repeatedly
 from controlled_islanding.graph.suite import SuiteRun, render_suite, replay_suite

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from controlled_islanding.cli import CliError
+from controlled_islanding.commands import CliError
 from controlled_islanding.graph.processes import sigterm_as_interrupt
 
 HELP = "play a bag's PMU frames as a C37.118.2 PMU/PDC TCP server (a lab PDC, or pdc_client, connects to it)"
@@ -97,6 +97,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 if __name__ == '__main__':
-    from controlled_islanding.cli import main
+    from controlled_islanding.commands import main
 
     sys.exit(main(['serve-pmu', *sys.argv[1:]]))

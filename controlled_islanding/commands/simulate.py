@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from controlled_islanding.cli import CliError, progress_bar
+from controlled_islanding.commands import CliError, progress_bar
 from controlled_islanding.locations import bags_dir
 
 HELP = 'simulate a scenario YAML in ANDES and record PMU frames and ground truth in a bag'

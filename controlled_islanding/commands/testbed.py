@@ -8,7 +8,7 @@ import sys
 from datetime import UTC, datetime
 from pathlib import Path
 
-from controlled_islanding.cli import CliError, progress_bar
+from controlled_islanding.commands import CliError, progress_bar
 from controlled_islanding.evaluation.testbed_report import publish, render
 from controlled_islanding.graph import GraphError
 from controlled_islanding.graph.processes import sigterm_as_interrupt
@@ -127,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
 
     def after_each(results: list[dict], missing: list[str]) -> None:
         bar.update()
-        _publish(results, settings, missing)
+        _publish(results, args, missing)
 
     # The baselines run with no supervisor open: a SIGTERM there is marked too.
     try:
