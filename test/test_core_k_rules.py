@@ -196,7 +196,7 @@ def numpy_pair_runaway(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def test_compiled_runaway_is_the_numpy_formulation_bit_for_bit_on_bags_of_three_systems() -> None:
     from pathlib import Path
 
-    from controlled_islanding.commands.evaluate import generator_series
+    from controlled_islanding.evaluation.bag_angles import generator_series
     from controlled_islanding.wire.bagdata import load_bag
 
     bags = Path(__file__).resolve().parents[1] / 'bags'

@@ -155,8 +155,8 @@ def test_coherency_finds_the_groups_on_the_filter_angles_exactly_when_on_andes_o
     # Why DSE angles find the G6/G7 split 0.15 s after steady-state ones (docs/benchmarks.md): not filter lag, the
     # windows that find it are those that find it on ANDES' own rotor angles; the steady-state estimate finds it
     # earlier through its own error during the fault.
-    from controlled_islanding.commands.evaluate import _coherency_node_parameters
     from controlled_islanding.evaluation import coherency_rules as study
+    from controlled_islanding.evaluation.cases import coherency_node_parameters as _coherency_node_parameters
 
     params = _coherency_node_parameters()
     settings = {'rule': str(params['k_rule']), 'window_s': float(params['window_s']),

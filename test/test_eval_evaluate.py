@@ -10,7 +10,8 @@ import pytest
 import yaml
 
 from controlled_islanding.cli import main
-from controlled_islanding.commands.evaluate import PAPER_CASES, evaluate_paper_case, format_case
+from controlled_islanding.evaluation.cases import PAPER_CASES, evaluate_paper_case
+from controlled_islanding.evaluation.report import format_case
 
 ROOT = Path(__file__).resolve().parents[1]
 BAGS = ROOT / 'bags'
@@ -190,8 +191,9 @@ def test_k_rules_page_compares_every_rule(tmp_path, capsys):
 @pytest.mark.slow
 def test_closed_loop_column_runs_each_cut_once_in_andes_and_shows_what_a_split_does(tmp_path):
     """Kundur, area 1 slipping: its true groups' cut keeps each area in step, no action does not."""
-    from controlled_islanding.commands.evaluate import CaseReport, MethodResult, closed_loop_outcomes, table_rows
     from controlled_islanding.core.islanding import decide
+    from controlled_islanding.evaluation.cases import CaseReport, MethodResult, closed_loop_outcomes
+    from controlled_islanding.evaluation.report import table_rows
     from controlled_islanding.sim.closed_loop import LoopConfig
     from controlled_islanding.wire.bagdata import load_bag
 

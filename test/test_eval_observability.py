@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controlled_islanding.commands.evaluate import _manifest_entry
 from controlled_islanding.evaluation import coherency_rules as study
 from controlled_islanding.evaluation import observability_sweep as obs
+from controlled_islanding.evaluation.cases import manifest_entry as _manifest_entry
 from controlled_islanding.wire.bagdata import load_bag
 
 BAGS = Path(__file__).resolve().parents[1] / 'bags'

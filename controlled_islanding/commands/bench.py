@@ -451,8 +451,8 @@ def bench_scaling(cases: list[str], milp_limit_s: float) -> None:
 
 def bench_decimation(bags: Path, target_fps: float) -> None:
     """Print, per manifest bag, what DTW on block means down to target_fps changes against DTW on every sample."""
-    from controlled_islanding.commands.evaluate import _coherency_node_parameters
     from controlled_islanding.evaluation import coherency_rules as study
+    from controlled_islanding.evaluation.cases import coherency_node_parameters as _coherency_node_parameters
     from controlled_islanding.harness.benchmarks import decimation_effect
     from controlled_islanding.wire.bagdata import load_bag
 
@@ -484,8 +484,8 @@ def bench_dse_decisions(bags: Path) -> None:
     """Print, per manifest bag, groups and decision at the request on steady-state against DSE angles."""
     from collections import Counter
 
-    from controlled_islanding.commands.evaluate import _coherency_node_parameters
     from controlled_islanding.evaluation import coherency_rules as study
+    from controlled_islanding.evaluation.cases import coherency_node_parameters as _coherency_node_parameters
     from controlled_islanding.harness.benchmarks import estimator_decisions
 
     params = _coherency_node_parameters()

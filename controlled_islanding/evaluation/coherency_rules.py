@@ -104,7 +104,7 @@ def scenario_from_bag(bag, entry: Mapping | None = None) -> Scenario:
         The scenario.
 
     """
-    from controlled_islanding.commands.evaluate import generator_series, request_time_s
+    from controlled_islanding.evaluation.bag_angles import generator_series, request_time_s
     from controlled_islanding.sim.truth import first_pole_slip_s
 
     t_s, names, angles = generator_series(bag, float(bag.frame_t_s[0]), float(bag.frame_t_s[-1]))
