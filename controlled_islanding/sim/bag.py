@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from controlled_islanding import atomic
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.sim.andes_sim import Simulation, simulate
 from controlled_islanding.sim.pmu import PmuData, measure
@@ -221,7 +222,7 @@ def run_scenario(scenario: Scenario, out: Path, *, force: bool = False, progress
         set_ros_distro(tmp)
         if out.exists():
             shutil.rmtree(out)
-        tmp.rename(out)
+        atomic.replace(tmp, out)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     return ScenarioResult(bag=out, n_frames=int(pmu.frame_present.sum()), groups=group_of, simulation_wall_s=wall)
