@@ -96,6 +96,39 @@ def test_bag_without_pmu_frames_is_an_error(tmp_path, capsys):
     assert f'no {topics.PMU_FRAMES} messages' in capsys.readouterr().err
 
 
+@pytest.mark.parametrize('study', ['--k-rules', '--observability'])
+def test_a_generator_without_a_pmu_is_an_error_naming_the_bag_in_every_study(tmp_path, capsys, study):
+    """The k-rule study and the observability sweep refuse such a bag as the tables do, with no traceback."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from controlled_islanding.wire import topics
+    from controlled_islanding.wire.interfaces import typestore
+
+    source = next((b for b in _committed_bags() if b.is_dir()), None)
+    if source is None:
+        pytest.fail('no committed bag listed in bags/index.yaml to take a PMU from')
+    blind = tmp_path / 'one_pmu_short'
+    store = typestore()
+    dropped = set()
+    with AnyReader([source], default_typestore=store) as reader, \
+            Writer(blind, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        out = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store) for c in reader.connections}
+        for conn, stamp, raw in reader.messages():
+            if conn.topic == topics.PMU_FRAMES:
+                msg = store.deserialize_cdr(raw, conn.msgtype)
+                dropped.add(msg.measurements[0].station_id)
+                msg.measurements = msg.measurements[1:]
+                raw = store.serialize_cdr(msg, conn.msgtype)
+            writer.write(out[conn.id], stamp, raw)
+    assert len(dropped) == 1
+    assert main(['evaluate', str(blind), study, str(tmp_path / 'page.md')]) == 2
+    err = capsys.readouterr().err
+    assert str(blind) in err and 'coherency needs every generator' in err, err
+    assert 'Traceback' not in err
+    assert not (tmp_path / 'page.md').exists()
+
+
 # The MILP optimum and the figures of a 2224-bus case take minutes, too long for the suite: it evaluates the bags
 # of cases up to this many buses, and `controlled-islanding evaluate` (docs/evaluation.md) every bag.
 EVALUATED_MAX_BUSES = 100

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import logging
-import sys
 from pathlib import Path
 
 from controlled_islanding.commands import CliError, progress_bar
@@ -174,7 +173,7 @@ def run(args) -> int:
     else:
         for case in cases:
             print(format_case(case))
-    print(f'figures: {args.out}', file=sys.stderr)
+    log.info('figures: %s', args.out)
     if args.report:
         shown = set(args.report_figures or [cases[0].name])
         unknown = sorted(shown - {c.name for c in cases})
@@ -184,8 +183,15 @@ def run(args) -> int:
                             *(['--closed-loop'] if args.closed_loop else []), *args.bags, '--report', str(args.report),
                             *(f'--report-figures {c}' for c in args.report_figures or [])])
         write_report(cases, args.report, figures_for=shown, command=command)
-        print(f'report: {args.report}', file=sys.stderr)
+        log.info('report: %s', args.report)
     return 0
+
+
+def _scenario(study, bag):
+    try:
+        return study.scenario_from_bag(bag, manifest_entry(bag))
+    except EvaluateError as exc:
+        raise CliError(f'{bag.path}: {exc}') from exc
 
 
 def _compare_rules(args, bags) -> int:
@@ -193,19 +199,13 @@ def _compare_rules(args, bags) -> int:
     from controlled_islanding.core.k_rules import RULES
     from controlled_islanding.evaluation import coherency_rules as study
 
-    scenarios = [study.scenario_from_bag(bag, manifest_entry(bag)) for bag in bags]
-    if args.andes:
-        from controlled_islanding.sim.andes_sim import SimulationError, simulate
-        from controlled_islanding.sim.scenario import ScenarioError, load_scenario
-
-        for path in args.andes:
-            log.info('%s: simulating in ANDES', path)
-            try:
-                scenario = load_scenario(path)
-                sim = simulate(scenario, progress=False)
-            except (ScenarioError, SimulationError) as exc:
-                raise CliError(f'{path}: {exc}') from exc
-            scenarios.append(study.scenario_from_simulation(scenario.name, sim, scenario.request_s))
+    scenarios = [_scenario(study, bag) for bag in bags]
+    for path in args.andes:
+        log.info('%s: simulating in ANDES', path)
+        try:
+            scenarios.append(study.scenario_from_andes(path))
+        except EvaluateError as exc:
+            raise CliError(str(exc)) from exc
     with progress_bar(len(scenarios) * len(RULES), 'k rules', 'rule') as bar:
         def step(text: str) -> None:
             log.info(text)
@@ -218,7 +218,7 @@ def _compare_rules(args, bags) -> int:
                         '--k-rules', str(args.k_rules)])
     study.write_report(results, args.k_rules, chosen=args.k_rule, command=command, window_s=args.window_s,
                        step_s=args.lead_step_s)
-    print(f'report: {args.k_rules}', file=sys.stderr)
+    log.info('report: %s', args.k_rules)
     return 0
 
 
@@ -232,7 +232,7 @@ def _sweep_observability(args, bags) -> int:
     rows = []
     with progress_bar(len(bags), 'observability', 'bag') as bar:
         for bag in bags:
-            scenario = study.scenario_from_bag(bag, manifest_entry(bag))
+            scenario = _scenario(study, bag)
             try:
                 rows += obs.sweep(scenario, bag.grid_at(scenario.request_s + 1e-9), draws=args.draws,
                                   seed=args.seed, window_s=args.window_s, max_groups=args.max_groups,
@@ -245,5 +245,5 @@ def _sweep_observability(args, bags) -> int:
     command = ' '.join(['controlled-islanding evaluate', *args.bags, '--observability', str(args.observability),
                         f'--draws {args.draws} --seed {args.seed}'])
     obs.write_report(rows, args.observability, command=command, k_rule=args.k_rule, window_s=args.window_s)
-    print(f'report: {args.observability}', file=sys.stderr)
+    log.info('report: %s', args.observability)
     return 0

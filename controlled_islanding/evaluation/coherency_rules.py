@@ -120,6 +120,25 @@ def scenario_from_bag(bag, entry: Mapping | None = None) -> Scenario:
                     None if slip is None else float(slip))
 
 
+def scenario_from_andes(path: Path) -> Scenario:
+    """Simulate a scenario file in ANDES and build a Scenario from the simulator's own rotor angles.
+
+    Raises:
+        EvaluateError: The file is not a valid scenario, or the simulation failed.
+
+    """
+    from controlled_islanding.evaluation.bag_angles import EvaluateError
+    from controlled_islanding.sim.andes_sim import SimulationError, simulate
+    from controlled_islanding.sim.scenario import ScenarioError, load_scenario
+
+    try:
+        scenario = load_scenario(path)
+        sim = simulate(scenario, progress=False)
+    except (ScenarioError, SimulationError) as exc:
+        raise EvaluateError(f'{path}: {exc}') from exc
+    return scenario_from_simulation(scenario.name, sim, scenario.request_s)
+
+
 def scenario_from_simulation(name: str, sim, request_s: float, rate_fps: float = 60.0) -> Scenario:
     """Build a Scenario from an ANDES run: its own rotor angles resampled to rate_fps; truth by sim/truth.py.
 

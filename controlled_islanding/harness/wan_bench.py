@@ -17,6 +17,7 @@ lease tells) once the breaker has seen it alive for `alive_s`, during which any 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import select
 import signal
@@ -32,6 +33,8 @@ from controlled_islanding.graph import GraphError, wan
 DELAYS_MS = (0.0, 10.0, 50.0)
 LOSSES_PCT = (0.0, 1.0, 5.0)
 HOSTS = 'pdc,control,substation'
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -99,14 +102,14 @@ def run_bench(bag: Path, results: Path, repeat: int, delays_ms=DELAYS_MS, losses
     rows = [Row('loopback')]
     for i in range(repeat):
         _replay_into(rows[0], bag, results / f'loopback-{i}', None, None)
-        print(f'bench --wan: loopback {i + 1}/{repeat}', file=sys.stderr, flush=True)
+        log.info('--wan: loopback %d/%d', i + 1, repeat)
     for delay in delays_ms:
         for loss in losses_pct:
             row = Row(f'{delay:g} ms, {loss:g} %', delay, loss)
             for i in range(repeat):
                 link = wan.LinkModel(delay_ms=delay, jitter_ms=jitter_ms, loss_pct=loss, seed=i)
                 _replay_into(row, bag, results / f'd{delay:g}-l{loss:g}-{i}', HOSTS, link)
-                print(f'bench --wan: {row.label} {i + 1}/{repeat}', file=sys.stderr, flush=True)
+                log.info('--wan: %s %d/%d', row.label, i + 1, repeat)
             rows.append(row)
     return rows
 
@@ -230,5 +233,5 @@ def silence_table(results: Path, repeat: int, settings=((0.0, 0.0), (10.0, 1.0),
                                   results / f'silence-d{delay:g}-l{loss:g}-{i}') for i in range(repeat)]
         times = ', '.join('never' if t is None else f'{t:.2f}' for t, _ in runs)
         lines.append(f'| {delay:g} ms, {loss:g} % | {times} | {sum(f for _, f in runs)} |')
-        print(f'bench --wan: silence {delay:g} ms, {loss:g} % done', file=sys.stderr, flush=True)
+        log.info('--wan: silence %g ms, %g %% done', delay, loss)
     return '\n'.join(lines)
