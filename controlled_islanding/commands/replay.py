@@ -8,9 +8,11 @@ import sys
 from datetime import UTC, datetime
 from pathlib import Path
 
+from controlled_islanding import atomic
 from controlled_islanding.commands import CliError, progress_bar
 from controlled_islanding.graph import GraphError, wan
 from controlled_islanding.graph.replay import replay, replay_repeatedly
+from controlled_islanding.graph.results import running
 from controlled_islanding.graph.suite import SuiteRun, render_suite, replay_suite
 from controlled_islanding.graph.summary import graph_failure, refused, render
 
@@ -25,7 +27,9 @@ latency from the islanding request to the breaker command, measured by one obser
 The results folder holds the recorded output bag (output_bag/), the breaker audit log, every node's
 log, rotor_angles.png (estimated angles coloured by group), network.png (islands and cut lines) and
 summary.json; by default it is made under results/ in the current directory. Every child process is
-stopped on exit, Ctrl-C or error.
+stopped on exit, Ctrl-C or error. A run that fails before writing anything removes its folder; one that fails
+later keeps its logs and says why in FAILED.json (INTERRUPTED.json after Ctrl-C), and the same command run
+again replaces such a folder (--force: a finished run's too).
 
 DDS domain: if ROS_DOMAIN_ID is set, the graph joins it, so your own tools see its topics (discovery
 stays on loopback unless ROS_AUTOMATIC_DISCOVERY_RANGE says otherwise); another graph on that domain
@@ -72,7 +76,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--fast', action='store_true', help='play as fast as possible (lockstep at requests)')
     parser.add_argument('--rate', type=float, default=1.0, help='playback speed factor (default 1 = real time)')
     parser.add_argument('--results', type=Path, default=None,
-                        help='results folder to create (default ./results/replay-<bag>-<UTC time>)')
+                        help='results folder to create (default ./results/replay-<bag>-<UTC time>); one that '
+                             'holds a failed or interrupted run is replaced')
+    parser.add_argument('--force', action='store_true',
+                        help='replace the --results folder even if it holds a finished run')
     parser.add_argument('--isolate', action='store_true',
                         help='run on a free private ROS_DOMAIN_ID on loopback even if ROS_DOMAIN_ID is set')
     parser.add_argument('--probe-hz', type=float, default=0.0,
@@ -104,9 +111,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='with --hosts: probability that a packet between hosts is lost, %%')
     parser.add_argument('--wan-seed', type=int, default=0, help='with --hosts: seed of the loss and jitter draws')
 
-
-
-
 def _link(args: argparse.Namespace) -> wan.LinkModel | None:
     wan_set = args.wan_delay_ms or args.wan_jitter_ms or args.wan_loss_pct
     if not args.hosts:
@@ -135,7 +139,8 @@ def run(args: argparse.Namespace) -> int:
             raise CliError(f'--repeat {args.repeat} must be at least 1')
         if args.repeat > 1:
             return _run_repeated(args)
-        summary = replay(args.bag, args.results, figures=not args.no_figures, quiet=args.json, **_options(args))
+        summary = replay(args.bag, args.results, figures=not args.no_figures, quiet=args.json, force=args.force,
+                         **_options(args))
     except GraphError as exc:
         raise CliError(str(exc)) from exc
     print(json.dumps(summary, default=str) if args.json else render(summary))
@@ -189,12 +194,10 @@ def _run_suite(args: argparse.Namespace) -> int:
     if len(set(names)) != len(names):
         raise CliError('two bags have the same name; each needs a results folder of its own')
     stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
-    base = (args.results or Path('results') / f'replay-suite-{stamp}').resolve()
-    if base.exists():
-        raise CliError(f'results folder {base} exists; name a new one')
-    with progress_bar(len(names), 'replay', 'bag') as bar:
+    base = args.results or Path('results') / f'replay-suite-{stamp}'
+    with running(base, args.force) as base, progress_bar(len(names), 'replay', 'bag') as bar:
         report = replay_suite([SuiteRun(n, b, tuple(options)) for n, b in zip(names, args.bag, strict=True)], base,
                               jobs=args.jobs, quiet=args.json, done=lambda name, outcome: bar.update())
-    (base / 'suite.json').write_text(json.dumps(report, indent=2, default=str))
+        atomic.write_text(base / 'suite.json', json.dumps(report, indent=2, default=str))
     print(json.dumps(report, default=str) if args.json else render_suite(report))
     return 0 if all(r['ok'] for r in report['rows']) else 1

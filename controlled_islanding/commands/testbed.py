@@ -12,6 +12,7 @@ from controlled_islanding.commands import CliError, progress_bar
 from controlled_islanding.evaluation.testbed_report import publish, render
 from controlled_islanding.graph import GraphError
 from controlled_islanding.graph.processes import sigterm_as_interrupt
+from controlled_islanding.graph.results import running
 from controlled_islanding.graph.testbed import TestbedSettings, run_all
 
 HELP = 'run a scenario closed-loop (ANDES as the grid, the four nodes deciding) and compare with no action and MILP'
@@ -59,7 +60,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--figure-scenarios', default='',
                         help='comma-separated scenario names whose figures go to --figures-dir (default: all)')
     parser.add_argument('--results', type=Path, default=None,
-                        help='results folder to create (default ./results/testbed-<UTC time>)')
+                        help='results folder to create (default ./results/testbed-<UTC time>); one that holds a '
+                             'failed or interrupted run is replaced')
+    parser.add_argument('--force', action='store_true', help='replace the --results folder even if it holds a '
+                        'finished run')
     parser.add_argument('--rate', type=float, default=0.0, help='0 = lockstep (default); R > 0 = R x real time')
     parser.add_argument('--breaker-operating-s', type=float, default=0.05,
                         help='breaker command -> branch open, s (default 0.05, 3 cycles at 60 Hz)')
@@ -116,10 +120,7 @@ def run(args: argparse.Namespace) -> int:
     if args.rate < 0:
         raise CliError(f'--rate {args.rate} must be 0 (lockstep) or positive')
     stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
-    results_dir = (args.results or Path('results') / f'testbed-{stamp}').resolve()
-    if results_dir.exists():
-        raise CliError(f'results folder {results_dir} exists; name a new one')
-    results_dir.mkdir(parents=True)
+    results_dir = args.results or Path('results') / f'testbed-{stamp}'
     settings = TestbedSettings(rate=args.rate, breaker_operating_s=args.breaker_operating_s,
                                shed_delay_s=args.shed_delay_s, run_after_s=args.run_after_s, trigger=args.trigger,
                                timeout_s=args.timeout, namespace=args.namespace, estimator=args.estimator,
@@ -131,7 +132,8 @@ def run(args: argparse.Namespace) -> int:
 
     # The baselines run with no supervisor open: a SIGTERM there is marked too.
     try:
-        with sigterm_as_interrupt(), progress_bar(len(paths), 'testbed', 'scenario') as bar:
+        with sigterm_as_interrupt(), running(results_dir, args.force) as results_dir, \
+                progress_bar(len(paths), 'testbed', 'scenario') as bar:
             results, failures = run_all(paths, results_dir, settings, after_each)
     except GraphError as exc:
         raise CliError(str(exc)) from exc

@@ -25,15 +25,16 @@ from pathlib import Path
 from controlled_islanding import atomic
 from controlled_islanding.graph import GraphError, wan
 from controlled_islanding.graph.observer import INTERNAL_TOPICS, Observation, Observer, start_pipeline
+from controlled_islanding.graph.results import running
 from controlled_islanding.graph.summary import graph_failure, percentile, render, summarize
 from controlled_islanding.wire import topics
+from controlled_islanding.wire.bagmeta import unreadable
 
 log = logging.getLogger(__name__)
 
 # After the bag ends, a request still unanswered this long (wall, s) is reported as undecided. The nodes
 # give up after at most 2 s (coherency request_wait_s, partitioning groups_wait_s), so this is ample.
 SETTLE_S = 8.0
-INTERRUPTED = 'INTERRUPTED.json'  # in a results folder: the replay was stopped before its summary
 
 
 @dataclass(frozen=True)
@@ -90,7 +91,7 @@ def bag_topics(bag: Path) -> dict[str, int]:
                 counts[c.topic] = counts.get(c.topic, 0) + c.msgcount
             return counts
     except Exception as exc:  # rosbags raises many error types for an unreadable bag
-        raise GraphError(f'bag {bag}: cannot read it as a rosbag2 bag: {exc}') from exc
+        raise GraphError(f'cannot read the bag: {unreadable(bag, exc)}') from exc
 
 
 def namespace_name(namespace: str) -> str:
@@ -294,11 +295,11 @@ def write_figures(bag: Path, results: Path, summary: dict) -> list[Path]:
 def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float = 1.0, probe_hz: float = 0.0,
            timeout_s: float = 120.0, figures: bool = True, quiet: bool = False, arm: bool = True,
            record: bool = True, isolate: bool = True, namespace: str = '', estimator: str | None = None,
-           hosts: str | None = None, link: wan.LinkModel | None = None) -> dict:
+           hosts: str | None = None, link: wan.LinkModel | None = None, force: bool = False) -> dict:
     """Replay a bag through the graph; write the results folder; return the summary.
 
     The options are ReplayOptions'. `hosts` (e.g. 'pdc,control,substation') runs the graph on emulated hosts
-    joined by a WAN with `link`.
+    joined by a WAN with `link`. `results` is claimed as graph/results.py says (`force`: replace a finished run).
 
     Raises:
         GraphError: Bad options, an unreadable bag, a failed node or a missing decision.
@@ -323,20 +324,12 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
     if results is None:
         stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
         results = Path('results') / f'replay-{bag.name}-{stamp}'
-    results = results.resolve()
-    if results.exists():
-        raise GraphError(f'results folder {results} exists; name a new one')
-    results.mkdir(parents=True)
-    try:
+    # Ctrl-C or SIGTERM (the supervisor turns it into KeyboardInterrupt) comes out with the nodes stopped; without
+    # summary.json the folder is unfinished, and its marker says so to a reader, as a testbed's does.
+    with running(results, force, bag=str(bag)) as results:
         if host_roles:
             return _replay_on_hosts(bag, results, host_roles, link or wan.LinkModel(), options)
         return _replay_here(bag, results, options)
-    except KeyboardInterrupt:
-        # Ctrl-C or SIGTERM (the supervisor turns it into this), its nodes stopped by now: without summary.json the
-        # folder is unfinished, and this file says so to a reader, as a testbed's does.
-        atomic.write_text(results / INTERRUPTED, json.dumps({
-            'interrupted_utc': datetime.now(UTC).isoformat(timespec='seconds'), 'bag': str(bag)}, indent=1) + '\n')
-        raise
 
 
 def _replay_here(bag: Path, results: Path, options: ReplayOptions, hosts: dict[str, tuple[str, ...]] | None = None,

@@ -23,12 +23,12 @@ from controlled_islanding import atomic
 from controlled_islanding.graph import GraphError
 from controlled_islanding.graph.observer import INTERNAL_TOPICS, Observation, Observer, start_pipeline
 from controlled_islanding.graph.replay import namespace_name
+from controlled_islanding.graph.results import INTERRUPTED
 from controlled_islanding.graph.summary import decision_dict
 from controlled_islanding.wire import topics
 
 log = logging.getLogger(__name__)
 
-INTERRUPTED = 'INTERRUPTED.json'  # in a results folder: the run was stopped before its end
 
 
 @dataclass(frozen=True)

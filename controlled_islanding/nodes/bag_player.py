@@ -57,6 +57,7 @@ from controlled_islanding.ros.endpoints import qos_for
 from controlled_islanding.ros.params import NodeSetupError, message_class
 from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.wire import topics
+from controlled_islanding.wire.bagmeta import unreadable
 from controlled_islanding.wire.interfaces import typestore
 
 _STAMP_ROUNDING_NS = 1_000
@@ -124,7 +125,7 @@ class BagPlayerNode(Node):
         except NodeSetupError:
             raise
         except Exception as exc:  # rosbags raises many reader error types; all mean the bag is unusable
-            raise NodeSetupError(f'bag {bag}: cannot read: {exc}') from exc
+            raise NodeSetupError(f'cannot read the bag: {unreadable(bag, exc)}') from exc
         if not self.messages:
             raise NodeSetupError(f'bag {bag}: no messages on any topic to play')
         self.clock_pub = (self.create_publisher(Clock, topics.CLOCK, qos_for(topics.CLOCK))

@@ -30,6 +30,7 @@ from pathlib import Path
 from controlled_islanding.pmu import c37118
 from controlled_islanding.pmu.pdc_assembly import ChannelMap, ChannelMapEntry, amperes_per_pu, volts_per_pu
 from controlled_islanding.wire import topics
+from controlled_islanding.wire.bagmeta import unreadable
 
 VOLTAGE_CHANNEL = 'VPOS'
 CURRENT_CHANNEL = 'IPOS'
@@ -94,7 +95,7 @@ def load_bag_stream(bag: str | Path, *, idcode: int = 1, base_kv: float = 345.0,
                 else:
                     frames.append((log_ns, msg))
     except Exception as exc:  # rosbags raises many error types for an unreadable bag
-        raise PmuStreamError(f'bag {bag}: cannot read it as a rosbag2 bag: {exc}') from exc
+        raise PmuStreamError(f'cannot read the bag: {unreadable(bag, exc)}') from exc
     if not frames:
         raise PmuStreamError(f'bag {bag}: no messages on {topics.PMU_FRAMES}')
     if not base_mva or base_mva <= 0:

@@ -23,6 +23,7 @@ import numpy as np
 
 from controlled_islanding.core.grid import DYNAMIC_FIELDS, Branch, Generator, Grid, Load
 from controlled_islanding.wire import topics
+from controlled_islanding.wire.bagmeta import unreadable
 from controlled_islanding.wire.interfaces import typestore
 from controlled_islanding.wire.messages import MessageError, decode_dynamic_data
 
@@ -246,7 +247,7 @@ def load_bag(path: str | Path) -> BagData:
                 elif conn.topic == topics.TRUTH_COHERENT_GROUPS:
                     groups_msg = msg
     except Exception as exc:  # rosbags raises many reader error types; name the bag either way
-        raise BagDataError(f'{path}: cannot read as a rosbag2 bag: {exc}') from exc
+        raise BagDataError(f'cannot read the bag: {unreadable(path, exc)}') from exc
     if snapshot is None:
         raise BagDataError(f'{path}: no {topics.NETWORK_SNAPSHOT} message')
     if not frames:

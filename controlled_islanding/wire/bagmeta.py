@@ -61,3 +61,37 @@ def qos_profile(qos: Any) -> Qos:
                liveliness=enum(QosLiveliness, qos.liveliness),
                liveliness_lease_duration=duration(qos.liveliness_lease_duration),
                avoid_ros_namespace_conventions=bool(qos.avoid_ros_namespace_conventions))
+
+
+def unreadable(bag: str | Path, exc: BaseException) -> str:
+    """Say why rosbags could not read `bag`, naming the file at fault: rosbags' own messages name neither.
+
+    Args:
+        bag: The path given as a bag: a rosbag2 folder (metadata.yaml and its storage files), or an .mcap file.
+        exc: What rosbags raised opening or reading it.
+
+    """
+    import yaml
+
+    path = Path(bag)
+    if not path.exists():
+        return f'{path} does not exist'
+    if path.is_file():
+        return f'truncated or corrupt MCAP file {path}: {exc}' if path.suffix == '.mcap' else \
+            f'{path} is a file, not a rosbag2 bag folder: {exc}'
+    meta = path / 'metadata.yaml'
+    if not meta.is_file():
+        return f'{path} is not a rosbag2 bag: it holds no metadata.yaml'
+    try:
+        files = [path / f for f in yaml.safe_load(meta.read_text())['rosbag2_bagfile_information']
+                 ['relative_file_paths']]
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return (f'{meta}: cannot read it as rosbag2 metadata (no rosbag2_bagfile_information with '
+                f'relative_file_paths; rosbags: {exc})')
+    missing = [f.name for f in files if not f.is_file()]
+    if missing:
+        return f'{path}: its metadata.yaml names {", ".join(missing)}, which is not in the folder'
+    mcaps = [f for f in files if f.suffix == '.mcap']
+    if len(mcaps) == 1:
+        return f'truncated or corrupt MCAP file {mcaps[0]}: {exc}'
+    return f'{path}: cannot read it as a rosbag2 bag (one of {", ".join(f.name for f in files)} is corrupt?): {exc}'

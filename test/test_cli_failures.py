@@ -1,0 +1,127 @@
+"""Failed runs never block their retry, and unreadable bags are named with their fault (issue 31).
+
+No node starts here: every failure is met before the graph would be started, or in graph/results.py alone.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from controlled_islanding.cli import main
+from controlled_islanding.graph import GraphError
+from controlled_islanding.graph.results import FAILED, INTERRUPTED, claim, running
+from controlled_islanding.sim.manifest import default_bag
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope='module')
+def good_bag() -> Path:
+    return REPO / 'bags' / default_bag()['bag']
+
+
+def _not_a_bag(tmp_path: Path) -> Path:
+    folder = tmp_path / 'not_a_bag'
+    folder.mkdir()
+    (folder / 'notes.txt').write_text('a folder, but no bag\n')
+    return folder
+
+
+def _truncated(tmp_path: Path, good: Path) -> tuple[Path, Path]:
+    bag = tmp_path / 'truncated'
+    bag.mkdir()
+    shutil.copy(good / 'metadata.yaml', bag)
+    mcap = next(good.glob('*.mcap'))
+    (bag / mcap.name).write_bytes(mcap.read_bytes()[:20000])
+    return bag, bag / mcap.name
+
+
+@pytest.mark.parametrize('command', [['replay'], ['evaluate'], ['serve-pmu']])
+def test_a_folder_without_metadata_yaml_is_named_as_not_a_bag(tmp_path, capsys, command):
+    folder = _not_a_bag(tmp_path)
+    argv = [*command, str(folder)] + (['--results', str(tmp_path / 'r')] if command == ['replay'] else [])
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f'{folder} is not a rosbag2 bag: it holds no metadata.yaml' in err, err
+    assert 'Expected metadata file' not in err
+    assert not (tmp_path / 'r').exists()
+
+
+@pytest.mark.parametrize('command', [['replay'], ['evaluate'], ['serve-pmu']])
+def test_a_truncated_mcap_is_named_as_truncated_or_corrupt(tmp_path, capsys, good_bag, command):
+    bag, mcap = _truncated(tmp_path, good_bag)
+    argv = [*command, str(bag)] + (['--results', str(tmp_path / 'r')] if command == ['replay'] else [])
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f'truncated or corrupt MCAP file {mcap}' in err, err
+    assert not (tmp_path / 'r').exists()
+
+
+def test_a_replay_that_fails_before_any_result_removes_its_folder_and_can_be_retried(tmp_path, capsys):
+    results = tmp_path / 'r'
+    bag = _not_a_bag(tmp_path)
+    for _ in range(2):
+        assert main(['replay', str(bag), '--results', str(results)]) == 2
+        err = capsys.readouterr().err
+        assert 'metadata.yaml' in err and 'exists' not in err, err
+        assert not results.exists()
+
+
+def test_a_failed_runs_folder_is_reused_and_a_finished_one_needs_force(tmp_path, capsys):
+    results = tmp_path / 'r'
+    (results / 'logs').mkdir(parents=True)
+    (results / 'logs' / 'coherency.log').write_text('the failed run\n')
+    (results / FAILED).write_text('{}')
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('case: [\n')
+    assert main(['testbed', str(bad), '--results', str(results), '--no-baselines']) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and 'exists' not in err, err
+    assert not results.exists(), 'the retry failed before writing anything, so its folder went'
+
+    results.mkdir()
+    (results / 'summary.json').write_text('{}')
+    assert main(['testbed', str(bad), '--results', str(results), '--no-baselines']) == 2
+    err = capsys.readouterr().err
+    assert 'holds a finished run' in err and '--force' in err, err
+    assert (results / 'summary.json').exists(), 'a finished run is never replaced without --force'
+    assert main(['testbed', str(bad), '--results', str(results), '--no-baselines', '--force']) == 2
+    assert 'holds a finished run' not in capsys.readouterr().err
+
+
+def test_running_removes_an_empty_folder_and_marks_one_with_files(tmp_path):
+    with pytest.raises(GraphError), running(tmp_path / 'early'):
+        raise GraphError('the bag is unreadable')
+    assert not (tmp_path / 'early').exists()
+
+    with pytest.raises(GraphError), running(tmp_path / 'late', bag='B') as folder:
+        (folder / 'logs').mkdir()
+        (folder / 'logs' / 'node.log').write_text('started\n')
+        raise GraphError('partitioning died')
+    marker = json.loads((tmp_path / 'late' / FAILED).read_text())
+    assert marker['error'] == 'partitioning died' and marker['bag'] == 'B' and marker['failed_utc']
+    assert (tmp_path / 'late' / 'logs' / 'node.log').exists(), 'the logs say why: they stay'
+
+    with pytest.raises(KeyboardInterrupt), running(tmp_path / 'stopped', bag='B'):
+        raise KeyboardInterrupt
+    assert json.loads((tmp_path / 'stopped' / INTERRUPTED).read_text())['bag'] == 'B'
+
+    assert claim(tmp_path / 'late') == (tmp_path / 'late').resolve()
+    assert list((tmp_path / 'late').iterdir()) == [], 'a marked folder is claimed afresh'
+
+
+def test_claim_never_removes_a_folder_that_is_not_a_runs(tmp_path):
+    mine = tmp_path / 'my_documents'
+    mine.mkdir()
+    (mine / 'thesis.tex').write_text('years of work\n')
+    for force in (False, True):
+        with pytest.raises(GraphError, match='does not look like a results folder'):
+            claim(mine, force=force)
+    assert (mine / 'thesis.tex').exists()
+    (tmp_path / 'a_file').write_text('x')
+    with pytest.raises(GraphError, match='not a folder'):
+        claim(tmp_path / 'a_file', force=True)
