@@ -208,7 +208,7 @@ def _bag_entries() -> list[dict]:
 
 def bag_rotor_angles(bag, window_s: float = 4.0) -> tuple[list[str], np.ndarray]:
     """Estimate every generator's rotor angle from its terminal PMU over the window before the first request."""
-    t = bag.frame_t_s
+    t = bag.tag_s
     request = float(bag.request_t_s[0])
     rows = (t >= request - window_s) & (t < request)
     names, series = [], []

@@ -206,7 +206,7 @@ def test_compiled_runaway_is_the_numpy_formulation_bit_for_bit_on_bags_of_three_
         if not (bags / name).exists():
             continue
         bag = load_bag(bags / name)
-        t_s, _, angles_rad = generator_series(bag, float(bag.frame_t_s[0]), float(bag.frame_t_s[-1]))
+        t_s, _, angles_rad = generator_series(bag, float(bag.tag_s[0]), float(bag.tag_s[-1]))
         for end in t_s[-1] - np.arange(2) * 0.5:
             window = np.array([a[(t_s >= end - WINDOW_S - 1e-9) & (t_s <= end + 1e-9)] for a in angles_rad])
             lost = np.where(rng.random(window.shape) < 0.2, np.nan, window)

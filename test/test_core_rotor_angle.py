@@ -95,13 +95,13 @@ def test_error_against_simulator_truth_before_the_fault(path: Path) -> None:
     scenario = load_scenario(path.parent / f'{path.name}.yaml')
     # A fault cleared without a trip has no branch event: the scenario dates it.
     first_event_s = min([e.t_s for e in bag.branch_events] + [f.start_s for f in scenario.faults]
-                        + [t.t_s for t in scenario.trips] + [bag.frame_t_s[-1]])
-    steady = bag.frame_t_s < first_event_s - 0.5
+                        + [t.t_s for t in scenario.trips] + [bag.tag_s[-1]])
+    steady = bag.tag_s < first_event_s - 0.5
     for g in bag.grid.generators:
         c = bag.pmu_column(g.name, g.bus)
         est = estimate_rotor_angle_rad(bag.v_mag_pu[:, c], bag.v_angle_rad[:, c], bag.i_mag_pu[:, c],
                                        bag.i_angle_rad[:, c], g.xq_pu, g.ra_pu)
         column = bag.truth_angles_rad[:, bag.truth_generator_names.index(g.name)]
-        truth = np.interp(bag.frame_t_s, bag.truth_t_s, column)
+        truth = np.interp(bag.tag_s, bag.truth_t_s, column)
         err = np.abs(np.angle(np.exp(1j * (est - truth))))[steady]
         assert np.nanpercentile(err, 99) < np.radians(1.0), g.name

@@ -32,7 +32,7 @@ def around_fault(bag, before_s: float, after_s: float) -> tuple[float, slice]:
     from controlled_islanding.sim.scenario import load_scenario
 
     start = load_scenario(BAG.with_suffix('.yaml')).faults[0].start_s
-    rows = np.flatnonzero((bag.frame_t_s >= start - before_s) & (bag.frame_t_s < start + after_s))
+    rows = np.flatnonzero((bag.tag_s >= start - before_s) & (bag.tag_s < start + after_s))
     return start, slice(int(rows[0]), int(rows[-1]) + 1)
 
 
@@ -44,13 +44,13 @@ def phasors(bag, generators):
 def delivered(bag, frames=slice(None)):
     """Present frame rows in the order the PDC delivered them."""
     rows = np.flatnonzero(bag.frame_present)
-    rows = rows[(rows >= (frames.start or 0)) & (rows < (frames.stop or len(bag.frame_t_s)))]
-    return rows[np.argsort(bag.frame_delivery_s[rows], kind='stable')]
+    rows = rows[(rows >= (frames.start or 0)) & (rows < (frames.stop or len(bag.tag_s)))]
+    return rows[np.argsort(bag.delivery_s[rows], kind='stable')]
 
 
 def truth_at_frames(bag) -> np.ndarray:
-    rows = np.searchsorted(bag.truth_t_s, bag.frame_t_s - 1e-6)
-    assert np.allclose(bag.truth_t_s[rows], bag.frame_t_s, atol=1e-6)
+    rows = np.searchsorted(bag.truth_t_s, bag.tag_s - 1e-6)
+    assert np.allclose(bag.truth_t_s[rows], bag.tag_s, atol=1e-6)
     return bag.truth_angles_rad[rows]
 
 
@@ -63,7 +63,7 @@ def stream(bag, generators, reorder_s: float, frames=slice(None)) -> tuple[Strea
     dse = StreamingDSE(MachineData.of_generators(generators), bag.rate_fps, reorder_s, history_s=1.0)
     out = np.full(v.shape, np.nan)
     for k in delivered(bag, frames):
-        out[k] = dse.offer(bag.t0_s + bag.frame_t_s[k], v[k], va[k], i[k], ia[k], np.isfinite(v[k]))
+        out[k] = dse.offer(bag.t0_s + bag.tag_s[k], v[k], va[k], i[k], ia[k], np.isfinite(v[k]))
     return dse, out
 
 
@@ -76,7 +76,7 @@ def test_the_filter_fed_as_delivered_beats_the_steady_state_estimate_after_the_f
     steady = estimate_rotor_angle_rad(v, va, i, ia, np.array([g.xq_pu for g in gens]),
                                       np.array([g.ra_pu for g in gens]))
     truth = truth_at_frames(bag)
-    after = bag.frame_present & (bag.frame_t_s >= fault_s)
+    after = bag.frame_present & (bag.tag_s >= fault_s)
     after[frames.stop:] = False
     dse_p99 = np.nanpercentile(error_deg(est, truth)[after], 99)
     steady_p99 = np.nanpercentile(error_deg(steady, truth)[after], 99)
@@ -121,8 +121,8 @@ def test_pmu_ingestion_with_dse_publishes_the_filter_and_falls_back_where_data_a
         _, frames = around_fault(bag, 0.25, 0.75)  # the fault and its clearing
         for k in delivered(bag, frames):
             node.on_frame(frame_msg(Frame(
-                tag_s=float(bag.frame_t_s[k]), delivery_s=float(bag.frame_delivery_s[k]),
-                station_ids=bag.pmu_station_ids, buses=bag.pmu_buses, v_mag_pu=bag.v_mag_pu[k],
+                tag_s=float(bag.tag_s[k]), delivery_s=float(bag.delivery_s[k]),
+                station_ids=bag.station_ids, buses=bag.buses, v_mag_pu=bag.v_mag_pu[k],
                 v_angle_rad=bag.v_angle_rad[k], i_mag_pu=bag.i_mag_pu[k], i_angle_rad=bag.i_angle_rad[k],
                 frequency_hz=bag.frequency_hz[k], rocof_hz_per_s=bag.rocof_hz_per_s[k], stat=bag.stat[k])))
         expected = int(bag.frame_present[frames].sum())
@@ -164,7 +164,7 @@ def test_coherency_finds_the_groups_on_the_filter_angles_exactly_when_on_andes_o
     entry = study.manifest_entries(BAG.parent / 'index.yaml')[BAG.name]
     steady = study.scenario_from_bag(bag, entry)
     _, est = stream(bag, bag.grid.generators, reorder_s=0.1)
-    rows = (bag.frame_t_s >= steady.t_s[0] - 1e-9) & (bag.frame_t_s <= steady.t_s[-1] + 1e-9)
+    rows = (bag.tag_s >= steady.t_s[0] - 1e-9) & (bag.tag_s <= steady.t_s[-1] + 1e-9)
     col = {n: j for j, n in enumerate(bag.truth_generator_names)}
     andes = np.array([np.interp(steady.t_s, bag.truth_t_s, bag.truth_angles_rad[:, col[n]])
                       for n in steady.generator_names])
@@ -192,13 +192,13 @@ def test_a_stream_at_a_divisor_of_rate_fps_has_no_missing_tags_until_it_shows_th
     on_60 = StreamingDSE(MachineData.of_generators(gens), 60.0, 0.1)
     on_30 = StreamingDSE(MachineData.of_generators(gens), 30.0, 0.1)
     for k in even:
-        t = bag.t0_s + bag.frame_t_s[k]
+        t = bag.t0_s + bag.tag_s[k]
         a60 = on_60.offer(t, v[k], va[k], i[k], ia[k], np.isfinite(v[k]))
         a30 = on_30.offer(t, v[k], va[k], i[k], ia[k], np.isfinite(v[k]))
         assert np.array_equal(a60, a30, equal_nan=True), k
     assert on_60.lost_frames == 0 and on_60.ahead_frames == 0
     for k in later:  # in tag order: the tag after the lost one is ahead of it until reorder_s has passed
-        on_60.offer(bag.t0_s + bag.frame_t_s[k], v[k], va[k], i[k], ia[k], np.isfinite(v[k]))
+        on_60.offer(bag.t0_s + bag.tag_s[k], v[k], va[k], i[k], ia[k], np.isfinite(v[k]))
     assert on_60.lost_frames == 1 and on_60.ahead_frames == 6
 
 
@@ -219,8 +219,8 @@ def test_pmu_ingestion_counts_missing_frames_on_the_streams_own_tag_grid(rclpy_c
         rows = np.flatnonzero(kundur.frame_present)[:40]
         for k in np.delete(rows, 20):
             node.on_frame(frame_msg(Frame(
-                tag_s=float(kundur.frame_t_s[k]), delivery_s=float(kundur.frame_t_s[k]),
-                station_ids=kundur.pmu_station_ids, buses=kundur.pmu_buses, v_mag_pu=kundur.v_mag_pu[k],
+                tag_s=float(kundur.tag_s[k]), delivery_s=float(kundur.tag_s[k]),
+                station_ids=kundur.station_ids, buses=kundur.buses, v_mag_pu=kundur.v_mag_pu[k],
                 v_angle_rad=kundur.v_angle_rad[k], i_mag_pu=kundur.i_mag_pu[k], i_angle_rad=kundur.i_angle_rad[k],
                 frequency_hz=kundur.frequency_hz[k], rocof_hz_per_s=kundur.rocof_hz_per_s[k], stat=kundur.stat[k])))
             if k == rows[19]:

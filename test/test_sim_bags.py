@@ -103,9 +103,9 @@ def test_bag_follows_its_scenario(name: str) -> None:
     data = load_bag(BAGS / name)
     imp = scenario.impairments
     assert data.rate_fps == scenario.rate_fps
-    assert data.frame_t_s[-1] == pytest.approx(scenario.end_s)
-    assert len(data.frame_t_s) == int(round(scenario.end_s * scenario.rate_fps)) + 1
-    assert set(data.pmu_buses) == {g.bus for g in data.grid.generators}
+    assert data.tag_s[-1] == pytest.approx(scenario.end_s)
+    assert len(data.tag_s) == int(round(scenario.end_s * scenario.rate_fps)) + 1
+    assert set(data.buses) == {g.bus for g in data.grid.generators}
     # Trips are the scenario's; any other branch change is a case event the scenario keeps.
     # Stamps are integer ns in the bag: 7.6 s comes back as 7.6000000000000005.
     trips = [e for e in data.branch_events if any(abs(e.t_s - t.t_s) < 1e-9 and not e.in_service
@@ -122,22 +122,22 @@ def test_bag_follows_its_scenario(name: str) -> None:
     assert set(MachineData.of_generators(data.grid.generators).richest_model()) <= {'classical', 'genrou'}
     assert list(data.truth_generator_names) == [g.name for g in data.grid.generators]
 
-    delay = data.frame_delivery_s - data.frame_t_s
+    delay = data.delivery_s - data.tag_s
     present = data.frame_present
     if imp.delay_mean_s > 0:
         assert (delay[present] > 0).all()
-        arrival_order = np.argsort(data.frame_delivery_s[present], kind='stable')
-        assert (np.diff(data.frame_t_s[present][arrival_order]) < 0).any()
+        arrival_order = np.argsort(data.delivery_s[present], kind='stable')
+        assert (np.diff(data.tag_s[present][arrival_order]) < 0).any()
     else:
         assert np.allclose(delay[present], 0.0, atol=1e-9)
-    assert not present[data.frame_t_s < imp.initial_gap_s - 1e-9].any()
-    assert present[data.frame_t_s >= imp.initial_gap_s - 1e-9].all()
+    assert not present[data.tag_s < imp.initial_gap_s - 1e-9].any()
+    assert present[data.tag_s >= imp.initial_gap_s - 1e-9].all()
     invalid = np.isnan(data.v_mag_pu[present])
     if imp.frame_loss_rate > 0:
         assert invalid.mean() == pytest.approx(imp.frame_loss_rate, abs=0.03)
     if imp.silent_pmu_bus is not None:
-        column = list(data.pmu_buses).index(imp.silent_pmu_bus)
-        silent = data.frame_t_s >= imp.silent_from_s - 1e-9
+        column = list(data.buses).index(imp.silent_pmu_bus)
+        silent = data.tag_s >= imp.silent_from_s - 1e-9
         assert np.isnan(data.v_mag_pu[silent, column]).all()
         assert not np.isnan(data.v_mag_pu[~silent & present, column]).any()
     if imp.frame_loss_rate == 0 and imp.silent_pmu_bus is None:
@@ -149,7 +149,7 @@ def _rotor_angle_series(data: BagData) -> list[np.ndarray]:
     from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
 
     request = float(data.request_t_s[0])
-    seen = (data.frame_t_s <= request + 1e-9) & (data.frame_delivery_s <= request + 1e-9)
+    seen = (data.tag_s <= request + 1e-9) & (data.delivery_s <= request + 1e-9)
     series = []
     for gen in data.grid.generators:
         j = data.pmu_column(gen.name, gen.bus)

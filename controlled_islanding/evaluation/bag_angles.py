@@ -15,7 +15,7 @@ class EvaluateError(ValueError):
 
 def request_time_s(bag) -> float:
     """Return the time the bag's first islanding request is stamped with (the bag's end if none), s after t0."""
-    return float(bag.request_t_s[0]) if len(bag.request_t_s) else float(bag.frame_t_s[-1])
+    return float(bag.request_t_s[0]) if len(bag.request_t_s) else float(bag.tag_s[-1])
 
 
 def generator_series(bag, start_s: float, end_s: float) -> tuple[np.ndarray, list[str], np.ndarray]:
@@ -42,7 +42,7 @@ def generator_series(bag, start_s: float, end_s: float) -> tuple[np.ndarray, lis
         cols = [bag.pmu_column(g.name, g.bus) for g in grid.generators]
     except BagDataError as exc:
         raise EvaluateError(f'{exc}; coherency needs every generator') from exc
-    rows = (bag.frame_t_s >= start_s - 1e-9) & (bag.frame_t_s <= end_s + 1e-9)
+    rows = (bag.tag_s >= start_s - 1e-9) & (bag.tag_s <= end_s + 1e-9)
     angles = np.asarray(estimate_rotor_angle_rad(
         bag.v_mag_pu[np.ix_(rows, cols)], bag.v_angle_rad[np.ix_(rows, cols)], bag.i_mag_pu[np.ix_(rows, cols)],
         bag.i_angle_rad[np.ix_(rows, cols)], np.array([g.xq_pu for g in grid.generators]),
@@ -51,4 +51,4 @@ def generator_series(bag, start_s: float, end_s: float) -> tuple[np.ndarray, lis
         if np.isfinite(angle).sum() < 2:
             raise EvaluateError(f'generator {g.name} (PMU at bus {g.bus}) has fewer than 2 valid samples between '
                                 f'{start_s:.3f} s and {end_s:.3f} s')
-    return bag.frame_t_s[rows], [g.name for g in grid.generators], angles
+    return bag.tag_s[rows], [g.name for g in grid.generators], angles

@@ -107,7 +107,7 @@ def scenario_from_bag(bag, entry: Mapping | None = None) -> Scenario:
     from controlled_islanding.evaluation.bag_angles import generator_series, request_time_s
     from controlled_islanding.sim.truth import first_pole_slip_s
 
-    t_s, names, angles = generator_series(bag, float(bag.frame_t_s[0]), float(bag.frame_t_s[-1]))
+    t_s, names, angles = generator_series(bag, float(bag.tag_s[0]), float(bag.tag_s[-1]))
     if entry and entry.get('truth_groups'):
         truth = {n: k for k, members in enumerate(entry['truth_groups']) for n in members}
     else:

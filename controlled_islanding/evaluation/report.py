@@ -167,7 +167,7 @@ def write_figures(case: CaseReport, folder: Path, *, bag=None, window_s: float =
         from controlled_islanding.core.coherency import DTWCoherency
 
         end_s = request_time_s(bag)
-        t_s, names, angles = generator_series(bag, 0.0, float(bag.frame_t_s[-1]))
+        t_s, names, angles = generator_series(bag, 0.0, float(bag.tag_s[-1]))
         first = np.array([row[np.isfinite(row)][0] for row in angles])
         groups = [dtw.groups[n] for n in names] if dtw else None
         events = {f'trip {e.branch_id}': e.t_s for e in bag.branch_events if not e.in_service}

@@ -76,8 +76,8 @@ def _bag_case(bags: Path):
             continue
         bag = load_bag(bags / entry['bag'])
         request = float(bag.request_t_s[0])
-        rows = (bag.frame_t_s >= request - 4.0) & (bag.frame_t_s < request)
-        col = {int(b): k for k, b in enumerate(bag.pmu_buses)}
+        rows = (bag.tag_s >= request - 4.0) & (bag.tag_s < request)
+        col = {int(b): k for k, b in enumerate(bag.buses)}
         gens = bag.grid.generators
         cols = [col[g.bus] for g in gens]
 
@@ -152,19 +152,19 @@ def bench_rotor_angle_error(bags: Path) -> Iterator[str]:
         if entry.get('impairments') or not (bags / entry['bag']).exists():
             continue
         bag = load_bag(bags / entry['bag'])
-        col = {int(b): k for k, b in enumerate(bag.pmu_buses)}
+        col = {int(b): k for k, b in enumerate(bag.buses)}
         gens = bag.grid.generators
         cols = [col[g.bus] for g in gens]
         est = estimate_rotor_angle_rad(bag.v_mag_pu[:, cols], bag.v_angle_rad[:, cols], bag.i_mag_pu[:, cols],
                                        bag.i_angle_rad[:, cols], np.array([g.xq_pu for g in gens]),
                                        np.array([g.ra_pu for g in gens]))
-        truth = np.column_stack([np.interp(bag.frame_t_s, bag.truth_t_s,
+        truth = np.column_stack([np.interp(bag.tag_s, bag.truth_t_s,
                                            bag.truth_angles_rad[:, bag.truth_generator_names.index(g.name)])
                                  for g in gens])
         err = np.degrees(np.abs(np.angle(np.exp(1j * (est - truth)))))
         # The first fault starts before the first trip; half a second covers the bags' faults.
-        first = min([e.t_s for e in bag.branch_events] + [float(bag.frame_t_s[-1])]) - 0.5
-        before = bag.frame_t_s < first
+        first = min([e.t_s for e in bag.branch_events] + [float(bag.tag_s[-1])]) - 0.5
+        before = bag.tag_s < first
         cells = []
         for part in (err[before], err[~before]):
             part = part[~np.isnan(part)]

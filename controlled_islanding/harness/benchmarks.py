@@ -249,8 +249,8 @@ def streamed_dse_angles(bag, reorder_s: float = 0.1, history_s: float = 1.0) -> 
     stream = StreamingDSE(MachineData.of_generators(gens), bag.rate_fps, reorder_s, history_s=history_s)
     out = np.full(v.shape, np.nan)
     rows = np.flatnonzero(bag.frame_present)
-    for k in rows[np.argsort(bag.frame_delivery_s[rows], kind='stable')]:
-        out[k] = stream.offer(bag.t0_s + bag.frame_t_s[k], v[k], va[k], i[k], ia[k], np.isfinite(v[k]))
+    for k in rows[np.argsort(bag.delivery_s[rows], kind='stable')]:
+        out[k] = stream.offer(bag.t0_s + bag.tag_s[k], v[k], va[k], i[k], ia[k], np.isfinite(v[k]))
     return np.where(np.isfinite(v), out, np.nan)
 
 
@@ -281,7 +281,7 @@ def estimator_decisions(bag_path: Path, entry: dict | None, *, window_s: float, 
     t0 = time.process_time()
     dse_angles = streamed_dse_angles(bag)
     dse_cpu_ms = 1e3 * (time.process_time() - t0) / max(1, int(bag.frame_present.sum()))
-    rows = (bag.frame_t_s >= steady.t_s[0] - 1e-9) & (bag.frame_t_s <= steady.t_s[-1] + 1e-9)
+    rows = (bag.tag_s >= steady.t_s[0] - 1e-9) & (bag.tag_s <= steady.t_s[-1] + 1e-9)
     dse = dataclasses.replace(steady, angles_rad=dse_angles[rows].T)
     out = {'bag': bag.path.name, 'truth': steady.truth, 'dse_cpu_ms_per_frame': dse_cpu_ms,
            'machines': tuple(MachineData.of_generators(bag.grid.generators).richest_model())}

@@ -33,6 +33,7 @@ import numpy as np
 
 from controlled_islanding.sim.andes_sim import Simulation
 from controlled_islanding.sim.scenario import Scenario
+from controlled_islanding.wire.bagdata import PmuChannels
 
 if TYPE_CHECKING:
     from controlled_islanding.sim.closed_loop import Sample
@@ -40,34 +41,6 @@ if TYPE_CHECKING:
 STAT_DATA_INVALID = 0x8000
 FREQUENCY_NOISE_HZ = 0.001
 ROCOF_NOISE_HZ_PER_S = 0.01
-
-
-@dataclass(frozen=True)
-class PmuChannels:
-    """What the PMU channels measured: one value per channel (a frame), or per time tag and channel (a run).
-
-    Attributes:
-        tag_s: Time tag, s; shape (n,) for a run.
-        delivery_s: When it reaches the PDC, s (tag + delay); shape (n,) for a run.
-        station_ids: Station id of each channel (see the module docstring).
-        buses: Bus of each channel; a bus with several generators has several channels.
-        v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, frequency_hz, rocof_hz_per_s: Per channel (last axis); NaN
-            where lost.
-        stat: STAT word per channel; STAT_DATA_INVALID where lost.
-
-    """
-
-    tag_s: float | np.ndarray
-    delivery_s: float | np.ndarray
-    station_ids: tuple[str, ...]
-    buses: tuple[int, ...]
-    v_mag_pu: np.ndarray
-    v_angle_rad: np.ndarray
-    i_mag_pu: np.ndarray
-    i_angle_rad: np.ndarray
-    frequency_hz: np.ndarray
-    rocof_hz_per_s: np.ndarray
-    stat: np.ndarray
 
 
 Frame = PmuChannels  # one frame of the closed loop's stream

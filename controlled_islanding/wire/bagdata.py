@@ -10,7 +10,7 @@ and returns a `BagData`. Conventions:
   start to the last time tag in the bag. A frame that is absent from the bag (lost
   entirely, or never delivered) gives a row of NaN with `frame_present` False; a
   measurement whose STAT marks it invalid gives NaN in that PMU's column.
-- Columns follow the order of the PMUs in the first frame (`pmu_buses`).
+- Columns follow the order of the PMUs in the first frame (`buses`).
 - Truth arrays come from the /truth topics; no node may read them.
 """
 
@@ -59,25 +59,46 @@ class BranchEvent:
 
 
 @dataclass(frozen=True)
-class BagData:
+class PmuChannels:
+    """What the PMU channels measured: one value per channel (a frame), or per time tag and channel (a run).
+
+    Attributes:
+        tag_s: Time tag, s; shape (n,) for a run.
+        delivery_s: When it reaches the PDC, s (tag + delay); shape (n,) for a run.
+        station_ids: Station id of each channel (`PMU_<bus>`, or `PMU_<bus>/<generator>` where a bus has several
+            generators, each with its own current).
+        buses: Bus of each channel; a bus with several generators has several channels.
+        v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, frequency_hz, rocof_hz_per_s: Per channel (last axis); NaN
+            where lost.
+        stat: STAT word per channel; STAT_DATA_INVALID where lost.
+
+    """
+
+    tag_s: float | np.ndarray
+    delivery_s: float | np.ndarray
+    station_ids: tuple[str, ...]
+    buses: tuple[int, ...] | np.ndarray
+    v_mag_pu: np.ndarray
+    v_angle_rad: np.ndarray
+    i_mag_pu: np.ndarray
+    i_angle_rad: np.ndarray
+    frequency_hz: np.ndarray
+    rocof_hz_per_s: np.ndarray
+    stat: np.ndarray
+
+
+@dataclass(frozen=True)
+class BagData(PmuChannels):
     """Everything a scenario bag holds, as numpy arrays (see the module docstring for conventions).
 
     Attributes:
         path: The bag directory.
         t0_s: Absolute time of the simulation start (snapshot stamp), s since the Unix epoch.
         rate_fps: PMU reporting rate, frames per second.
-        frame_t_s: Time tag of every row, s after t0_s, shape (n_frames,).
+        tag_s, delivery_s, station_ids, buses, v_mag_pu ... stat: The PMU channels (PmuChannels), a row per time tag
+            of the uniform grid, s after t0_s: NaN where invalid or absent, delivery_s NaN and stat STAT_ABSENT
+            where the frame is absent; buses an array, shape (n_pmu,).
         frame_present: Whether a frame with that time tag is in the bag, shape (n_frames,).
-        frame_delivery_s: Record (delivery) time of each frame, s after t0_s; NaN where absent.
-        pmu_station_ids: Station id of each PMU column.
-        pmu_buses: Bus number of each PMU column, shape (n_pmu,).
-        v_mag_pu: Voltage magnitude, pu, shape (n_frames, n_pmu); NaN where invalid or absent.
-        v_angle_rad: Voltage angle, rad, unwrapped; NaN where invalid or absent.
-        i_mag_pu: Current magnitude, pu on the system base; NaN where invalid or absent.
-        i_angle_rad: Current angle, rad, unwrapped; NaN where invalid or absent.
-        frequency_hz: Measured frequency, Hz; NaN where invalid or absent.
-        rocof_hz_per_s: Rate of change of frequency, Hz/s; NaN where invalid or absent.
-        stat: C37.118 STAT word, shape (n_frames, n_pmu); STAT_ABSENT where the frame is absent.
         grid: The pre-fault network snapshot, with branch flows in MW.
         branch_events: Branch status changes in time order.
         request_t_s: Islanding request times, s after t0_s, in order.
@@ -93,18 +114,7 @@ class BagData:
     path: Path
     t0_s: float
     rate_fps: float
-    frame_t_s: np.ndarray
     frame_present: np.ndarray
-    frame_delivery_s: np.ndarray
-    pmu_station_ids: tuple[str, ...]
-    pmu_buses: np.ndarray
-    v_mag_pu: np.ndarray
-    v_angle_rad: np.ndarray
-    i_mag_pu: np.ndarray
-    i_angle_rad: np.ndarray
-    frequency_hz: np.ndarray
-    rocof_hz_per_s: np.ndarray
-    stat: np.ndarray
     grid: Grid
     branch_events: tuple[BranchEvent, ...]
     request_t_s: np.ndarray
@@ -127,8 +137,8 @@ class BagData:
             BagDataError: No PMU at the generator's bus.
 
         """
-        own = [j for j, s in enumerate(self.pmu_station_ids) if s.rpartition('/')[2] == generator and '/' in s]
-        at_bus = np.flatnonzero(self.pmu_buses == bus)
+        own = [j for j, s in enumerate(self.station_ids) if s.rpartition('/')[2] == generator and '/' in s]
+        at_bus = np.flatnonzero(self.buses == bus)
         if own:
             return own[0]
         if not len(at_bus):
@@ -302,8 +312,8 @@ def load_bag(path: str | Path) -> BagData:
     requests.sort()
     return BagData(
         path=path, t0_s=t0_ns * 1e-9, rate_fps=rate,
-        frame_t_s=np.arange(n_frames) / rate, frame_present=present, frame_delivery_s=delivery,
-        pmu_station_ids=stations, pmu_buses=pmu_buses,
+        tag_s=np.arange(n_frames) / rate, frame_present=present, delivery_s=delivery,
+        station_ids=stations, buses=pmu_buses,
         v_mag_pu=data['voltage_magnitude_pu'], v_angle_rad=data['voltage_angle_rad'],
         i_mag_pu=data['current_magnitude_pu'], i_angle_rad=data['current_angle_rad'],
         frequency_hz=data['frequency_hz'], rocof_hz_per_s=data['rocof_hz_per_s'], stat=stat,
