@@ -45,6 +45,8 @@ class Decision:
         islands: Bus numbers of each island, island 0 first.
         island_shed_mw: Load to shed in each island, MW.
         outages: Branches already out when the decision was made.
+        island_load_mw: Load in each island before the shed, MW, as the decision saw it (empty: not known).
+        island_generation_mw: Scheduled generation in each island, MW, as the decision saw it (empty: not known).
 
     """
 
@@ -52,6 +54,8 @@ class Decision:
     islands: tuple[tuple[int, ...], ...]
     island_shed_mw: tuple[float, ...]
     outages: tuple[str, ...] = ()
+    island_load_mw: tuple[float, ...] = ()
+    island_generation_mw: tuple[float, ...] = ()
 
     @classmethod
     def from_summary(cls, summary: Mapping[str, Any], outages: Iterable[str] = ()) -> Decision:
@@ -67,9 +71,14 @@ class Decision:
         try:
             cut = tuple(str(b) for b in summary.get('cut_branch_ids', summary.get('cut_branches')))
             raw = summary['islands']
+            load: tuple[float, ...] = ()
+            generation: tuple[float, ...] = ()
             if raw and isinstance(raw[0], Mapping):
                 islands = tuple(tuple(int(b) for b in isl['buses']) for isl in raw)
                 shed = tuple(float(isl['shed_mw']) for isl in raw)
+                if all('load_mw' in isl and 'generation_mw' in isl for isl in raw):
+                    load = tuple(float(isl['load_mw']) for isl in raw)
+                    generation = tuple(float(isl['generation_mw']) for isl in raw)
             else:
                 islands = tuple(tuple(int(b) for b in isl) for isl in raw)
                 shed = tuple(float(s) for s in summary['island_shed_mw'])
@@ -78,7 +87,7 @@ class Decision:
                               'cut_branches) and islands with shed_mw (or island_shed_mw)') from None
         if len(shed) != len(islands):
             raise ExportError(f'decision: {len(islands)} islands but {len(shed)} shed values')
-        return cls(cut, islands, shed, tuple(outages))
+        return cls(cut, islands, shed, tuple(outages), load, generation)
 
 
 def load_case(case: str | Path, addfile: str | Path | None = None) -> Any:
@@ -97,6 +106,44 @@ def load_case(case: str | Path, addfile: str | Path | None = None) -> Any:
     if not ss.PFlow.converged:
         raise ExportError(f'case {case}: its ANDES power flow did not converge')
     return ss
+
+
+def scenario_case(scenario_file: str | Path, request_s: float | None = None) -> tuple[Any, tuple[str, ...]]:
+    """Return a scenario's case as the simulator set it up, after its power flow, and the branches out at a time.
+
+    The case is `sim.andes_sim.prepare_case`'s, so it holds the scenario's loads and dispatch (load_scale,
+    dispatch) and its disabled devices, as the decision's snapshot did.
+
+    Args:
+        scenario_file: The scenario YAML.
+        request_s: The decision's request, s from the simulation start (None: the scenario's own); the
+            branches its trips and kept case events have opened before it are returned.
+
+    Raises:
+        ExportError: The scenario cannot be read or set up.
+
+    """
+    from dataclasses import replace
+
+    from controlled_islanding.sim.andes_sim import SimulationError, prepare_case
+    from controlled_islanding.sim.scenario import ScenarioError, load_scenario
+
+    try:
+        scenario = load_scenario(Path(scenario_file))
+        # Faults act only in the time domain, but a mid-line one splits its line at a bus no decision names.
+        case = prepare_case(replace(scenario, faults=()))
+    except (ScenarioError, SimulationError, OSError) as exc:
+        raise ExportError(f'scenario {scenario_file}: {exc}') from exc
+    at_s = scenario.request_s if request_s is None else request_s
+    out: dict[str, None] = {}
+    for t_s, branch, in_service in case.scheduled_changes(scenario):
+        # As the bag manifest counts them: a change at the request itself came too late for the decision.
+        if t_s < at_s:
+            if in_service:
+                out.pop(branch, None)
+            else:
+                out[branch] = None
+    return case.ss, tuple(out)
 
 
 def line_rows(ss: Any, branch_ids: Sequence[str]) -> list[int]:
@@ -141,6 +188,16 @@ def matpower_case(ss: Any, decision: Decision) -> dict[str, Any]:
     ppc = {'version': '2', 'baseMVA': float(ppc['baseMVA']), 'bus': np.array(ppc['bus'], dtype=float),
            'gen': np.array(ppc['gen'], dtype=float), 'branch': np.array(ppc['branch'], dtype=float)}
     bus, gen = ppc['bus'], ppc['gen']
+    mva = float(ss.config.mva)
+    # system2mpc writes each load over the one before it at the same bus, switched-off ones included.
+    bus[:, [_BUS_PD, _BUS_QD]] = 0.0
+    if ss.PQ.n:
+        pq_rows = ss.Bus.idx2uid(ss.PQ.bus.v)
+        on = np.asarray(ss.PQ.u.v, dtype=float)
+        np.add.at(bus[:, _BUS_PD], pq_rows, on * np.asarray(ss.PQ.p0.v, dtype=float) * mva)
+        np.add.at(bus[:, _BUS_QD], pq_rows, on * np.asarray(ss.PQ.q0.v, dtype=float) * mva)
+    # The slack's dispatch is what its power flow gave it, as the decision's snapshot has it, not its set point.
+    gen[:ss.Slack.n, _GEN_PG] = np.asarray(ss.Slack.p.v, dtype=float) * mva
     ppc['branch'][line_rows(ss, [*decision.outages, *decision.cut_branch_ids]), _BR_STATUS] = 0
     row_of = {int(b): i for i, b in enumerate(bus[:, _BUS_I])}
     for k, (buses, shed_mw) in enumerate(zip(decision.islands, decision.island_shed_mw, strict=True)):
@@ -163,7 +220,40 @@ def matpower_case(ss: Any, decision: Decision) -> dict[str, Any]:
             scale = max(0.0, 1.0 - shed_mw / load_mw)
             bus[rows, _BUS_PD] *= scale
             bus[rows, _BUS_QD] *= scale
+    _check_against_decision(ppc, decision)
     return ppc
+
+
+def island_power_mw(ppc: Mapping[str, Any], islands: Sequence[Sequence[int]]) -> list[tuple[float, float]]:
+    """Return (load, scheduled generation in service) of each island of a ppc, MW."""
+    bus, gen = ppc['bus'], ppc['gen']
+    out = []
+    for buses in islands:
+        inside = np.isin(bus[:, _BUS_I].astype(int), list(buses))
+        gen_in = np.isin(gen[:, _GEN_BUS].astype(int), list(buses)) & (gen[:, _GEN_STATUS] > 0)
+        out.append((float(bus[inside, _BUS_PD].sum()), float(gen[gen_in, _GEN_PG].sum())))
+    return out
+
+
+def _check_against_decision(ppc: Mapping[str, Any], decision: Decision) -> None:
+    """Refuse a case whose islands do not hold the load and generation the decision counted on.
+
+    Raises:
+        ExportError: An island's load (after the shed) or scheduled generation differs from the decision's by
+            more than 0.5 MW and 0.5 %.
+
+    """
+    if not decision.island_load_mw:
+        return
+    wanted = zip(decision.island_load_mw, decision.island_shed_mw, decision.island_generation_mw, strict=True)
+    for k, ((load_mw, gen_mw), (decided_load_mw, shed_mw, decided_gen_mw)) in enumerate(
+            zip(island_power_mw(ppc, decision.islands), wanted, strict=True)):
+        for what, got, expected in (('load', load_mw, decided_load_mw - shed_mw),
+                                    ('generation', gen_mw, decided_gen_mw)):
+            if abs(got - expected) > max(0.5, 0.005 * abs(expected)):
+                raise ExportError(f'island {k}: the case holds {got:.1f} MW of {what} where the decision counted '
+                                  f'{expected:.1f} MW{" after its shed" if what == "load" else ""}: it is not the '
+                                  'case the decision was made on (give its scenario: --case SCENARIO.yaml)')
 
 
 def pandapower_net(ss: Any, decision: Decision) -> Any:
