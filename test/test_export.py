@@ -216,3 +216,117 @@ def test_bad_input_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[str], 
     assert main(['export', str(path), *args, '-o', str(tmp_path / 'x.m'), *(['--case', 'ieee14/ieee14_full.xlsx']
                                                                           if named == 'not a split' else [])]) == 2
     assert named in capsys.readouterr().err
+
+
+def _close(got_mw: float, expected_mw: float) -> bool:
+    return abs(got_mw - expected_mw) <= max(0.5, 0.005 * abs(expected_mw))
+
+
+def check_islands_as_decided(decision_file: Path, decision: dict, out: Path, *args: str, solves: bool = True) -> None:
+    """Export a decision file to MATPOWER and pandapower through the command, and check every island of both.
+
+    The decision's cut is open and leaves its islands; each island holds the decision's load less its shed and
+    its generators the decision's generation; solved (PYPOWER, pandapower), its generation is that load plus the
+    island's losses. `solves` False: all but the power flows.
+    """
+    import pandapower as pp
+    import pandapower.topology as top
+    from pandapower.toolbox import select_subnet
+
+    out.mkdir(parents=True, exist_ok=True)
+    m_file, net_file = out / 'islanded.m', out / 'islanded.json'
+    assert main(['export', str(decision_file), *args, '--to', 'matpower', '-o', str(m_file)]) == 0
+    assert main(['export', str(decision_file), *args, '--to', 'pandapower', '-o', str(net_file)]) == 0
+    islands = decision['islands']
+    buses = [isl['buses'] for isl in islands]
+    ppc = Grid.from_matpower(str(m_file)).matpower
+    net = pp.from_json(str(net_file))
+    opened = [n for kind in ('line', 'trafo', 'impedance') for n in net[kind].name[~net[kind].in_service.astype(bool)]]
+    assert set(map(_pair, decision['cut_branch_ids'])) <= set(map(_pair, opened))
+    expected = {frozenset(b) for b in buses}
+    assert {frozenset(map(int, c)) for c in top.connected_components(top.create_nxgraph(net))} == expected
+    assert islands_of(Grid.from_matpower(str(m_file))) == expected
+    for isl, sub, (load_mw, gen_mw) in zip(islands, export.island_cases(ppc, buses), export.island_power_mw(ppc, buses),
+                                           strict=True):
+        k, served_mw = isl['island'], isl['load_mw'] - isl['shed_mw']
+        assert _close(load_mw, served_mw), f'island {k}: MATPOWER load {load_mw:.1f} MW, decision {served_mw:.1f} MW'
+        assert _close(gen_mw, isl['generation_mw']), \
+            f'island {k}: MATPOWER generation {gen_mw:.1f} MW, decision {isl["generation_mw"]:.1f} MW'
+        part = select_subnet(net, isl['buses'])
+        # pandapower's converter makes a negative load an uncontrollable sgen.
+        negative = part.sgen[~part.sgen.controllable.astype(bool)]
+        pp_load_mw = float(part.load.p_mw[part.load.in_service.astype(bool)].sum()
+                           - negative.p_mw[negative.in_service.astype(bool)].sum())
+        assert _close(pp_load_mw, served_mw), f'island {k}: pandapower load {pp_load_mw:.1f}, decision {served_mw:.1f}'
+        if not solves:
+            continue
+        result, ok = runpf(sub, ppoption(VERBOSE=0, OUT_ALL=0))
+        assert ok, f'island {k}: PYPOWER power flow does not converge'
+        on = result['branch'][:, 10] > 0
+        losses_mw = float((result['branch'][on, 13] + result['branch'][on, 15]).sum()
+                          + (result['bus'][:, 4] * result['bus'][:, 7] ** 2).sum())
+        solved_mw = float(result['gen'][result['gen'][:, 7] > 0, 1].sum())
+        # Shed so that generation covers load: a surplus left is taken up by the island's reference machine.
+        assert _close(solved_mw, min(isl['generation_mw'], served_mw) + losses_mw), \
+            f'island {k}: PYPOWER generation {solved_mw:.1f} MW for {served_mw:.1f} MW of load, {losses_mw:.1f} lost'
+        pp.runpp(part, numba=False)
+        pp_solved_mw = float(part.res_gen.p_mw.sum() + part.res_ext_grid.p_mw.sum()
+                             + part.res_sgen.p_mw[part.sgen.controllable.astype(bool)].sum())
+        assert pp_solved_mw == pytest.approx(solved_mw, abs=0.05), f'island {k}: pandapower and PYPOWER differ'
+
+
+# A testbed run that ended before its request, as its result.json says it: no decision to export.
+UNDECIDED_RUN = {'scenario': 'ieee14_g1_unstable', 'path': str(BAGS / 'ieee14_g1_unstable.yaml'), 'decision': None,
+                 'closed_loop': {'request_s': 2.0, 'opened_s': None}, 'events': [], 'runs': {}}
+
+
+@pytest.mark.parametrize(('content', 'named'), [
+    ({}, 'an empty JSON object'),
+    ([], 'an empty JSON list'),
+    (UNDECIDED_RUN, 'a testbed result of ieee14_g1_unstable of a run with no decision'),
+    ([UNDECIDED_RUN], 'a testbed result of ieee14_g1_unstable of a run with no decision'),
+    ([{'split': True}], 'not all testbed results'),
+    ({'split': None, 'results_dir': 'r', 'bag': 'b', 'undecided_requests': ['b/request-1']}, 'with no decision'),
+    ('a string', 'a JSON str'),
+])
+def test_what_is_not_a_decision_is_refused_saying_what_it_is(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                              content: object, named: str) -> None:
+    path = tmp_path / 'result.json'
+    path.write_text(json.dumps(content))
+    assert main(['export', str(path), '--to', 'matpower', '-o', str(tmp_path / 'x.m')]) == 2
+    err = capsys.readouterr().err
+    assert 'error: not a decision: ' in err and named in err, err
+    assert not (tmp_path / 'x.m').exists()
+
+
+@pytest.mark.slow
+def test_a_case_that_is_not_the_decisions_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # The decision of ieee14_g1_unstable (loads doubled) against the case as ANDES bundles it.
+    entry = next(e for e in SPLITS if e['name'] == 'ieee14_g1_unstable')
+    decision_file = tmp_path / 'summary.json'
+    islands = [{'island': k, 'buses': buses, 'shed_mw': shed, 'load_mw': 0.0, 'generation_mw': 0.0}
+               for k, (buses, shed) in enumerate(zip(entry['expected_decision']['islands'],
+                                                      entry['expected_decision']['island_shed_mw'], strict=True))]
+    ss, outages = export.scenario_case(BAGS / entry['scenario'])
+    ppc = export.matpower_case(ss, export.Decision(tuple(entry['expected_decision']['cut_branches']),
+                                                   tuple(map(tuple, entry['expected_decision']['islands'])),
+                                                   (0.0,) * len(islands), outages))
+    for isl, (load_mw, gen_mw) in zip(islands, export.island_power_mw(ppc, [i['buses'] for i in islands]),
+                                      strict=True):
+        isl.update(load_mw=load_mw, generation_mw=gen_mw)
+    decision = {'split': True, 'islands': islands, 'cut_branch_ids': entry['expected_decision']['cut_branches']}
+    decision_file.write_text(json.dumps(decision))
+    check_islands_as_decided(decision_file, decision, tmp_path, '--case', str(BAGS / entry['scenario']))
+    out = tmp_path / 'plain.m'
+    assert main(['export', str(decision_file), '--case', case_of(entry), '--to', 'matpower', '-o', str(out)]) == 2
+    assert 'it is not the case the decision was made on' in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_help_teaches_every_input(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(['export', '--help'])
+    text = capsys.readouterr().out
+    for taught in ('summary.json', 'output_bag', 'result.json', 'testbed --all-unstable --json', '--scenario ',
+                   'not a decision', '--case bags/'):
+        assert taught in text, taught

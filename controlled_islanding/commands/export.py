@@ -11,8 +11,17 @@ from controlled_islanding.commands import CliError
 
 HELP = 'write a decision as a MATPOWER case or a pandapower net with the cut applied, or as ANDES Toggle events'
 DESCRIPTION = """\
-Take the decision of a replay or demo (its summary.json) and write what another tool needs to apply it,
-starting from the ANDES case the network came from (branch ids match in either orientation):
+Take an islanding decision and write what another tool needs to apply it, starting from the case the decision
+was made on, set up as the simulator set it up (the scenario's loads and dispatch; branch ids match in either
+orientation). The decision is read from any file the project writes it in:
+
+  a replay or demo summary.json      the scenario of its bag in bags/index.yaml
+  a testbed result                   a scenario's result.json, or the testbed's --json output or testbed.json
+                                     (a list: --scenario NAME picks one); the scenario its path names
+  a bag with IslandingDecision       a replay's results/.../output_bag: its last decision on a bag request,
+                                     the scenario of the bag the summary.json beside it names
+Anything else is refused ("not a decision: ..."), as is a case whose islands do not hold the load (after the
+shed) and generation the decision counted on.
 
   --to matpower   NAME.m: the case with the cut branches (and the outages the decision saw) at status 0,
                   one reference bus per island and each island's load cut by its load to shed, so that
@@ -23,23 +32,29 @@ starting from the ANDES case the network came from (branch ids match in either o
   --to andes      a JSON list of Toggle rows, one per cut branch at --at-s: for each row,
                   system.add('Toggle', row) before setup opens the line in a time-domain run
 
-The case and the outages are read from the bag's scenario in bags/index.yaml when the summary names a
-manifest bag; otherwise give --case (a file, or a case bundled with ANDES) and any --outage.
+The outages are the scenario's trips before the decision's request. When the decision's scenario is not known,
+give --case: a scenario YAML, or a case file or a case bundled with ANDES taken as it is (with any --outage).
 
 Examples:
   controlled-islanding export results/demo-<UTC>/summary.json --to matpower -o islanded.m
-  controlled-islanding export summary.json --to pandapower -o islanded.json
+  controlled-islanding export results/replay-<bag>-<UTC>/output_bag --to pandapower -o islanded.json
+  controlled-islanding export results/testbed-<UTC>/ieee14_g1_unstable/result.json --to pandapower -o cut.json
+  controlled-islanding testbed --all-unstable --json > runs.json
+  controlled-islanding export runs.json --scenario ieee39_g6g7_unstable --to matpower -o g6g7.m
   controlled-islanding export summary.json --to andes --at-s 7.05 -o toggles.json
+  controlled-islanding export summary.json --to matpower --case bags/ieee14_g1_unstable.yaml -o cut.m
   controlled-islanding export summary.json --to matpower --case ieee14/ieee14_full.xlsx --outage 2-4 -o cut.m
 """
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the export options."""
-    parser.add_argument('decision', type=Path, help='summary.json written by replay or demo')
+    parser.add_argument('decision', type=Path,
+                        help='a summary.json of replay or demo, a testbed result or list of them, or an output bag')
+    parser.add_argument('--scenario', default=None, help='the testbed result to take, by scenario name, of a list')
     parser.add_argument('--to', required=True, choices=('matpower', 'pandapower', 'andes'), help='the target tool')
     parser.add_argument('-o', '--output', type=Path, required=True, help='file to write (NAME.m, or a .json)')
     parser.add_argument('--case', default=None,
-                        help='case file, or a case bundled with ANDES such as ieee39/ieee39_full.xlsx')
+                        help='scenario YAML, or a case file or one bundled with ANDES such as ieee39/ieee39_full.xlsx')
     parser.add_argument('--addfile', default=None, help='PSS/E .dyr file for a .raw case')
     parser.add_argument('--outage', action='append', default=None,
                         help='branch already out when the decision was made (repeatable)')
@@ -47,46 +62,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='ANDES: simulation time, s from the start of the run, the Toggles open the lines at')
 
 
-def _manifest_case(bag: str) -> tuple[str | None, str | None, list[str]]:
-    """Return the case, addfile and outages of the manifest entry whose bag the summary names, if any."""
-    import yaml
-
-    from controlled_islanding.locations import bags_dir
-    from controlled_islanding.sim.manifest import manifest_entries
-    from controlled_islanding.sim.scenario import resolve_case
-
-    if not bag:
-        return None, None, []
-    for entry in manifest_entries():
-        if Path(bag).name == entry.get('bag'):
-            scenario_path = bags_dir() / entry['scenario']
-            scenario = yaml.safe_load(scenario_path.read_text())
-            case = str(resolve_case(scenario['case'], scenario_path.parent))
-            addfile = (str(resolve_case(scenario['addfile'], scenario_path.parent, 'addfile'))
-                       if scenario.get('addfile') else None)
-            return case, addfile, list(entry.get('tripped_before_request', []))
-    return None, None, []
-
-
 def run(args: argparse.Namespace) -> int:
     """Export the decision."""
     from controlled_islanding.evaluation import export
+    from controlled_islanding.evaluation.decision_file import decision_and_case, read_decision
 
-    try:
-        summary = json.loads(args.decision.read_text())
-    except (OSError, ValueError) as exc:
-        raise CliError(f'decision {args.decision}: cannot read it as JSON: {exc}') from exc
     if args.to == 'andes' and args.at_s is None:
         raise CliError('--to andes needs --at-s: the simulation time (s from the start of the run) to open the lines')
-    case, addfile, outages = _manifest_case(str(summary.get('bag', '')))
-    case, addfile = args.case or case, args.addfile or addfile
-    outages = args.outage if args.outage is not None else outages
-    if case is None:
-        raise CliError(f'decision {args.decision}: its bag {summary.get("bag")!r} is not in bags/index.yaml; '
-                       'give --case')
     try:
-        decision = export.Decision.from_summary(summary, outages)
-        ss = export.load_case(case, addfile)
+        source = read_decision(args.decision, args.scenario)
+        decision, ss, case = decision_and_case(source, args.case, args.addfile, args.outage)
         if args.to == 'matpower':
             ppc = export.matpower_case(ss, decision)
             export.write_matpower(ppc, args.output)
@@ -97,6 +82,6 @@ def run(args: argparse.Namespace) -> int:
             atomic.write_text(args.output, json.dumps(rows, indent=2) + '\n')
     except export.ExportError as exc:
         raise CliError(str(exc)) from exc
-    print(f'{args.output}: {len(decision.cut_branch_ids)} cut branch(es) {", ".join(decision.cut_branch_ids)}, '
-          f'{len(decision.islands)} islands, case {case}')
+    print(f'{args.output}: {source.what}: {len(decision.cut_branch_ids)} cut branch(es) '
+          f'{", ".join(decision.cut_branch_ids)}, {len(decision.islands)} islands, case {case}')
     return 0
