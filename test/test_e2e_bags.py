@@ -45,7 +45,8 @@ def replays(request) -> dict[str, dict]:
     runs += [SuiteRun(e['name'], REPO / 'bags' / e['bag'], FAST) for e in ENTRIES]
     by_test = {
         'test_default_bag_in_real_time_disarmed_decides_the_same_and_commands_nothing': 'default-realtime',
-        'test_several_trips_just_before_the_request_fast_decides_as_real_time': 'multitrip-realtime'}
+        'test_several_trips_just_before_the_request_fast_decides_as_real_time': 'multitrip-realtime',
+        'test_a_replay_exports_from_its_output_bag_and_refuses_its_player_report': 'default-realtime'}
     wanted = set()
     for item in request.session.items:
         if item.module is sys.modules[__name__]:
@@ -157,3 +158,38 @@ def test_default_bag_in_real_time_disarmed_decides_the_same_and_commands_nothing
     assert latency['to_command'] == 0 and latency['n'] > len(summary['decisions']), latency
     for figure in summary['figures']:
         assert Path(figure).stat().st_size > 0
+
+
+@pytest.mark.skipif(not ENTRIES, reason='no bag of bags/index.yaml is present')
+@pytest.mark.parametrize('entry', [pytest.param(e, id=e['name']) for e in ENTRIES
+                                   if e['expected_decision'].get('split')])
+def test_bag_decision_exports_with_each_island_as_decided(entry, replays, tmp_path):
+    """The replay's own decision, exported: each island the load (after its shed) and generation it decided on."""
+    from test_export import EXPORT_DOES_NOT_SOLVE, check_islands_as_decided
+
+    summary = summary_of(replays, entry['name'])
+    if not summary['split'] and entry['name'] in KNOWN_WRONG:
+        pytest.xfail(f'the replay does not split: {KNOWN_WRONG[entry["name"]]}')
+    decision_file = Path(summary['results_dir']) / 'summary.json'
+    if entry['name'] not in EXPORT_DOES_NOT_SOLVE:
+        check_islands_as_decided(decision_file, summary, tmp_path)
+        return
+    check_islands_as_decided(decision_file, summary, tmp_path, solves=False)
+    with pytest.raises(AssertionError, match='does not converge'):  # strict: one that starts to solve shows here
+        check_islands_as_decided(decision_file, summary, tmp_path)
+    pytest.xfail(EXPORT_DOES_NOT_SOLVE[entry['name']])
+
+
+@pytest.mark.skipif(not ENTRIES, reason='no bag of bags/index.yaml is present')
+def test_a_replay_exports_from_its_output_bag_and_refuses_its_player_report(replays, tmp_path, capsys):
+    from test_export import check_islands_as_decided
+
+    from controlled_islanding.cli import main
+
+    summary = summary_of(replays, 'default-realtime')
+    results = Path(summary['results_dir'])
+    check_islands_as_decided(results / 'output_bag', summary, tmp_path)
+    capsys.readouterr()
+    assert main(['export', str(results / 'player_report.json'), '--to', 'matpower', '-o', str(tmp_path / 'x.m')]) == 2
+    err = capsys.readouterr().err
+    assert 'error: not a decision: ' in err and 'a bag player report' in err, err

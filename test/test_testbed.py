@@ -307,3 +307,23 @@ def test_an_interrupted_testbed_ends_every_process_it_started_and_says_it_was_in
     finally:
         for pid in [p for p in ours if _procs().get(p, ('Z',))[0] != 'Z'] + ([proc.pid] if proc.poll() is None else []):
             os.kill(pid, signal.SIGKILL)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_a_testbed_result_exports_with_its_cut_open_and_each_island_solving_as_decided(ros_env, tmp_path):
+    """The testbed's --json output (a list) and the scenario's result.json, each exported and its islands solved."""
+    from test_export import check_islands_as_decided
+
+    results = BUILD / 'test_testbed' / f'export-{time.time_ns()}'
+    env = dict(ros_env, CONTROLLED_ISLANDING_KEYS=str(BUILD / 'test_keys'))
+    proc = subprocess.run([sys.executable, '-m', 'controlled_islanding.cli', 'testbed', str(SCENARIO), '--json',
+                           '--results', str(results), '--run-after-s', '1.0', '--no-baselines', '--timeout', '300'],
+                          capture_output=True, text=True, timeout=420, env=env, cwd=REPO)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    listing = tmp_path / 'testbed.json'
+    listing.write_text(proc.stdout)
+    (result,) = json.loads(proc.stdout)
+    assert result['decision'] and result['decision']['split'], result['decision']
+    check_islands_as_decided(listing, result['decision'], tmp_path / 'list', '--scenario', result['scenario'])
+    check_islands_as_decided(results / result['scenario'] / 'result.json', result['decision'], tmp_path / 'one')
