@@ -131,8 +131,9 @@ def test_pandapower_export_round_trips_and_each_island_solves_as_in_pypower(name
 @pytest.mark.slow
 @pytest.mark.parametrize('name', ['gbnetwork_bus73_unstable', 'ei33_bus101048_pair_unstable'])
 def test_pandapower_net_has_the_admittances_of_the_matpower_export(name: str) -> None:
-    # GBnetwork's 613 transformers with charging and EI 33's 842 phase shifters; neither solves as a whole in
-    # pandapower or PYPOWER here, so the networks are compared, not their power flows.
+    # GBnetwork's 613 transformers with charging and EI 33's 842 phase shifters; EI 33 does not solve as a whole
+    # in pandapower or PYPOWER here (GBnetwork has since its loads were all exported), so the networks are
+    # compared, not their power flows.
     from pandapower.converter.pypower.to_ppc import to_ppc
     from pypower.api import ext2int
     from pypower.makeYbus import makeYbus
