@@ -15,7 +15,7 @@ from controlled_islanding.core.grid import Grid
 from controlled_islanding.safety import signing
 from controlled_islanding.safety.audit import AuditError, AuditLog, read_state
 from controlled_islanding.safety.topology import Topology, TopologyError
-from controlled_islanding.wire.timebounds import StampError, StampGate
+from controlled_islanding.wire.timebounds import SimClockGuard, StampError, StampGate
 
 
 # --- audit ------------------------------------------------------------------------------------------------------
@@ -184,6 +184,72 @@ def test_a_clock_that_lags_the_data_delays_a_value_but_never_loses_or_uses_it_ea
     assert used == ['trip-lagging']
     with pytest.raises(StampError):
         gate.offer('poison', 4.3 + 86400.0, 4.3, 'poison')
+
+
+# --- sim clock bound ---------------------------------------------------------------------------------------------
+T0 = 1_700_000_000.0  # a bag's start, POSIX s
+
+
+def sim_guard(readings: list[tuple[float, float]], max_rate: float = 100.0, max_jump_s: float = 5.0,
+              recovery_s: float = 2.0) -> tuple[SimClockGuard, list]:
+    """Feed (wall_s, sim_s) readings to a guard; return it and the jumps it found, one per reading (or None)."""
+    guard = SimClockGuard(max_rate=max_rate, max_jump_s=max_jump_s, recovery_s=recovery_s)
+    return guard, [guard.observe(w, s) for w, s in readings]
+
+
+def test_sim_clock_starting_standing_and_advancing_within_bounds_is_consistent():
+    # Not started (0), started at the bag's time, standing (a lockstep wait), then 100 x wall for 10 s.
+    readings = [(0.0, 0.0), (0.5, T0), (3.0, T0), (3.0, T0)] + [(3.0 + i * 0.01, T0 + i) for i in range(1, 1001)]
+    guard, jumps = sim_guard(readings)
+    assert jumps == [None] * len(readings)
+    assert guard.inconsistency(13.0) is None and guard.trusted_s == T0 + 1000
+
+
+def test_sim_clock_going_back_is_a_jump_and_moves_nothing():
+    guard, jumps = sim_guard([(0.0, T0), (1.0, T0 + 1.0), (1.1, T0 + 0.999)])
+    assert jumps[2].kind == 'back' and 'jumped back' in jumps[2].describe()
+    assert guard.trusted_s == T0 + 1.0
+    forged_2020 = 1_577_836_800.0
+    assert guard.observe(1.2, forged_2020).kind == 'back'
+    assert guard.trusted_s == T0 + 1.0
+    assert 'jumped back' in guard.inconsistency(1.3)
+
+
+def test_sim_clock_faster_than_its_rate_bound_is_a_jump_ahead():
+    # At 100 x wall with 5 s at once: 150 x wall for long enough exhausts the credit.
+    readings = [(0.0, T0)] + [(i * 0.01, T0 + i * 1.5) for i in range(1, 20)]
+    _, jumps = sim_guard(readings)
+    first = next(i for i, j in enumerate(jumps) if j is not None)
+    # The credit starts full (5 s); each 0.01 s adds 1 s and the clock takes 1.5 s: spent at the 9th reading.
+    assert jumps[first].kind == 'ahead' and first == 9
+    # The same advance at 90 x wall never is.
+    _, jumps = sim_guard([(0.0, T0)] + [(i * 0.01, T0 + i * 0.9) for i in range(1, 2000)])
+    assert jumps == [None] * 2000
+
+
+def test_sim_clock_a_day_ahead_is_a_jump_even_after_a_long_standstill():
+    # A clock that stood for an hour saved at most max_jump_s of credit.
+    guard, jumps = sim_guard([(0.0, T0), (3600.0, T0), (3600.0, T0 + 5.0), (3600.0, T0 + 5.0 + 86400.0)])
+    assert jumps[:3] == [None] * 3
+    assert jumps[3].kind == 'ahead' and 'jumped ahead 86400.000 s' in jumps[3].describe()
+    assert guard.trusted_s == T0 + 5.0
+
+
+def test_sim_clock_is_trusted_again_only_after_recovery_of_readings_on_the_trusted_clock():
+    guard = SimClockGuard(max_rate=100.0, max_jump_s=5.0, recovery_s=2.0)
+    guard.observe(0.0, T0)
+    assert guard.observe(1.0, T0 - 86400.0) is not None
+    # The honest clock goes on; the forger's readings interleave until wall 3.0, each one a jump.
+    for i in range(1, 21):
+        assert guard.observe(1.0 + i * 0.1, T0 + i * 0.1) is None
+        if i <= 10:
+            assert guard.observe(1.0 + i * 0.1, T0 - 86400.0) is not None
+    assert guard.inconsistency(3.9) is not None  # 1.9 s after the last forged reading
+    assert guard.inconsistency(4.0) is None
+    # A clock that stays on the forged timeline never is: each reading of it is a jump of its own.
+    assert guard.observe(6.0, T0 - 86400.0) is not None
+    assert guard.observe(100.0, T0 - 86400.0) is not None and guard.inconsistency(101.9) is not None
+    assert guard.jumps == 13
 
 
 def test_processes_initialising_one_directory_at_once_leave_matching_pairs(tmp_path):

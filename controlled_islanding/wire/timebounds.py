@@ -9,6 +9,9 @@ the future: every later, honest value then looks old. `StampGate` uses a stamp o
   be lost for that; held, a value is never used before its time, so it cannot poison anything early;
 - while the clock has not started (sim time before the first /clock reads 0): held, and judged once it runs.
 At most `max_held` values wait; beyond, the oldest is dropped. No rclpy here: the nodes pass their clock in.
+
+Under use_sim_time the node clock is itself a value from the wire (/clock, which any node may publish):
+`SimClockGuard` bounds it against the wall clock (monotonic, and no faster than a multiple of wall time).
 """
 
 from __future__ import annotations
@@ -107,3 +110,102 @@ class StampGate(Generic[T]):
     def held(self) -> int:
         """Number of items waiting for the clock."""
         return len(self._held)
+
+
+@dataclass(frozen=True)
+class ClockJump:
+    """One reading of sim time that the trusted clock cannot have produced.
+
+    Attributes:
+        kind: 'back' (earlier than the trusted time) or 'ahead' (further on than the rate bound allows).
+        trusted_s: The trusted sim time before the reading, s.
+        read_s: The sim time read, s.
+        allowed_s: How far sim time could have advanced since the trusted reading, s.
+
+    """
+
+    kind: str
+    trusted_s: float
+    read_s: float
+    allowed_s: float
+
+    def describe(self) -> str:
+        """Return a line naming the jump, for the audit log and diagnostics."""
+        lead_s = self.read_s - self.trusted_s
+        if self.kind == 'back':
+            return f'sim clock jumped back {-lead_s:.3f} s, from {self.trusted_s:.3f} s to {self.read_s:.3f} s'
+        return (f'sim clock jumped ahead {lead_s:.3f} s, from {self.trusted_s:.3f} s to {self.read_s:.3f} s, '
+                f'more than the {self.allowed_s:.3f} s it may advance by now')
+
+
+@dataclass
+class SimClockGuard:
+    """Bounds a sim clock (/clock) against the wall clock, so that no one publisher of /clock can forge time.
+
+    Under use_sim_time any node may publish /clock, and a node's freshness rules trust its clock. A reading is
+    consistent when it is no earlier than the trusted sim time (monotonic) and no further on than a token
+    bucket allows: `max_jump_s` at once, refilled at `max_rate` seconds of sim time per second of wall time
+    (so over any stretch, sim time advances at most max_rate x wall time + max_jump_s). A consistent reading
+    becomes the trusted time; an inconsistent one is a ClockJump and moves nothing, so the honest clock,
+    still running beside a forger, stays consistent with the trusted time while the forged readings do not.
+
+    The clock is consistent again once `recovery_s` of wall time passed since the last inconsistent reading:
+    every reading meanwhile followed the trusted clock. A clock that stays on another timeline (a forger
+    alone, or a new bag played into a running node) never does; only a restart of the node trusts it.
+    The first reading after the clock started (sim time > 0) is trusted as it is. No rclpy: the node passes
+    (wall, sim) readings in, wall on a steady clock.
+
+    Attributes:
+        max_rate: Seconds of sim time the clock may advance per second of wall time, on average.
+        max_jump_s: Sim time the clock may advance at once (and the most credit a standing clock saves), s.
+        recovery_s: Wall time after the last inconsistent reading before the clock is trusted again, s.
+
+    """
+
+    max_rate: float
+    max_jump_s: float
+    recovery_s: float
+
+    def __post_init__(self) -> None:
+        self._wall_s: float | None = None
+        self._sim_s = 0.0
+        self._budget_s = self.max_jump_s
+        self._last_jump_wall_s: float | None = None
+        self.last_jump: ClockJump | None = None
+        self.jumps = 0
+
+    def observe(self, wall_s: float, sim_s: float) -> ClockJump | None:
+        """Take one reading of the sim clock; return the jump it makes, or None when it is consistent."""
+        if self._wall_s is None:
+            if sim_s > 0.0:
+                self._wall_s, self._sim_s = wall_s, sim_s
+            return None
+        self._budget_s = min(self.max_jump_s, self._budget_s + self.max_rate * max(wall_s - self._wall_s, 0.0))
+        self._wall_s = max(wall_s, self._wall_s)
+        lead_s = sim_s - self._sim_s
+        if 0.0 <= lead_s <= self._budget_s:
+            self._budget_s -= lead_s
+            self._sim_s = sim_s
+            return None
+        jump = ClockJump('back' if lead_s < 0.0 else 'ahead', self._sim_s, sim_s, self._budget_s)
+        self._last_jump_wall_s, self.last_jump = self._wall_s, jump
+        self.jumps += 1
+        return jump
+
+    def inconsistency(self, wall_s: float) -> str | None:
+        """Why the clock cannot be trusted at `wall_s`, or None when it can.
+
+        Inconsistent: a jump less than `recovery_s` of wall time ago.
+        """
+        if self._last_jump_wall_s is None or self.last_jump is None:
+            return None
+        quiet_s = wall_s - self._last_jump_wall_s
+        if quiet_s >= self.recovery_s:
+            return None
+        return (f'{self.last_jump.describe()}, {quiet_s:.3f} s ago (wall); trusted again after {self.recovery_s:g} s '
+                'of readings that follow the trusted clock')
+
+    @property
+    def trusted_s(self) -> float:
+        """The trusted sim time, s (0 before the clock started)."""
+        return self._sim_s
