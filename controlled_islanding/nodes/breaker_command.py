@@ -36,6 +36,7 @@ from controlled_islanding.ros.diagnostics import Diagnostics
 from controlled_islanding.ros.endpoints import qos_for
 from controlled_islanding.ros.intake import SnapshotIntake
 from controlled_islanding.ros.params import NodeSetupError
+from controlled_islanding.ros.sim_clock import SimClockWatch
 from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.safety import signing
 from controlled_islanding.safety.actuation import Refusal, plan_commands
@@ -44,6 +45,7 @@ from controlled_islanding.safety.topology import Topology, TopologyError
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.messages import stamp_s
 from controlled_islanding.wire.qos import DECISION_LEASE_S
+from controlled_islanding.wire.timebounds import ClockJump
 
 _MAX_ID_CHARS = 128
 _NOT_DECIDED = {
@@ -155,7 +157,8 @@ class BreakerCommandNode(Node):
         except AuditError as exc:
             self.diag.fault('audit', f'{exc}; nothing will be commanded')
         self.topology = Topology(future_tolerance_s=self.future_tolerance_s)
-        self.inputs = ClockGate(self, self.diag, self.future_tolerance_s, 200, self._apply_input)
+        self.clock = SimClockWatch(self, self.diag, self._on_clock_jump)
+        self.inputs = ClockGate(self, self.diag, self.future_tolerance_s, 200, self._apply_input, clock=self.clock)
         self.pub = self.create_publisher(BreakerCommand, topics.relative(topics.BREAKER_COMMANDS),
                                          qos_for(topics.BREAKER_COMMANDS))
         self.decision_writers_alive = 0
@@ -191,6 +194,10 @@ class BreakerCommandNode(Node):
                                      f'restarted')
             return False
         return True
+
+    def _on_clock_jump(self, jump: ClockJump, jumps: int) -> None:
+        self._record('clock_jump', kind=jump.kind, trusted_s=jump.trusted_s, read_s=jump.read_s,
+                     allowed_s=jump.allowed_s, jumps=jumps, detail=jump.describe())
 
     def _refuse(self, reason: str, detail: str, **fields: object) -> None:
         self._record('refusal', reason=reason, detail=detail, **fields)
@@ -365,6 +372,9 @@ class BreakerCommandNode(Node):
             return
         seen = {'authenticated': True, 'request_stamp_s': request_s, **ids}
         try:
+            why = self.clock.inconsistency()
+            if why is not None:  # before anything uses the clock: a forged one would make old ids forgettable
+                raise Refusal('clock_inconsistent', f'this node clock cannot be trusted: {why}')
             self._forget_old()
             self._check(msg, request_s)
         except Refusal as exc:

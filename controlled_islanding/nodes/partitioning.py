@@ -48,6 +48,7 @@ from controlled_islanding.ros.endpoints import qos_for
 from controlled_islanding.ros.intake import SnapshotIntake
 from controlled_islanding.ros.params import NodeSetupError, declare_bounded
 from controlled_islanding.ros.pending import PendingRequests
+from controlled_islanding.ros.sim_clock import SimClockWatch
 from controlled_islanding.ros.spin import settle_heap, spin_node
 from controlled_islanding.safety import signing
 from controlled_islanding.safety.topology import Topology, TopologyError
@@ -138,7 +139,8 @@ class PartitioningNode(Node):
         self.diag = Diagnostics(self)
         self.intake = SnapshotIntake(self, self.diag)
         self.diag.values['partitioner'] = self.partitioner
-        self.inputs = ClockGate(self, self.diag, self.future_tolerance_s, 1000, self._apply_input)
+        self.clock = SimClockWatch(self, self.diag)
+        self.inputs = ClockGate(self, self.diag, self.future_tolerance_s, 1000, self._apply_input, clock=self.clock)
         self.decision_pub = self.create_publisher(IslandingDecision, topics.relative(topics.ISLANDING_DECISION),
                                                   qos_for(topics.ISLANDING_DECISION))
         self.request_pub = self.create_publisher(IslandingRequest, topics.relative(topics.ISLANDING_REQUEST),
@@ -263,6 +265,12 @@ class PartitioningNode(Node):
             response.accepted = False
             response.message = 'this node clock has not started (no /clock yet); nothing to stamp a request with'
             self.diag.reject('no_clock', f'service request: {response.message}')
+            return response
+        why = self.clock.inconsistency()
+        if why is not None:
+            response.accepted = False
+            response.message = f'this node clock cannot be trusted to stamp a request with: {why}'
+            self.diag.reject('clock_inconsistent', f'service request: {response.message}')
             return response
         self.request_pub.publish(msg)
         self._queue(msg)

@@ -1,4 +1,8 @@
-"""Every stamped input judged against the node clock before it is used (wire.timebounds.StampGate, per node)."""
+"""Every stamped input judged against the node clock before it is used (wire.timebounds.StampGate, per node).
+
+With a SimClockWatch (partitioning, breaker_command), the node clock itself is bounded first: while it is
+inconsistent, every input is held as before the clock started, so a forged /clock makes no stamp look due.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +12,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from controlled_islanding.ros.diagnostics import Diagnostics
+from controlled_islanding.ros.sim_clock import SimClockWatch
 from controlled_islanding.wire.timebounds import StampError, StampGate
 
 
@@ -25,18 +30,22 @@ class ClockGate:
         max_held: How many inputs may wait; the oldest is dropped beyond.
         use: Called with each input that may be used.
         period_s: Wall time between looks at held inputs, s.
+        clock: The node's sim clock bound (SimClockWatch), if it keeps one.
 
     """
 
     def __init__(self, node: Node, diag: Diagnostics, future_tolerance_s: float, max_held: int,
-                 use: Callable[[object], None], period_s: float = 0.05) -> None:
+                 use: Callable[[object], None], period_s: float = 0.05, clock: SimClockWatch | None = None) -> None:
         self._node, self._diag, self._use = node, diag, use
+        self._clock = clock
         self.gate: StampGate = StampGate(future_tolerance_s, max_held)
         self._timer = node.create_timer(period_s, diag.guard(self.release),
                                         clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._timer.cancel()
 
     def _now_s(self) -> float:
+        if self._clock is not None and self._clock.inconsistency() is not None:
+            return 0.0  # held as before the clock started
         return self._node.get_clock().now().nanoseconds * 1e-9
 
     def _refuse(self, exc: StampError) -> None:
