@@ -55,3 +55,23 @@ def test_stamps_outside_the_bounds_are_errors():
     run(status, 1, 60.0, start_s=T0_S + 6, lag_s=-3.0)
     assert status.message == 'Timestamps too far in future seen.'
     assert float(status.values['Earliest timestamp delay:']) < -2.9
+
+
+def test_a_fault_and_a_warning_both_log_and_hold_in_one_node(rclpy_context):
+    # rclpy raises when one call site logs at two severities: a breaker node with a fault once lost its
+    # control_centre_silent warning (and counted a callback error) that way.
+    import rclpy
+
+    from controlled_islanding.ros.diagnostics import Diagnostics
+
+    node = rclpy.create_node('diagnostics_levels', context=rclpy_context)
+    try:
+        diag = Diagnostics(node)
+        diag.fault('clock_inconsistent', 'sim clock jumped back')
+        diag.warn('control_centre_silent', 'no live decision writer')
+        diag.fault('clock_inconsistent', None)
+        diag.warn('control_centre_silent', 'still none')
+        assert diag.warnings == {'control_centre_silent': 'still none'} and diag.faults == {}
+        assert diag.level()[0] == DiagnosticStatus.WARN
+    finally:
+        node.destroy_node()

@@ -117,6 +117,8 @@ def test_a_forged_clock_beside_the_honest_one_and_alone_gets_no_command(tmp_path
         probe.pubs[topics.ISLANDING_DECISION].publish(decision_msg(island, cut, clocks.honest_ns()))
         assert probe.spin_until(lambda: len(commands) == len(cut), 10.0), probe.diagnostics.get(NODE)
         assert probe.spin_until(lambda: 'fault.clock_inconsistent' not in probe.diagnostics.get(NODE, {}), 5.0)
+        probe.spin_for(0.5)
+        assert not [k for k in probe.diagnostics[NODE] if k.startswith('error.')], probe.diagnostics[NODE]
         sup.check_alive()
     records = [json.loads(line) for line in audit.read_text().splitlines()]
     jumps = [r for r in records if r['event'] == 'clock_jump']

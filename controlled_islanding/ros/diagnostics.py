@@ -263,21 +263,29 @@ class Diagnostics:
 
     def fault(self, key: str, detail: str | None) -> None:
         """Raise (detail given) or clear (None) a lasting condition that keeps the level at ERROR."""
-        self._condition(self.faults, key, detail, self._node.get_logger().error)
+        if self._condition(self.faults, key, detail):
+            self._node.get_logger().error(f'{key}: {detail}')
+            self.publish()
 
     def warn(self, key: str, detail: str | None) -> None:
         """Raise (detail given) or clear (None) a lasting condition that keeps the level at least at WARN."""
-        self._condition(self.warnings, key, detail, self._node.get_logger().warning)
+        # Logged here, not in _condition: rclpy raises when one call site logs at two severities (a breaker
+        # node with a fault raised lost its control_centre_silent warning to that).
+        if self._condition(self.warnings, key, detail):
+            self._node.get_logger().warning(f'{key}: {detail}')
+            self.publish()
 
-    def _condition(self, held: dict[str, str], key: str, detail: str | None, log: Callable[[str], object]) -> None:
+    def _condition(self, held: dict[str, str], key: str, detail: str | None) -> bool:
+        """Update a condition; return True when it is raised anew or its detail changed (the caller logs it)."""
         if detail is None:
             if held.pop(key, None) is not None:
                 self._node.get_logger().info(f'{key}: over')
                 self.publish()
-        elif held.get(key) != detail:
-            held[key] = detail
-            log(f'{key}: {detail}')
-            self.publish()
+            return False
+        if held.get(key) == detail:
+            return False
+        held[key] = detail
+        return True
 
     def computed(self, seconds: float) -> None:
         """Record one compute time in s."""
