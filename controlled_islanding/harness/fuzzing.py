@@ -69,9 +69,15 @@ BIG_WAIT_S = 20.0
 # progress until it is done.
 STALL_S = 0.5
 BIG_STALL_S = 5.0
-# The fuzz runs on a sim clock this far (s) before the bag's first message, so nothing the fuzz leaves
-# behind is newer than the bag's data, and the clock only ever moves forward.
-FUZZ_CLOCK_LEAD_S = 86_400.0
+# The fuzz runs on a sim clock that starts this far (s) before the bag's first message and stands still
+# FUZZ_CLOCK_MARGIN_S before it, so nothing the fuzz leaves behind is newer than the bag's data. Before the
+# replay it is brought up to HANDOVER_GAP_S before the bag's start in steps of CATCH_UP_STEP_S, one a tick:
+# the nodes bound their sim clock (wire/timebounds.SimClockGuard: at most 10 s at once, 1000 x wall time by
+# default), and a clock that leapt to the bag would be refused as forged for the rest of the graph's life.
+FUZZ_CLOCK_LEAD_S = 300.0
+FUZZ_CLOCK_MARGIN_S = 60.0
+HANDOVER_GAP_S = 5.0
+CATCH_UP_STEP_S = 2.0
 RSS_LIMIT_MB = 20.0
 # Wall time the nodes get to publish their first diagnostics, s (also the supervisor's start-up grace in the soak):
 # coherency imports scipy and loads numba's DTW engine, which took over 20 s on the shared 2-core machine under a
@@ -818,9 +824,12 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
     names = [spec.executable for spec in GRAPH]
     fuzz_t0_s = seeds.bag_start_s - FUZZ_CLOCK_LEAD_S
     clock_origin = time.monotonic()
+    catching_up_s: list[float | None] = [None]
 
     def sim_now_s() -> float:
-        return fuzz_t0_s + (time.monotonic() - clock_origin)
+        if catching_up_s[0] is not None:
+            return catching_up_s[0]
+        return min(fuzz_t0_s + (time.monotonic() - clock_origin), seeds.bag_start_s - FUZZ_CLOCK_MARGIN_S)
 
     diagnostics: dict[str, dict[str, str]] = {}
     heartbeats: dict[str, float] = {}
@@ -956,6 +965,11 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
                         nr.rss_cold_growth_mb = (after - rss_before[n]) / 1024.0
                     report.nodes.append(nr)
                 report.commands_during_fuzz = sum(1 for during_replay, _ in commands if not during_replay)
+                catching_up_s[0] = sim_now_s()
+                while catching_up_s[0] < seeds.bag_start_s - HANDOVER_GAP_S:
+                    catching_up_s[0] = min(catching_up_s[0] + CATCH_UP_STEP_S, seeds.bag_start_s - HANDOVER_GAP_S)
+                    spin(sup, 0.025)
+                spin(sup, 0.1)
                 report.replay = _replay(sup, node, spin, bag, entry, seeds, results, decisions, commands,
                                         replaying, PLAYER, progress, clock_topic)
                 for nr in report.nodes:
