@@ -165,19 +165,12 @@ def test_default_bag_in_real_time_disarmed_decides_the_same_and_commands_nothing
                                    if e['expected_decision'].get('split')])
 def test_bag_decision_exports_with_each_island_as_decided(entry, replays, tmp_path):
     """The replay's own decision, exported: each island the load (after its shed) and generation it decided on."""
-    from test_export import EXPORT_DOES_NOT_SOLVE, check_islands_as_decided
+    from test_export import check_islands_as_decided
 
     summary = summary_of(replays, entry['name'])
     if not summary['split'] and entry['name'] in KNOWN_WRONG:
         pytest.xfail(f'the replay does not split: {KNOWN_WRONG[entry["name"]]}')
-    decision_file = Path(summary['results_dir']) / 'summary.json'
-    if entry['name'] not in EXPORT_DOES_NOT_SOLVE:
-        check_islands_as_decided(decision_file, summary, tmp_path)
-        return
-    check_islands_as_decided(decision_file, summary, tmp_path, solves=False)
-    with pytest.raises(AssertionError, match='does not converge'):  # strict: one that starts to solve shows here
-        check_islands_as_decided(decision_file, summary, tmp_path)
-    pytest.xfail(EXPORT_DOES_NOT_SOLVE[entry['name']])
+    check_islands_as_decided(Path(summary['results_dir']) / 'summary.json', summary, tmp_path)
 
 
 @pytest.mark.skipif(not ENTRIES, reason='no bag of bags/index.yaml is present')

@@ -26,7 +26,7 @@ import numpy as np
 from controlled_islanding import atomic
 
 # MATPOWER columns (0-based), from the MATPOWER case format documentation.
-_BUS_I, _BUS_TYPE, _BUS_PD, _BUS_QD, _BUS_BS, _BUS_BASE_KV = 0, 1, 2, 3, 5, 9
+_BUS_I, _BUS_TYPE, _BUS_PD, _BUS_QD, _BUS_GS, _BUS_BS, _BUS_BASE_KV = 0, 1, 2, 3, 4, 5, 9
 _GEN_BUS, _GEN_PG, _GEN_STATUS = 0, 1, 7
 _BR_F, _BR_T, _BR_R, _BR_X, _BR_B, _BR_TAP, _BR_SHIFT, _BR_STATUS = 0, 1, 2, 3, 4, 8, 9, 10
 _REF, _PV, _PQ = 3, 2, 1
@@ -196,6 +196,13 @@ def matpower_case(ss: Any, decision: Decision) -> dict[str, Any]:
         on = np.asarray(ss.PQ.u.v, dtype=float)
         np.add.at(bus[:, _BUS_PD], pq_rows, on * np.asarray(ss.PQ.p0.v, dtype=float) * mva)
         np.add.at(bus[:, _BUS_QD], pq_rows, on * np.asarray(ss.PQ.q0.v, dtype=float) * mva)
+    # Shunts too: EI 33 has 22 GVAr more of them than system2mpc keeps, and no power flow of its case then solves.
+    bus[:, [_BUS_GS, _BUS_BS]] = 0.0
+    if ss.Shunt.n:
+        shunt_rows = ss.Bus.idx2uid(ss.Shunt.bus.v)
+        on = np.asarray(ss.Shunt.u.v, dtype=float)
+        np.add.at(bus[:, _BUS_GS], shunt_rows, on * np.asarray(ss.Shunt.g.v, dtype=float) * mva)
+        np.add.at(bus[:, _BUS_BS], shunt_rows, on * np.asarray(ss.Shunt.b.v, dtype=float) * mva)
     # The slack's dispatch is what its power flow gave it, as the decision's snapshot has it, not its set point.
     gen[:ss.Slack.n, _GEN_PG] = np.asarray(ss.Slack.p.v, dtype=float) * mva
     ppc['branch'][line_rows(ss, [*decision.outages, *decision.cut_branch_ids]), _BR_STATUS] = 0
