@@ -25,7 +25,10 @@ Rules (docs/coherency_rules.md compares them on every scenario bag; `RULES` maps
   Otherwise the groups are the complete-linkage clusters of r in which no group holds a separating pair and no
   two groups could merge without one: separating pairs are cannot-links, r (the paper's DTW coherency) decides
   where every other machine goes. k is what the data need, a single runaway machine is a group of its own, and
-  max_groups is only a cap (beyond it the groups that drift apart least are merged, and scores_ says so).
+  max_groups is only a cap (beyond it the groups that drift apart least are merged, and scores_ says so). When
+  the separating pairs are exactly the pairs between some classes (groups slipping apart as wholes), those
+  classes are the linkage's groups whatever r is, so r is not computed at all (SeparationRule._forced_groups
+  proves it; test_core_forced_groups.py checks it against the linkage on every pair).
 - ``threshold``: the former rule, RMS warped distance r against a fixed ``coherence_threshold_rad`` (1.0 rad,
   measured on IEEE 39 bags). Kept for comparison.
 - ``eigengap``: largest gap in the spectrum of the normalised Laplacian of a self-tuning Gaussian affinity of r
@@ -446,6 +449,9 @@ class SeparationRule:
         separating = self.separating(ev)
         if ev.n < 2 or not separating.any():
             return _one_group(ev.n)
+        forced = self._forced_groups(ev, separating)
+        if forced is not None:
+            return forced
         # A separating pair's r is never read: its distance below is set apart whatever r is.
         r = ev.rms_of(~separating)
         # Complete linkage of r in which a separating pair is farther apart than any other: cut below that
@@ -460,6 +466,42 @@ class SeparationRule:
             self.scores_['merged_beyond_max_groups'] = int(labels.max())
             labels = fcluster(tree, t=ev.max_groups, criterion='maxclust')
         return canonical(labels)
+
+    @staticmethod
+    def _forced_groups(ev: Evidence, separating: np.ndarray) -> np.ndarray | None:
+        """Return the groups the linkage in choose() forms whatever r is, or None when r decides them.
+
+        When "not separating" is an equivalence relation (every machine is compatible with exactly the members of
+        its own class, i.e. the separating pairs are all the pairs between classes: the usual shape of groups
+        slipping apart), the constrained complete linkage forms exactly those classes, so no DTW is needed. Proof:
+        a compatible pair's distance is r <= max r < apart and a separating pair's is apart + |drift| > apart.
+        While a class is in two clusters of the linkage, those two are closer than apart, and every two clusters
+        of different classes are farther, so the linkage completes each class (at heights below apart) before
+        any merge across classes (above apart), and the cut at apart returns the classes. Ties among r move
+        merges within a class only.
+
+        Two guards keep it to where that holds in floating point, the linkage being taken otherwise:
+        - as many classes as max_groups at most (beyond, the cap's merges are read off the tree);
+        - apart + |drift| > apart for every separating pair. apart = 2 max r + 1 is not known without the DTW,
+          but r <= 2 sqrt(2) R, R the widest range of one series in the window (after taking off a mean, two
+          samples differ by at most range_p + range_q, and a warping path has fewer than 2 max(n_p, n_q) cells;
+          block means stay within the range), so apart < 4 sqrt(2) R + 1, and |drift| above the spacing of floats
+          at 8 R + 2 (rounding of r and apart included) suffices.
+        """
+        compatible = ~separating  # the diagonal is compatible: separating() clears it
+        # Each machine's first compatible machine names its class if compatibility is an equivalence relation;
+        # conversely, when "same first" is exactly "compatible", compatibility is the kernel of that map.
+        first = compatible.argmax(axis=1)
+        if not np.array_equal(first[:, None] == first[None, :], compatible):
+            return None
+        if len(np.unique(first)) > ev.max_groups:
+            return None
+        angles = ev.angles_rad
+        widest = float(np.max(np.nanmax(angles, axis=1) - np.nanmin(angles, axis=1)))
+        upper = np.spacing(8.0 * widest + 2.0)
+        if not float(np.min(np.abs(ev.drift_rad)[separating])) > upper:
+            return None
+        return canonical(first)
 
 
 class ThresholdRule:
