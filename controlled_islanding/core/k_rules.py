@@ -110,22 +110,43 @@ def pair_drift_rad(angles: np.ndarray, per_sample: bool = False) -> np.ndarray:
         shares < 2 samples).
 
     """
-    drift, rate = _drift_and_rate(angles)
+    drift, rate, _ = _drift_and_rate(angles)
     return rate if per_sample else drift
 
 
-def _drift_and_rate(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Return pair_drift_rad's drift and rate matrices from one pass."""
+def _drift_and_rate(angles: np.ndarray, half: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return pair_drift_rad's drift and rate matrices, and the rate over samples half .. end, from one pass.
+
+    The latest rate is bit for bit pair_drift_rad(angles[:, half:], per_sample=True): its sums run over the same
+    samples in the same order, time counted from the half. half=None leaves it zero.
+    """
     angles = np.ascontiguousarray(angles, dtype=np.float64)
     drift = np.zeros((angles.shape[0], angles.shape[0]))
-    rate = np.zeros_like(drift)
-    _drift_rows(angles, drift, rate)
-    return drift - drift.T, rate - rate.T
+    rate, latest = np.zeros_like(drift), np.zeros_like(drift)
+    _drift_rows(angles, angles.shape[1] if half is None else half, drift, rate, latest)
+    return drift, rate, latest
 
 
 @numba.njit(cache=True)
-def _drift_rows(angles, drift, rate):
-    """pair_drift_rad's drift and rate of every pair p < q into [p, q] (time in samples)."""
+def _slope(count, sx, sxx, sd, sxd):
+    """Least-squares slope and its first-to-last drift from the sums (0, 0 below two samples or no spread)."""
+    if count < 2.0:
+        return 0.0, 0.0, False
+    var_x = sxx - sx * sx / count
+    if not var_x > 0.0:
+        return 0.0, 0.0, False
+    slope = (sxd - sx * sd / count) / var_x
+    # First-to-last distance of count evenly spaced samples, from their spread, so lost samples leave it fair.
+    return slope, slope * np.sqrt(12.0 * var_x / count * (count - 1.0) / (count + 1.0)), True
+
+
+@numba.njit(cache=True)
+def _drift_rows(angles, half, drift, rate, latest):
+    """pair_drift_rad's drift and rate of every pair p < q into [p, q], and 0 - them into [q, p] (time in samples).
+
+    latest receives the rate over samples half .. m - 1, time counted from half. [q, p] is what subtracting the
+    transpose of a strict upper triangle gave, the former way, 0.0 - x.
+    """
     n, m = angles.shape
     finite = np.empty((n, m), dtype=np.bool_)
     for p in range(n):
@@ -134,6 +155,7 @@ def _drift_rows(angles, drift, rate):
     for p in range(n):
         for q in range(p + 1, n):
             count, sx, sxx, sd, sxd = 0.0, 0.0, 0.0, 0.0, 0.0
+            count2, sx2, sxx2, sd2, sxd2 = 0.0, 0.0, 0.0, 0.0, 0.0
             for t in range(m):
                 if finite[p, t] and finite[q, t]:
                     d = angles[p, t] - angles[q, t]
@@ -142,15 +164,20 @@ def _drift_rows(angles, drift, rate):
                     sxx += t * t
                     sd += d
                     sxd += t * d
-            if count < 2.0:
-                continue
-            var_x = sxx - sx * sx / count
-            if not var_x > 0.0:
-                continue
-            slope = (sxd - sx * sd / count) / var_x
-            rate[p, q] = slope
-            # First-to-last distance of count evenly spaced samples, from their spread, so lost samples leave it fair.
-            drift[p, q] = slope * np.sqrt(12.0 * var_x / count * (count - 1.0) / (count + 1.0))
+                    if t >= half:
+                        u = t - half
+                        count2 += 1.0
+                        sx2 += u
+                        sxx2 += u * u
+                        sd2 += d
+                        sxd2 += u * d
+            slope, span, ok = _slope(count, sx, sxx, sd, sxd)
+            if ok:
+                rate[p, q], drift[p, q] = slope, span
+                rate[q, p], drift[q, p] = 0.0 - slope, 0.0 - span
+            slope, span, ok = _slope(count2, sx2, sxx2, sd2, sxd2)
+            if ok:
+                latest[p, q], latest[q, p] = slope, 0.0 - slope
 
 
 @dataclass
@@ -173,6 +200,7 @@ class Evidence:
     cluster: Callable[[int], np.ndarray]
     _drift: np.ndarray | None = field(default=None, repr=False)
     _rate: np.ndarray | None = field(default=None, repr=False)
+    _latest: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def n(self) -> int:
@@ -192,16 +220,24 @@ class Evidence:
     @property
     def drift_rad(self) -> np.ndarray:
         """Return pair_drift_rad of the window (computed on first use)."""
-        if self._drift is None:
-            self._drift, self._rate = _drift_and_rate(self.angles_rad)
+        self._measure_drift()
         return self._drift
 
     @property
     def rate_rad_per_sample(self) -> np.ndarray:
         """Return pair_drift_rad(per_sample=True) of the window (computed with drift_rad)."""
-        if self._rate is None:
-            self._drift, self._rate = _drift_and_rate(self.angles_rad)
+        self._measure_drift()
         return self._rate
+
+    @property
+    def latest_rate_rad_per_sample(self) -> np.ndarray:
+        """Return pair_drift_rad(per_sample=True) of the latest half of the window (samples m // 2 on)."""
+        self._measure_drift()
+        return self._latest
+
+    def _measure_drift(self) -> None:
+        if self._drift is None:
+            self._drift, self._rate, self._latest = _drift_and_rate(self.angles_rad, self.angles_rad.shape[1] // 2)
 
 
 def _one_group(n: int) -> np.ndarray:
@@ -321,11 +357,15 @@ def _runaway_rows(angles, runaway, deviation):
     n, m = angles.shape
     diff, quarter_diff = np.empty(m), np.empty(m)
     both = np.empty(m, dtype=np.bool_)
+    finite = np.empty((n, m), dtype=np.bool_)
+    for p in range(n):
+        for t in range(m):
+            finite[p, t] = np.isfinite(angles[p, t])
     for p in range(n):
         for q in range(p + 1, n):
             count, first, last = 0, -1, -1
             for t in range(m):
-                ok = np.isfinite(angles[p, t]) and np.isfinite(angles[q, t])
+                ok = finite[p, t] and finite[q, t]
                 both[t] = ok
                 diff[t] = angles[p, t] - angles[q, t] if ok else 0.0
                 if ok:
@@ -430,7 +470,7 @@ class SeparationRule:
         bar = np.pi / (1.0 + self.horizon_windows)
         drift = np.abs(ev.drift_rad)
         rate = ev.rate_rad_per_sample
-        latest = pair_drift_rad(ev.angles_rad[:, ev.angles_rad.shape[1] // 2:], per_sample=True)
+        latest = ev.latest_rate_rad_per_sample
         # Not slowing down: over the latest half of the window the pair moves on, the same way, at least at the
         # window's mean rate. Rates, not drifts: the latest half spans (n - 1) // 2 of an even count's n - 1 sample
         # steps, and a pair whose first samples are lost spans less than the window, so a doubled drift over the
