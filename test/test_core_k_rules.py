@@ -256,3 +256,18 @@ def test_a_rule_instance_with_its_own_settings_is_used() -> None:
 def test_bad_rules_are_refused(rule, message: str) -> None:
     with pytest.raises(CoherencyError, match=message):
         DTWCoherency(k_rule=rule).fit(two_areas(lambda t: 2.0 * t ** 2))
+
+
+def test_one_pass_gives_the_latest_halfs_rate_bit_for_bit() -> None:
+    from controlled_islanding.core.k_rules import _drift_and_rate
+
+    rng = np.random.default_rng(9)
+    for m in (4, 37, 91, 180):
+        angles = np.cumsum(rng.normal(0, 0.05, (12, m)), axis=1) + rng.uniform(-1, 1, (12, 1))
+        angles[rng.random(angles.shape) < 0.15] = np.nan
+        angles[0, m // 2:-1] = np.nan  # one sample left in the latest half: no rate there
+        drift, rate, latest = _drift_and_rate(angles, m // 2)
+        assert np.array_equal(drift, pair_drift_rad(angles)) and np.array_equal(rate, pair_drift_rad(angles, True))
+        expected = pair_drift_rad(angles[:, m // 2:], per_sample=True)
+        assert np.array_equal(latest, expected) and np.array_equal(np.signbit(latest), np.signbit(expected))
+        assert np.array_equal(drift, -drift.T) and not latest[0].any() and rate[0].any()

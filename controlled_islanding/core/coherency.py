@@ -81,6 +81,25 @@ def decimation_factor(t_s: np.ndarray | Sequence[float], target_fps: float) -> i
     return max(1, int(round(1.0 / (target_fps * float(np.median(steps))))))
 
 
+def _on_one_grid(series: Sequence[np.ndarray]) -> np.ndarray:
+    """Return the series start-aligned on one time grid, (n, longest length), NaN past a shorter one's end.
+
+    Raises DTWError as clean_series does for the first series it would refuse; equal lengths (every window of
+    the coherency node) are checked as one array.
+    """
+    arrays = [np.asarray(x, dtype=float) for x in series]
+    length = max(len(x) if x.ndim == 1 else 0 for x in arrays)
+    if all(x.ndim == 1 and len(x) == length for x in arrays):
+        grid = np.array(arrays)
+        bad = np.isinf(grid).any(axis=1) | np.isnan(grid).all(axis=1)
+        if not bad.any():
+            return grid
+        arrays = arrays[:int(np.argmax(bad)) + 1]
+    for i, x in enumerate(arrays):
+        clean_series(x, f'series {i}')
+    return np.array([np.concatenate([x, np.full(length - len(x), np.nan)]) for x in arrays])
+
+
 class _PairDistances:
     """DTW (rad^2) and RMS (rad) matrices of mean-referenced series, computed pair by pair as asked (see module doc).
 
@@ -90,17 +109,12 @@ class _PairDistances:
     """
 
     def __init__(self, series: Sequence[np.ndarray], window: int | None, decimate: int = 1) -> None:
-        for i, x in enumerate(series):
-            clean_series(x, f'series {i}')
-        n = len(series)
-        # Start-aligned on one time grid: a shorter series lost its end (or it is not delivered yet).
-        length = max(len(x) for x in series)
-        self.grid = np.array([np.concatenate([np.asarray(x, dtype=float), np.full(length - len(x), np.nan)])
-                              for x in series])
+        self.grid = _on_one_grid(series)
         on = block_means(self.grid, decimate) if decimate > 1 else self.grid
         self.window = window if window is None or decimate == 1 else -(-window // decimate)
         self.on_grid = on
-        self.clean = [np.ascontiguousarray(row[~np.isnan(row)]) for row in on]
+        self._clean: list[np.ndarray] | None = None
+        n = len(series)
         valid = ~np.isnan(on)
         self.first = valid.argmax(axis=1)
         self.last = valid.shape[1] - 1 - valid[:, ::-1].argmax(axis=1)
@@ -109,6 +123,13 @@ class _PairDistances:
         self.rms = np.full((n, n), np.nan)
         np.fill_diagonal(self.dtw, 0.0)
         np.fill_diagonal(self.rms, 0.0)
+
+    @property
+    def clean(self) -> list[np.ndarray]:
+        """Return each series' valid samples (of the block means with ``decimate``): what DTW aligns."""
+        if self._clean is None:
+            self._clean = [np.ascontiguousarray(row[~np.isnan(row)]) for row in self.on_grid]
+        return self._clean
 
     def rms_rad(self, pairs: np.ndarray | None = None) -> np.ndarray:
         """Return the RMS matrix with at least the pairs of the boolean mask ``pairs`` (None: all) computed."""

@@ -25,7 +25,10 @@ Rules (docs/coherency_rules.md compares them on every scenario bag; `RULES` maps
   Otherwise the groups are the complete-linkage clusters of r in which no group holds a separating pair and no
   two groups could merge without one: separating pairs are cannot-links, r (the paper's DTW coherency) decides
   where every other machine goes. k is what the data need, a single runaway machine is a group of its own, and
-  max_groups is only a cap (beyond it the groups that drift apart least are merged, and scores_ says so).
+  max_groups is only a cap (beyond it the groups that drift apart least are merged, and scores_ says so). When
+  the separating pairs are exactly the pairs between some classes (groups slipping apart as wholes), those
+  classes are the linkage's groups whatever r is, so r is not computed at all (SeparationRule._forced_groups
+  proves it; test_core_forced_groups.py checks it against the linkage on every pair).
 - ``threshold``: the former rule, RMS warped distance r against a fixed ``coherence_threshold_rad`` (1.0 rad,
   measured on IEEE 39 bags). Kept for comparison.
 - ``eigengap``: largest gap in the spectrum of the normalised Laplacian of a self-tuning Gaussian affinity of r
@@ -107,22 +110,43 @@ def pair_drift_rad(angles: np.ndarray, per_sample: bool = False) -> np.ndarray:
         shares < 2 samples).
 
     """
-    drift, rate = _drift_and_rate(angles)
+    drift, rate, _ = _drift_and_rate(angles)
     return rate if per_sample else drift
 
 
-def _drift_and_rate(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Return pair_drift_rad's drift and rate matrices from one pass."""
+def _drift_and_rate(angles: np.ndarray, half: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return pair_drift_rad's drift and rate matrices, and the rate over samples half .. end, from one pass.
+
+    The latest rate is bit for bit pair_drift_rad(angles[:, half:], per_sample=True): its sums run over the same
+    samples in the same order, time counted from the half. half=None leaves it zero.
+    """
     angles = np.ascontiguousarray(angles, dtype=np.float64)
     drift = np.zeros((angles.shape[0], angles.shape[0]))
-    rate = np.zeros_like(drift)
-    _drift_rows(angles, drift, rate)
-    return drift - drift.T, rate - rate.T
+    rate, latest = np.zeros_like(drift), np.zeros_like(drift)
+    _drift_rows(angles, angles.shape[1] if half is None else half, drift, rate, latest)
+    return drift, rate, latest
 
 
 @numba.njit(cache=True)
-def _drift_rows(angles, drift, rate):
-    """pair_drift_rad's drift and rate of every pair p < q into [p, q] (time in samples)."""
+def _slope(count, sx, sxx, sd, sxd):
+    """Least-squares slope and its first-to-last drift from the sums (0, 0 below two samples or no spread)."""
+    if count < 2.0:
+        return 0.0, 0.0, False
+    var_x = sxx - sx * sx / count
+    if not var_x > 0.0:
+        return 0.0, 0.0, False
+    slope = (sxd - sx * sd / count) / var_x
+    # First-to-last distance of count evenly spaced samples, from their spread, so lost samples leave it fair.
+    return slope, slope * np.sqrt(12.0 * var_x / count * (count - 1.0) / (count + 1.0)), True
+
+
+@numba.njit(cache=True)
+def _drift_rows(angles, half, drift, rate, latest):
+    """pair_drift_rad's drift and rate of every pair p < q into [p, q], and 0 - them into [q, p] (time in samples).
+
+    latest receives the rate over samples half .. m - 1, time counted from half. [q, p] is what subtracting the
+    transpose of a strict upper triangle gave, the former way, 0.0 - x.
+    """
     n, m = angles.shape
     finite = np.empty((n, m), dtype=np.bool_)
     for p in range(n):
@@ -131,6 +155,7 @@ def _drift_rows(angles, drift, rate):
     for p in range(n):
         for q in range(p + 1, n):
             count, sx, sxx, sd, sxd = 0.0, 0.0, 0.0, 0.0, 0.0
+            count2, sx2, sxx2, sd2, sxd2 = 0.0, 0.0, 0.0, 0.0, 0.0
             for t in range(m):
                 if finite[p, t] and finite[q, t]:
                     d = angles[p, t] - angles[q, t]
@@ -139,15 +164,20 @@ def _drift_rows(angles, drift, rate):
                     sxx += t * t
                     sd += d
                     sxd += t * d
-            if count < 2.0:
-                continue
-            var_x = sxx - sx * sx / count
-            if not var_x > 0.0:
-                continue
-            slope = (sxd - sx * sd / count) / var_x
-            rate[p, q] = slope
-            # First-to-last distance of count evenly spaced samples, from their spread, so lost samples leave it fair.
-            drift[p, q] = slope * np.sqrt(12.0 * var_x / count * (count - 1.0) / (count + 1.0))
+                    if t >= half:
+                        u = t - half
+                        count2 += 1.0
+                        sx2 += u
+                        sxx2 += u * u
+                        sd2 += d
+                        sxd2 += u * d
+            slope, span, ok = _slope(count, sx, sxx, sd, sxd)
+            if ok:
+                rate[p, q], drift[p, q] = slope, span
+                rate[q, p], drift[q, p] = 0.0 - slope, 0.0 - span
+            slope, span, ok = _slope(count2, sx2, sxx2, sd2, sxd2)
+            if ok:
+                latest[p, q], latest[q, p] = slope, 0.0 - slope
 
 
 @dataclass
@@ -170,6 +200,7 @@ class Evidence:
     cluster: Callable[[int], np.ndarray]
     _drift: np.ndarray | None = field(default=None, repr=False)
     _rate: np.ndarray | None = field(default=None, repr=False)
+    _latest: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def n(self) -> int:
@@ -189,16 +220,24 @@ class Evidence:
     @property
     def drift_rad(self) -> np.ndarray:
         """Return pair_drift_rad of the window (computed on first use)."""
-        if self._drift is None:
-            self._drift, self._rate = _drift_and_rate(self.angles_rad)
+        self._measure_drift()
         return self._drift
 
     @property
     def rate_rad_per_sample(self) -> np.ndarray:
         """Return pair_drift_rad(per_sample=True) of the window (computed with drift_rad)."""
-        if self._rate is None:
-            self._drift, self._rate = _drift_and_rate(self.angles_rad)
+        self._measure_drift()
         return self._rate
+
+    @property
+    def latest_rate_rad_per_sample(self) -> np.ndarray:
+        """Return pair_drift_rad(per_sample=True) of the latest half of the window (samples m // 2 on)."""
+        self._measure_drift()
+        return self._latest
+
+    def _measure_drift(self) -> None:
+        if self._drift is None:
+            self._drift, self._rate, self._latest = _drift_and_rate(self.angles_rad, self.angles_rad.shape[1] // 2)
 
 
 def _one_group(n: int) -> np.ndarray:
@@ -318,11 +357,15 @@ def _runaway_rows(angles, runaway, deviation):
     n, m = angles.shape
     diff, quarter_diff = np.empty(m), np.empty(m)
     both = np.empty(m, dtype=np.bool_)
+    finite = np.empty((n, m), dtype=np.bool_)
+    for p in range(n):
+        for t in range(m):
+            finite[p, t] = np.isfinite(angles[p, t])
     for p in range(n):
         for q in range(p + 1, n):
             count, first, last = 0, -1, -1
             for t in range(m):
-                ok = np.isfinite(angles[p, t]) and np.isfinite(angles[q, t])
+                ok = finite[p, t] and finite[q, t]
                 both[t] = ok
                 diff[t] = angles[p, t] - angles[q, t] if ok else 0.0
                 if ok:
@@ -427,7 +470,7 @@ class SeparationRule:
         bar = np.pi / (1.0 + self.horizon_windows)
         drift = np.abs(ev.drift_rad)
         rate = ev.rate_rad_per_sample
-        latest = pair_drift_rad(ev.angles_rad[:, ev.angles_rad.shape[1] // 2:], per_sample=True)
+        latest = ev.latest_rate_rad_per_sample
         # Not slowing down: over the latest half of the window the pair moves on, the same way, at least at the
         # window's mean rate. Rates, not drifts: the latest half spans (n - 1) // 2 of an even count's n - 1 sample
         # steps, and a pair whose first samples are lost spans less than the window, so a doubled drift over the
@@ -446,6 +489,9 @@ class SeparationRule:
         separating = self.separating(ev)
         if ev.n < 2 or not separating.any():
             return _one_group(ev.n)
+        forced = self._forced_groups(ev, separating)
+        if forced is not None:
+            return forced
         # A separating pair's r is never read: its distance below is set apart whatever r is.
         r = ev.rms_of(~separating)
         # Complete linkage of r in which a separating pair is farther apart than any other: cut below that
@@ -460,6 +506,42 @@ class SeparationRule:
             self.scores_['merged_beyond_max_groups'] = int(labels.max())
             labels = fcluster(tree, t=ev.max_groups, criterion='maxclust')
         return canonical(labels)
+
+    @staticmethod
+    def _forced_groups(ev: Evidence, separating: np.ndarray) -> np.ndarray | None:
+        """Return the groups the linkage in choose() forms whatever r is, or None when r decides them.
+
+        When "not separating" is an equivalence relation (every machine is compatible with exactly the members of
+        its own class, i.e. the separating pairs are all the pairs between classes: the usual shape of groups
+        slipping apart), the constrained complete linkage forms exactly those classes, so no DTW is needed. Proof:
+        a compatible pair's distance is r <= max r < apart and a separating pair's is apart + |drift| > apart.
+        While a class is in two clusters of the linkage, those two are closer than apart, and every two clusters
+        of different classes are farther, so the linkage completes each class (at heights below apart) before
+        any merge across classes (above apart), and the cut at apart returns the classes. Ties among r move
+        merges within a class only.
+
+        Two guards keep it to where that holds in floating point, the linkage being taken otherwise:
+        - as many classes as max_groups at most (beyond, the cap's merges are read off the tree);
+        - apart + |drift| > apart for every separating pair. apart = 2 max r + 1 is not known without the DTW,
+          but r <= 2 sqrt(2) R, R the widest range of one series in the window (after taking off a mean, two
+          samples differ by at most range_p + range_q, and a warping path has fewer than 2 max(n_p, n_q) cells;
+          block means stay within the range), so apart < 4 sqrt(2) R + 1, and |drift| above the spacing of floats
+          at 8 R + 2 (rounding of r and apart included) suffices.
+        """
+        compatible = ~separating  # the diagonal is compatible: separating() clears it
+        # Each machine's first compatible machine names its class if compatibility is an equivalence relation;
+        # conversely, when "same first" is exactly "compatible", compatibility is the kernel of that map.
+        first = compatible.argmax(axis=1)
+        if not np.array_equal(first[:, None] == first[None, :], compatible):
+            return None
+        if len(np.unique(first)) > ev.max_groups:
+            return None
+        angles = ev.angles_rad
+        widest = float(np.max(np.nanmax(angles, axis=1) - np.nanmin(angles, axis=1)))
+        upper = np.spacing(8.0 * widest + 2.0)
+        if not float(np.min(np.abs(ev.drift_rad)[separating])) > upper:
+            return None
+        return canonical(first)
 
 
 class ThresholdRule:

@@ -176,7 +176,8 @@ def write_figures(case: CaseReport, folder: Path, *, bag=None, window_s: float =
             title=f'{case.name}: PMU-estimated rotor angles, coloured by DTW group',
             marks_s=events | {'coherency window start': end_s - window_s, 'islanding request': end_s})
         _, _, window = generator_series(bag, end_s - window_s, end_s)
-        model = DTWCoherency(window=dtw_band).fit(list(window))
+        # Every pair: the figure shows the distances, which the grouping alone may not need (all_pairs).
+        model = DTWCoherency(window=dtw_band, all_pairs=True).fit(list(window))
         out['dtw_distance'] = plots.plot_distance_matrix(
             model.distance_matrix_, names, groups, folder / 'dtw_distance.png',
             title=f'{case.name}: DTW distances over the {window_s:g} s window')
