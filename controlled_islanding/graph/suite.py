@@ -63,11 +63,13 @@ def replay_suite(runs: list[SuiteRun], base: Path, jobs: int = 2, quiet: bool = 
                     running[run.name] = (subprocess.Popen(argv, stdout=out, stderr=err, stdin=subprocess.DEVNULL),
                                          time.monotonic())
             for name, (child, started) in list(running.items()):
-                if child.poll() is None and time.monotonic() - started > hard_timeout_s:
+                timed_out = child.poll() is None and time.monotonic() - started > hard_timeout_s
+                if timed_out:
                     _interrupt(child)
                 if child.poll() is not None:
                     del running[name]
-                    finished[name] = {'status': child.returncode, 'wall_s': time.monotonic() - started}
+                    finished[name] = {'status': child.returncode, 'wall_s': time.monotonic() - started,
+                                      'timed_out': hard_timeout_s if timed_out else None}
                     (log.debug if quiet else log.info)('%s done (%d of %d)', name, len(finished), len(runs))
                     done(name, finished[name])
             time.sleep(0.05)
@@ -98,9 +100,12 @@ def _suite_row(run: SuiteRun, base: Path, done: dict) -> dict:
     """Return one run's row: decision, agreement with the manifest, speed and wall time, or what went wrong."""
     row = {'name': run.name, 'bag': str(run.bag), 'results_dir': str(base / run.name),
            'exit_status': done.get('status'), 'wall_s': done.get('wall_s'), 'split': None, 'status': None,
-           'cut_branch_ids': [], 'manifest': None,
+           'cut_branch_ids': [], 'manifest': None, 'expected': None, 'refused': False,
            'bag_duration_s': None, 'play_wall_s': None, 'phases_s': {}, 'error': None, 'ok': False}
     summary_file = base / run.name / 'summary.json'
+    if done.get('timed_out'):
+        row['error'] = f'timed out: still running after {done["timed_out"]:g} s of wall time, interrupted'
+        return row
     if not summary_file.exists():
         err = base / f'{run.name}.stderr'
         tail = err.read_text(errors='replace').strip().splitlines()[-5:] if err.exists() else []
@@ -116,11 +121,29 @@ def _suite_row(run: SuiteRun, base: Path, done: dict) -> dict:
     entry = entry_for_bag(run.bag.resolve())
     if entry is not None and 'split' in entry.get('expected_decision', {}):
         expected = entry['expected_decision']
+        row['expected'] = {'split': expected['split'], 'cut_branch_ids': sorted(expected.get('cut_branches', []))}
         row['manifest'] = ('agrees' if row['split'] == expected['split']
                            and row['cut_branch_ids'] == sorted(expected.get('cut_branches', [])) else 'DIFFERS')
-    row['ok'] = (row['error'] is None and row['split'] is not None and not refused(summary)
+    row['refused'] = refused(summary)
+    row['ok'] = (row['error'] is None and row['split'] is not None and not row['refused']
                  and row['manifest'] != 'DIFFERS')
     return row
+
+
+def failure_reason(row: dict) -> str | None:
+    """Return why a row of replay_suite is not ok, in one line; None if it is ok."""
+    if row['ok']:
+        return None
+    if row['error']:
+        return row['error']
+    if row['manifest'] == 'DIFFERS':
+        def said(d: dict) -> str:
+            return f'split, cut {", ".join(d["cut_branch_ids"]) or "none"}' if d['split'] else 'no split'
+
+        return f'decision differs from the manifest: {said(row)}, the manifest says {said(row["expected"])}'
+    if row.get('refused'):
+        return f'the graph refused to decide: {row["status"]}'
+    return 'no decision'
 
 
 def render_suite(report: dict) -> str:
@@ -137,5 +160,39 @@ def render_suite(report: dict) -> str:
                  f'of wall time, start-up included ({o["speed_vs_real_time"]:.2f}x real time; {o["jobs"]} graphs at '
                  f'once; {o["serial_wall_s"]:.1f} s one after another); load average {o["load_average_before"][0]:.2f} '
                  f'before, {o["load_average_after"][0]:.2f} after, {o["cpu_count"]} cores')
+    failed = [(r['name'], failure_reason(r)) for r in report['rows'] if not r['ok']]
+    if failed:
+        lines.append(f'{len(failed)} failed:')
+        lines += [f'  {name}: {why}' for name, why in failed]
     lines.append(f'results: {o["results_dir"]}')
     return '\n'.join(lines)
+
+
+def junit_xml(report: dict, suite_name: str = 'controlled_islanding.replay') -> str:
+    """Return the regression run as a JUnit XML report: one test case per bag, its reason on failure.
+
+    The shape pytest's --junit-xml and launch_testing write (testsuites > testsuite > testcase, a <failure> with a
+    message), so a CI that reads theirs reads this: a bag whose decision differs from the manifest, or that was
+    refused, is a failure; one that could not be replayed (an error, a timeout, no decision) is an error.
+    """
+    from xml.etree import ElementTree as ET
+
+    rows, o = report['rows'], report['overall']
+    errors = [r for r in rows if not r['ok'] and (r['error'] or r['split'] is None)]
+    root = ET.Element('testsuites')
+    suite = ET.SubElement(root, 'testsuite', name=suite_name, tests=str(len(rows)),
+                          failures=str(sum(1 for r in rows if not r['ok']) - len(errors)), errors=str(len(errors)),
+                          skipped='0', time=f'{o["wall_s"]:.3f}')
+    for r in rows:
+        case = ET.SubElement(suite, 'testcase', classname=suite_name, name=r['name'], file=r['bag'],
+                             time=f'{r["wall_s"] or 0.0:.3f}')
+        why = failure_reason(r)
+        if why is not None:
+            kind = 'error' if r in errors else 'failure'
+            ET.SubElement(case, kind, message=why, type=kind).text = f'{why}\nresults: {r["results_dir"]}'
+        else:
+            cut = ', '.join(r['cut_branch_ids']) if r['split'] else '-'
+            ET.SubElement(case, 'system-out').text = (f'{r["status"]}; cut {cut}; manifest {r["manifest"] or "-"}; '
+                                                      f'results: {r["results_dir"]}')
+    ET.indent(root)
+    return '<?xml version="1.0" encoding="utf-8"?>\n' + ET.tostring(root, encoding='unicode') + '\n'
