@@ -75,6 +75,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--json', action='store_true', help='print one JSON decision on stdout and nothing else')
     parser.add_argument('--jobs', type=int, default=2,
                         help='with several bags: graphs running at once (default 2; see "Several bags" above)')
+    parser.add_argument('--warm', action='store_true',
+                        help='a regression run on --jobs long-lived workers: each bag on fresh nodes in a '
+                             'fresh rclpy Context of the worker (imports and compiled kernels loaded once)')
     parser.add_argument('--fast', action='store_true', help='play as fast as possible (lockstep at requests)')
     parser.add_argument('--rate', type=float, default=1.0, help='playback speed factor (default 1 = real time)')
     parser.add_argument('--results', type=Path, default=None,
@@ -137,7 +140,7 @@ def _options(args: argparse.Namespace) -> dict:
 def run(args: argparse.Namespace) -> int:
     """Run the replay subcommand."""
     try:
-        if len(args.bag) > 1 or args.junit_xml:
+        if len(args.bag) > 1 or args.junit_xml or args.warm:
             return _run_suite(args)
         args.bag = args.bag[0]
         if args.repeat < 1:
@@ -202,7 +205,8 @@ def _run_suite(args: argparse.Namespace) -> int:
     base = args.results or Path('results') / f'replay-suite-{stamp}'
     with running(base, args.force) as base, progress_bar(len(names), 'replay', 'bag') as bar:
         report = replay_suite([SuiteRun(n, b, tuple(options)) for n, b in zip(names, args.bag, strict=True)], base,
-                              jobs=args.jobs, quiet=args.json, done=lambda name, outcome: bar.update())
+                              jobs=args.jobs, quiet=args.json, done=lambda name, outcome: bar.update(),
+                              warm=args.warm)
         atomic.write_text(base / 'suite.json', json.dumps(report, indent=2, default=str))
         if args.junit_xml:
             atomic.write_text(args.junit_xml, junit_xml(report))

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from controlled_islanding.graph.processes import die_with_parent
 from controlled_islanding.graph.summary import graph_failure, refused
 from controlled_islanding.sim.manifest import entry_for_bag
 
@@ -36,12 +37,16 @@ class SuiteRun:
 
 
 def replay_suite(runs: list[SuiteRun], base: Path, jobs: int = 2, quiet: bool = True,
-                 hard_timeout_s: float = 600.0, done: Callable[[str, dict], None] = lambda name, row: None) -> dict:
+                 hard_timeout_s: float = 600.0, done: Callable[[str, dict], None] = lambda name, row: None,
+                 warm: bool = False) -> dict:
     """Replay each run on a fresh graph, in a child process on a private domain, `jobs` at a time; return one report.
 
     A child runs `controlled-islanding replay BAG --json --isolate --results base/<name> <options>`; its summary is
     base/<name>/summary.json. A child still running after hard_timeout_s is interrupted (it then stops its nodes).
-    `done(name, outcome)` is called as each run ends (a progress bar's step); `quiet` logs that at debug level.
+    With `warm`, `jobs` long-lived workers (graph/worker.py) replay the runs instead, each bag on fresh nodes in a
+    fresh Context in the worker's process; a worker that dies or runs past hard_timeout_s costs its bag, and
+    another takes its place. `done(name, outcome)` is called as each run ends (a progress bar's step); `quiet`
+    logs that at debug level.
 
     Returns:
         {'rows': one per run, in the given order, 'overall': speed, wall time, load average}.
@@ -50,12 +55,32 @@ def replay_suite(runs: list[SuiteRun], base: Path, jobs: int = 2, quiet: bool = 
     base.mkdir(parents=True, exist_ok=True)
     load_before = os.getloadavg()
     begun = time.monotonic()
+    finished: dict[str, dict] = {}
+
+    def finish(name: str, outcome: dict) -> None:
+        finished[name] = outcome
+        (log.debug if quiet else log.info)('%s done (%d of %d)', name, len(finished), len(runs))
+        done(name, outcome)
+
+    (_warm_runs if warm else _process_runs)(runs, base, max(1, jobs), hard_timeout_s, finish)
+    wall_s = time.monotonic() - begun
+    rows = [_suite_row(run, base, finished.get(run.name, {})) for run in runs]
+    bag_s = sum(r['bag_duration_s'] or 0.0 for r in rows)
+    overall = {'runs': len(rows), 'ok': sum(1 for r in rows if r['ok']), 'jobs': jobs, 'warm': warm, 'wall_s': wall_s,
+               'bag_duration_s': bag_s, 'speed_vs_real_time': bag_s / wall_s if wall_s > 0 else None,
+               'serial_wall_s': sum(r['wall_s'] or 0.0 for r in rows), 'cpu_count': os.cpu_count(),
+               'load_average_before': load_before, 'load_average_after': os.getloadavg(), 'results_dir': str(base)}
+    return {'rows': rows, 'overall': overall}
+
+
+def _process_runs(runs: list[SuiteRun], base: Path, jobs: int, hard_timeout_s: float,
+                  finish: Callable[[str, dict], None]) -> None:
+    """Replay each run in a `controlled-islanding replay` child process of its own, `jobs` at a time."""
     waiting = list(runs)
     running: dict[str, tuple[subprocess.Popen, float]] = {}
-    finished: dict[str, dict] = {}
     try:
         while waiting or running:
-            while waiting and len(running) < max(1, jobs):
+            while waiting and len(running) < jobs:
                 run = waiting.pop(0)
                 argv = [sys.executable, '-m', 'controlled_islanding.cli', 'replay', str(run.bag), '--json', '--isolate',
                         '--results', str(base / run.name), *run.options]
@@ -68,22 +93,91 @@ def replay_suite(runs: list[SuiteRun], base: Path, jobs: int = 2, quiet: bool = 
                     _interrupt(child)
                 if child.poll() is not None:
                     del running[name]
-                    finished[name] = {'status': child.returncode, 'wall_s': time.monotonic() - started,
-                                      'timed_out': hard_timeout_s if timed_out else None}
-                    (log.debug if quiet else log.info)('%s done (%d of %d)', name, len(finished), len(runs))
-                    done(name, finished[name])
+                    finish(name, {'status': child.returncode, 'wall_s': time.monotonic() - started,
+                                  'timed_out': hard_timeout_s if timed_out else None})
             time.sleep(0.05)
     finally:
         for child, _ in running.values():
             _interrupt(child)
-    wall_s = time.monotonic() - begun
-    rows = [_suite_row(run, base, finished.get(run.name, {})) for run in runs]
-    bag_s = sum(r['bag_duration_s'] or 0.0 for r in rows)
-    overall = {'runs': len(rows), 'ok': sum(1 for r in rows if r['ok']), 'jobs': jobs, 'wall_s': wall_s,
-               'bag_duration_s': bag_s, 'speed_vs_real_time': bag_s / wall_s if wall_s > 0 else None,
-               'serial_wall_s': sum(r['wall_s'] or 0.0 for r in rows), 'cpu_count': os.cpu_count(),
-               'load_average_before': load_before, 'load_average_after': os.getloadavg(), 'results_dir': str(base)}
-    return {'rows': rows, 'overall': overall}
+
+
+class _Worker:
+    """One warm worker process (graph/worker.py): its job now, and the answers it wrote so far."""
+
+    def __init__(self, base: Path, number: int) -> None:
+        self.log_file = base / f'worker-{number}.log'
+        with open(self.log_file, 'ab') as err:
+            self.child = subprocess.Popen([sys.executable, '-m', 'controlled_islanding.graph.worker'],
+                                          stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err,
+                                          preexec_fn=die_with_parent)
+        os.set_blocking(self.child.stdout.fileno(), False)
+        self.job: tuple[str, float] | None = None  # run name, when it was sent (monotonic s)
+        self._buffer = b''
+
+    def send(self, run: SuiteRun, base: Path) -> None:
+        job = {'name': run.name, 'bag': str(run.bag), 'results': str(base / run.name), 'options': list(run.options),
+               'stderr': str(base / f'{run.name}.stderr')}
+        self.job = (run.name, time.monotonic())
+        self.child.stdin.write((json.dumps(job) + '\n').encode())
+        self.child.stdin.flush()
+
+    def answers(self) -> list[dict]:
+        with contextlib.suppress(BlockingIOError):
+            while chunk := os.read(self.child.stdout.fileno(), 65536):
+                self._buffer += chunk
+        *lines, self._buffer = self._buffer.split(b'\n')
+        return [json.loads(line) for line in lines if line.strip()]
+
+    def log_tail(self, lines: int = 3) -> str:
+        return '; '.join(self.log_file.read_text(errors='replace').strip().splitlines()[-lines:])
+
+
+def _warm_runs(runs: list[SuiteRun], base: Path, jobs: int, hard_timeout_s: float,
+               finish: Callable[[str, dict], None]) -> None:
+    """Replay the runs on `jobs` warm workers, one bag at a time each; a dead or timed-out worker is replaced."""
+    waiting = list(runs)
+    workers: list[_Worker] = []
+    started = 0
+    try:
+        while waiting or any(w.job for w in workers):
+            while waiting and len(workers) < min(jobs, len(waiting) + sum(1 for w in workers if w.job)):
+                workers.append(_Worker(base, started))
+                started += 1
+            for worker in workers:
+                if worker.job is None and waiting:
+                    try:
+                        worker.send(waiting[0], base)
+                        waiting.pop(0)
+                    except BrokenPipeError:
+                        worker.job = None  # it died idle; found below
+            time.sleep(0.05)
+            for worker in list(workers):
+                for answer in worker.answers():
+                    if 'name' in answer and worker.job is not None:
+                        name, sent = worker.job
+                        worker.job = None
+                        finish(name, {'status': answer['status'], 'wall_s': time.monotonic() - sent,
+                                      'timed_out': None})
+                timed_out = (worker.job is not None and worker.child.poll() is None
+                             and time.monotonic() - worker.job[1] > hard_timeout_s)
+                if timed_out:
+                    _interrupt(worker.child)
+                if worker.child.poll() is not None:
+                    workers.remove(worker)
+                    if worker.job is not None:
+                        name, sent = worker.job
+                        finish(name, {'status': worker.child.returncode, 'wall_s': time.monotonic() - sent,
+                                      'timed_out': hard_timeout_s if timed_out else None,
+                                      'worker_died': None if timed_out else worker.child.returncode,
+                                      'worker_log': worker.log_tail()})
+    finally:
+        for worker in workers:
+            with contextlib.suppress(OSError):
+                worker.child.stdin.close()  # an idle worker ends when its stdin does
+        for worker in workers:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                worker.child.wait(timeout=5.0 if worker.job is None else 0.0)
+            _interrupt(worker.child)
 
 
 def _interrupt(child: subprocess.Popen) -> None:
@@ -103,6 +197,10 @@ def _suite_row(run: SuiteRun, base: Path, done: dict) -> dict:
            'cut_branch_ids': [], 'manifest': None, 'expected': None, 'refused': False,
            'bag_duration_s': None, 'play_wall_s': None, 'phases_s': {}, 'error': None, 'ok': False}
     summary_file = base / run.name / 'summary.json'
+    if done.get('worker_died') is not None:
+        row['error'] = (f'the warm worker replaying it died (exit status {done["worker_died"]}): '
+                        f'{done.get("worker_log") or "no log"}')
+        return row
     if done.get('timed_out'):
         row['error'] = f'timed out: still running after {done["timed_out"]:g} s of wall time, interrupted'
         return row
@@ -158,7 +256,8 @@ def render_suite(report: dict) -> str:
     o = report['overall']
     lines.append(f'{o["ok"]} of {o["runs"]} bags ok; {o["bag_duration_s"]:.1f} s of bags in {o["wall_s"]:.1f} s '
                  f'of wall time, start-up included ({o["speed_vs_real_time"]:.2f}x real time; {o["jobs"]} graphs at '
-                 f'once; {o["serial_wall_s"]:.1f} s one after another); load average {o["load_average_before"][0]:.2f} '
+                 f'once{", in warm workers" if o.get("warm") else ""}; {o["serial_wall_s"]:.1f} s one after another); '
+                 f'load average {o["load_average_before"][0]:.2f} '
                  f'before, {o["load_average_after"][0]:.2f} after, {o["cpu_count"]} cores')
     failed = [(r['name'], failure_reason(r)) for r in report['rows'] if not r['ok']]
     if failed:
