@@ -54,7 +54,7 @@ def suite_report(request) -> dict:
             entry = getattr(item, 'callspec', None) and item.callspec.params.get('entry')
             wanted.add(entry['name'] if entry else by_test.get(item.originalname))
     runs = [r for r in runs if r.name in wanted]
-    return replay_suite(runs, results_dir('suite'), jobs=2)
+    return replay_suite(runs, results_dir('suite'), jobs=2, warm=True)
 
 
 @pytest.fixture(scope='module')

@@ -23,7 +23,7 @@ from pathlib import Path
 from controlled_islanding.graph import GraphError
 from controlled_islanding.graph.summary import graph_failure, refused
 
-log = logging.getLogger(__name__)
+log = logging.getLogger('controlled_islanding.graph.worker')  # also when run as __main__
 
 
 def _option_parser() -> argparse.ArgumentParser:
