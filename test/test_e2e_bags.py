@@ -4,9 +4,10 @@ Each bag is replayed as fast as possible (lockstep at requests) through pmu_inge
 partitioning and breaker_command, armed. The default bag is also replayed in real time, disarmed: the same
 decision, and nothing commanded. Breaker rules are checked on the audit log of every run.
 
-The replays the selected tests check run once, as one regression run (replay_suite, `replay BAG BAG ...`), each
-on a fresh graph of its own, two graphs at once (one's start-up overlaps the other's work); each test then
-checks its own replay's summary.
+The replays the selected tests check run once, as one regression run (replay_suite, `replay BAG BAG ... --warm`),
+each on a fresh graph of its own in one of two warm workers (fresh nodes in a fresh Context per bag,
+graph/worker.py); each test then checks its own replay's summary. The per-process graph is what
+test_pytest_plugin.py, the demo and the node tests replay through.
 """
 
 from __future__ import annotations
