@@ -34,5 +34,7 @@ setup(
         ] + [
             f'controlled-islanding = {PACKAGE}.cli:main',
         ],
+        # The islanding_replay fixture for users' own bag tests, loaded by pytest once the package is installed.
+        'pytest11': [f'{PACKAGE} = {PACKAGE}.harness.pytest_plugin'],
     },
 )

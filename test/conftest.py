@@ -39,3 +39,10 @@ def rclpy_context(ros_env: dict[str, str]) -> Iterator[object]:
         yield context
     finally:
         context.try_shutdown()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # The islanding_replay fixture comes through the installed package's pytest11 entry point; a venv whose
+    # editable install predates that entry point (its metadata is written at install time) lacks it.
+    if not config.pluginmanager.has_plugin('controlled_islanding'):
+        config.pluginmanager.import_plugin('controlled_islanding.harness.pytest_plugin')

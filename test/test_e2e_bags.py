@@ -4,9 +4,10 @@ Each bag is replayed as fast as possible (lockstep at requests) through pmu_inge
 partitioning and breaker_command, armed. The default bag is also replayed in real time, disarmed: the same
 decision, and nothing commanded. Breaker rules are checked on the audit log of every run.
 
-The replays the selected tests check run once, as one regression run (replay_suite, `replay BAG BAG ...`), each
-on a fresh graph of its own, two graphs at once (one's start-up overlaps the other's work); each test then
-checks its own replay's summary.
+The replays the selected tests check run once, as one regression run (replay_suite, `replay BAG BAG ... --warm`),
+each on a fresh graph of its own in one of two warm workers (fresh nodes in a fresh Context per bag,
+graph/worker.py); each test then checks its own replay's summary. The per-process graph is what
+test_pytest_plugin.py, the demo and the node tests replay through.
 """
 
 from __future__ import annotations
@@ -36,8 +37,8 @@ FAST = ('--fast', '--no-figures', '--no-record')  # the recorder's bag is not ch
 
 
 @pytest.fixture(scope='module')
-def replays(request) -> dict[str, dict]:
-    """Run the replays the selected tests of this module check; return each one's summary (or {'error': why})."""
+def suite_report(request) -> dict:
+    """Run the replays the selected tests of this module check, as one regression run; return its report."""
     runs = ([SuiteRun('default-realtime', REPO / 'bags' / default_bag()['bag'], ('--disarmed', '--probe-hz', '5'))]
             if ENTRIES else [])
     if MULTITRIP is not None:
@@ -46,16 +47,22 @@ def replays(request) -> dict[str, dict]:
     by_test = {
         'test_default_bag_in_real_time_disarmed_decides_the_same_and_commands_nothing': 'default-realtime',
         'test_several_trips_just_before_the_request_fast_decides_as_real_time': 'multitrip-realtime',
-        'test_a_replay_exports_from_its_output_bag_and_refuses_its_player_report': 'default-realtime'}
+        'test_a_replay_exports_from_its_output_bag_and_refuses_its_player_report': 'default-realtime',
+        'test_the_regression_run_as_a_junit_report_has_a_case_per_bag': ENTRIES[0]['name'] if ENTRIES else None}
     wanted = set()
     for item in request.session.items:
         if item.module is sys.modules[__name__]:
             entry = getattr(item, 'callspec', None) and item.callspec.params.get('entry')
             wanted.add(entry['name'] if entry else by_test.get(item.originalname))
     runs = [r for r in runs if r.name in wanted]
-    report = replay_suite(runs, results_dir('suite'), jobs=2)
+    return replay_suite(runs, results_dir('suite'), jobs=2, warm=True)
+
+
+@pytest.fixture(scope='module')
+def replays(suite_report) -> dict[str, dict]:
+    """Return each replay's summary (or {'error': why}) by its name."""
     out = {}
-    for row in report['rows']:
+    for row in suite_report['rows']:
         summary_file = Path(row['results_dir']) / 'summary.json'
         out[row['name']] = json.loads(summary_file.read_text()) if summary_file.exists() else {'error': row['error']}
     return out
@@ -186,3 +193,24 @@ def test_a_replay_exports_from_its_output_bag_and_refuses_its_player_report(repl
     assert main(['export', str(results / 'player_report.json'), '--to', 'matpower', '-o', str(tmp_path / 'x.m')]) == 2
     err = capsys.readouterr().err
     assert 'error: not a decision: ' in err and 'a bag player report' in err, err
+
+
+@pytest.mark.skipif(not ENTRIES, reason='no bag of bags/index.yaml is present')
+def test_the_regression_run_as_a_junit_report_has_a_case_per_bag(suite_report, tmp_path):
+    """`replay bags/*/ --junit-xml FILE` writes junit_xml(report) for CI: here, of the replays this module ran."""
+    from xml.etree import ElementTree as ET
+
+    from controlled_islanding import atomic
+    from controlled_islanding.graph.suite import failure_reason, junit_xml
+
+    report_file = atomic.write_text(tmp_path / 'replay.xml', junit_xml(suite_report))
+    suite = ET.parse(report_file).getroot().find('testsuite')
+    cases = suite.findall('testcase')
+    assert [c.get('name') for c in cases] == [r['name'] for r in suite_report['rows']]
+    assert int(suite.get('tests')) == len(cases) and int(suite.get('failures')) + int(suite.get('errors')) == sum(
+        1 for r in suite_report['rows'] if not r['ok'])
+    for case, row in zip(cases, suite_report['rows'], strict=True):
+        failed = case.find('failure') if case.find('failure') is not None else case.find('error')
+        assert (failed is None) == row['ok'], ET.tostring(case)
+        assert failed is None or failed.get('message') == failure_reason(row)
+        assert float(case.get('time')) == pytest.approx(row['wall_s'], abs=1e-3)

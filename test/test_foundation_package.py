@@ -44,7 +44,7 @@ def test_package_xml_is_format_3_ament_python_with_runtime_depends():
 ROSDEP_KEY = {'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'sklearn': 'python3-sklearn',
               'networkx': 'python3-networkx', 'matplotlib': 'python3-matplotlib', 'yaml': 'python3-yaml',
               'cryptography': 'python3-cryptography', 'tqdm': 'python3-tqdm', 'rosbags': 'python3-rosbags-pip',
-              'numba': 'python3-numba'}
+              'numba': 'python3-numba', 'pytest': 'python3-pytest'}
 # No rosdep key exists for these: package.xml names them in a comment, and the README installs them with pip.
 PIP_ONLY = {'pypower', 'dtaidistance', 'kmedoids', 'andes', 'pandapower'}
 

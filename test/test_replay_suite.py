@@ -37,3 +37,62 @@ def test_a_bag_that_cannot_be_replayed_is_a_failed_row_and_two_bags_of_one_name_
     args = parser.parse_args([str(not_a_bag), str(not_a_bag), '--results', str(tmp_path / 'cli')])
     with pytest.raises(replay.CliError, match='same name'):
         replay.run(args)
+
+
+def _row(name: str, **fields: object) -> dict:
+    row = {'name': name, 'bag': f'bags/{name}', 'results_dir': f'results/{name}', 'exit_status': 0, 'wall_s': 3.5,
+           'split': True, 'status': 'SPLIT', 'cut_branch_ids': ['6-11'], 'manifest': 'agrees',
+           'expected': {'split': True, 'cut_branch_ids': ['6-11']}, 'refused': False, 'bag_duration_s': 5.0,
+           'play_wall_s': 1.0, 'phases_s': {}, 'error': None, 'ok': True}
+    row.update(fields)
+    return row
+
+
+def test_the_junit_report_has_a_case_per_bag_and_says_why_each_failed_one_failed():
+    from xml.etree import ElementTree as ET
+
+    from controlled_islanding.graph.suite import junit_xml
+
+    rows = [_row('agrees'),
+            _row('differs', manifest='DIFFERS', ok=False, cut_branch_ids=['1-2', '3-4']),
+            _row('slow', split=None, status=None, ok=False, error='timed out: still running after 600 s'),
+            _row('refused', split=False, status='REFUSED_STALE', manifest=None, expected=None, refused=True,
+                 ok=False)]
+    report = {'rows': rows, 'overall': {'wall_s': 12.0}}
+    root = ET.fromstring(junit_xml(report))
+    (suite,) = root.findall('testsuite')
+    assert (suite.get('tests'), suite.get('failures'), suite.get('errors')) == ('4', '2', '1')
+    cases = {c.get('name'): c for c in suite.findall('testcase')}
+    assert list(cases) == ['agrees', 'differs', 'slow', 'refused']
+    assert cases['agrees'].find('failure') is None and cases['agrees'].find('error') is None
+    assert cases['differs'].find('failure').get('message') == (
+        'decision differs from the manifest: split, cut 1-2, 3-4, the manifest says split, cut 6-11')
+    assert 'timed out' in cases['slow'].find('error').get('message')
+    assert 'REFUSED_STALE' in cases['refused'].find('failure').get('message')
+    assert float(cases['slow'].get('time')) == 3.5
+    # The text report ends with the same reasons, so a long run's failures need no scrolling.
+    text = render_suite({'rows': rows, 'overall': {
+        'ok': 1, 'runs': 4, 'bag_duration_s': 20.0, 'wall_s': 12.0, 'speed_vs_real_time': 1.7, 'jobs': 2,
+        'serial_wall_s': 14.0, 'load_average_before': (1.0,), 'load_average_after': (2.0,), 'cpu_count': 2,
+        'results_dir': 'results'}})
+    assert '3 failed:\n  differs: decision differs' in text
+
+
+def test_replay_junit_xml_writes_the_report_of_bags_that_cannot_be_replayed(tmp_path, capsys):
+    from xml.etree import ElementTree as ET
+
+    for name in ('bad_a', 'bad_b'):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / 'metadata.yaml').write_text('this is not rosbag2 metadata\n')
+    parser = argparse.ArgumentParser()
+    replay.add_arguments(parser)
+    report_file = tmp_path / 'ci' / 'replay.xml'
+    report_file.parent.mkdir()
+    args = parser.parse_args([str(tmp_path / 'bad_a'), str(tmp_path / 'bad_b'), '--results', str(tmp_path / 'run'),
+                              '--junit-xml', str(report_file), '--jobs', '2'])
+    assert replay.run(args) == 1
+    assert 'bad_a: ' in capsys.readouterr().out
+    suite = ET.parse(report_file).getroot().find('testsuite')
+    assert (suite.get('tests'), suite.get('errors')) == ('2', '2')
+    for case in suite.findall('testcase'):
+        assert 'cannot read the bag' in case.find('error').get('message'), ET.tostring(case)

@@ -13,7 +13,7 @@ from controlled_islanding.commands import CliError, progress_bar
 from controlled_islanding.graph import GraphError, wan
 from controlled_islanding.graph.replay import replay, replay_repeatedly
 from controlled_islanding.graph.results import running
-from controlled_islanding.graph.suite import SuiteRun, render_suite, replay_suite
+from controlled_islanding.graph.suite import SuiteRun, junit_xml, render_suite, replay_suite
 from controlled_islanding.graph.summary import graph_failure, refused, render
 
 HELP = 'replay a bag through the ROS 2 node graph and print its islanding decision'
@@ -52,13 +52,15 @@ Several bags (bags/*/): a regression run. Each bag gets a fresh graph of its own
 bag must not inherit: the breaker node's commanded breakers, the time of the last input) on a private
 domain, in a child process, --jobs of them at once (default 2: a graph's start-up is mostly one process's
 imports at a time, so two graphs keep two cores busier; 17 bags took 211 s instead of 331 s). One report with
-a row per bag (decision, agreement with bags/index.yaml, speed, wall time) and the overall speed against real
-time, start-up included, with the load average. Exit status 1 if any bag went wrong.
+a row per bag (decision, agreement with bags/index.yaml, speed, wall time), the overall speed against real
+time, start-up included, with the load average, and each failed bag with why. --junit-xml FILE writes the same
+as a JUnit XML report for CI. Exit status 1 if any bag went wrong.
 
 Examples (bag names from bags/index.yaml):
   controlled-islanding replay bags/ieee39_g6g7_unstable            real time
   controlled-islanding replay bags/ieee39_g6g7_unstable --fast --json
   controlled-islanding replay bags/*/ --fast --json            every bag, one report
+  controlled-islanding replay bags/*/ --fast --junit-xml build/replay.xml   the same, for CI
   controlled-islanding replay bags/ieee39_g6g7_unstable --probe-hz 20   extra requests: a latency benchmark
   controlled-islanding replay bags/ieee39_g6g7_unstable --fast --namespace /area1   one area of several
   controlled-islanding replay bags/ieee39_case2_g3_unstable --fast --hosts pdc,control,substation \
@@ -73,6 +75,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--json', action='store_true', help='print one JSON decision on stdout and nothing else')
     parser.add_argument('--jobs', type=int, default=2,
                         help='with several bags: graphs running at once (default 2; see "Several bags" above)')
+    parser.add_argument('--warm', action='store_true',
+                        help='a regression run on --jobs long-lived workers: each bag on fresh nodes in a '
+                             'fresh rclpy Context of the worker (imports and compiled kernels loaded once)')
     parser.add_argument('--fast', action='store_true', help='play as fast as possible (lockstep at requests)')
     parser.add_argument('--rate', type=float, default=1.0, help='playback speed factor (default 1 = real time)')
     parser.add_argument('--results', type=Path, default=None,
@@ -110,6 +115,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--wan-loss-pct', type=float, default=0.0,
                         help='with --hosts: probability that a packet between hosts is lost, %%')
     parser.add_argument('--wan-seed', type=int, default=0, help='with --hosts: seed of the loss and jitter draws')
+    parser.add_argument('--junit-xml', type=Path, default=None, metavar='FILE',
+                        help='also write the run as a JUnit XML report, a test case per bag with its reason on '
+                             'failure, as pytest --junit-xml does (a regression run, even of one bag)')
 
 def _link(args: argparse.Namespace) -> wan.LinkModel | None:
     wan_set = args.wan_delay_ms or args.wan_jitter_ms or args.wan_loss_pct
@@ -132,7 +140,7 @@ def _options(args: argparse.Namespace) -> dict:
 def run(args: argparse.Namespace) -> int:
     """Run the replay subcommand."""
     try:
-        if len(args.bag) > 1:
+        if len(args.bag) > 1 or args.junit_xml or args.warm:
             return _run_suite(args)
         args.bag = args.bag[0]
         if args.repeat < 1:
@@ -197,7 +205,10 @@ def _run_suite(args: argparse.Namespace) -> int:
     base = args.results or Path('results') / f'replay-suite-{stamp}'
     with running(base, args.force) as base, progress_bar(len(names), 'replay', 'bag') as bar:
         report = replay_suite([SuiteRun(n, b, tuple(options)) for n, b in zip(names, args.bag, strict=True)], base,
-                              jobs=args.jobs, quiet=args.json, done=lambda name, outcome: bar.update())
+                              jobs=args.jobs, quiet=args.json, done=lambda name, outcome: bar.update(),
+                              warm=args.warm)
         atomic.write_text(base / 'suite.json', json.dumps(report, indent=2, default=str))
+        if args.junit_xml:
+            atomic.write_text(args.junit_xml, junit_xml(report))
     print(json.dumps(report, default=str) if args.json else render_suite(report))
     return 0 if all(r['ok'] for r in report['rows']) else 1

@@ -53,6 +53,8 @@ class ReplayOptions:
         isolate: A private domain even if ROS_DOMAIN_ID is set.
         namespace: The graph's namespace ('' = the root one, else e.g. '/area1').
         estimator: pmu_ingestion's rotor angle estimator, 'steady_state' or 'dse'; None: its parameter file's.
+        in_process: The nodes in this process (graph/composed.py), fresh ones in a fresh Context, not as processes
+            under a supervisor: what a warm regression worker (graph/worker.py) runs.
 
     """
 
@@ -67,6 +69,7 @@ class ReplayOptions:
     isolate: bool = True
     namespace: str = ''
     estimator: str | None = None
+    in_process: bool = False
 
     def say(self, text: str, *args: object) -> None:
         """Log one progress line (debug when quiet)."""
@@ -124,6 +127,7 @@ def run_graph(bag: Path, results: Path, options: ReplayOptions, hosts: dict[str,
         GraphError: The bag is unreadable, a node died, or no decision came in time.
 
     """
+    from controlled_islanding.graph.composed import ComposedGraph
     from controlled_islanding.graph.rosenv import graph_environment
     from controlled_islanding.graph.supervisor import GRAPH, PIPELINE_POLICY, PLAYER, RECORDER, Supervisor
     from controlled_islanding.ros.diagnostics import writers_matched
@@ -150,8 +154,9 @@ def run_graph(bag: Path, results: Path, options: ReplayOptions, hosts: dict[str,
     with graph_environment(results / 'ros_log', options.isolate) as env:
         if hosts:
             env.update(wan.DDS_ENVIRONMENT)
-        with Observer(env, 'replay_observer', ns, obs) as observer, \
-                Supervisor(env, logs, PIPELINE_POLICY, namespace=ns, remaps=remaps) as sup:
+        graph = (ComposedGraph(env, logs, namespace=ns, remaps=remaps) if options.in_process
+                 else Supervisor(env, logs, PIPELINE_POLICY, namespace=ns, remaps=remaps))
+        with Observer(env, 'replay_observer', ns, obs) as observer, graph as sup:
             obs.restarts, obs.hangs = sup.restarts, sup.hangs
             start_pipeline(sup, results, key_dir, options.estimator, on_host)
             if options.record:
@@ -295,7 +300,8 @@ def write_figures(bag: Path, results: Path, summary: dict) -> list[Path]:
 def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float = 1.0, probe_hz: float = 0.0,
            timeout_s: float = 120.0, figures: bool = True, quiet: bool = False, arm: bool = True,
            record: bool = True, isolate: bool = True, namespace: str = '', estimator: str | None = None,
-           hosts: str | None = None, link: wan.LinkModel | None = None, force: bool = False) -> dict:
+           hosts: str | None = None, link: wan.LinkModel | None = None, force: bool = False,
+           in_process: bool = False) -> dict:
     """Replay a bag through the graph; write the results folder; return the summary.
 
     The options are ReplayOptions'. `hosts` (e.g. 'pdc,control,substation') runs the graph on emulated hosts
@@ -314,13 +320,15 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
         why = wan.unavailable_reason()
         if why:
             raise GraphError(why)
+    if hosts and in_process:
+        raise GraphError('emulated hosts need each node in a process of its own, not in this one')
     if not bag.exists():
         raise GraphError(f'bag {bag} does not exist')
     if rate <= 0:
         raise GraphError(f'--rate {rate} must be positive')
     options = ReplayOptions(fast=fast, rate=rate, probe_hz=probe_hz, timeout_s=timeout_s, figures=figures,
                             quiet=quiet, arm=arm, record=record, isolate=isolate, namespace=namespace_name(namespace),
-                            estimator=estimator)
+                            estimator=estimator, in_process=in_process)
     if results is None:
         stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
         results = Path('results') / f'replay-{bag.name}-{stamp}'

@@ -123,8 +123,14 @@ def node_command(spec: NodeSpec, overrides: Mapping[str, object] | None = None, 
         The argv list, running the module with this interpreter.
 
     """
-    argv = [sys.executable, '-m', f'controlled_islanding.nodes.{spec.executable}', '--ros-args',
-            '--params-file', str(config_dir() / spec.params_file)]
+    return [sys.executable, '-m', f'controlled_islanding.nodes.{spec.executable}',
+            *ros_arguments(spec, overrides, namespace, remaps)]
+
+
+def ros_arguments(spec: NodeSpec, overrides: Mapping[str, object] | None = None, namespace: str = '',
+                  remaps: Mapping[str, str] | None = None) -> list[str]:
+    """Return node_command's `--ros-args ...` part: a process's arguments, or a composed node's `cli_args`."""
+    argv = ['--ros-args', '--params-file', str(config_dir() / spec.params_file)]
     if namespace.strip('/'):
         argv += ['-r', f'__ns:=/{namespace.strip("/")}']
     for source, target in dict(remaps or {}).items():

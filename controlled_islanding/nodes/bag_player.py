@@ -67,8 +67,8 @@ _POLL_S = 0.02  # longest spin between two looks at a wait's condition, s
 class BagPlayerNode(Node):
     """Loads a bag into memory and plays it onto its topics."""
 
-    def __init__(self) -> None:
-        super().__init__('bag_player')
+    def __init__(self, **node_options) -> None:
+        super().__init__('bag_player', **node_options)
         self.declare_parameter('bag', '')
         self.declare_parameter('rate', 1.0)
         self.declare_parameter('as_fast_as_possible', False)
@@ -342,7 +342,8 @@ class BagPlayerNode(Node):
         return report
 
 
-def _play_once(node: BagPlayerNode, executor: SingleThreadedExecutor) -> None:
+def play_once(node: BagPlayerNode, executor: SingleThreadedExecutor) -> None:
+    """Wait for the go file and the subscribers, play the bag once, linger until every reader acknowledged it."""
     node.wait_for_subscribers(executor, node.await_go(executor))
     node.play(executor)
     # Reliable writers still hold what a reader has not acknowledged; leaving sooner would lose it.
@@ -353,7 +354,7 @@ def _play_once(node: BagPlayerNode, executor: SingleThreadedExecutor) -> None:
 
 def main(args: list[str] | None = None) -> int:
     """Run the bag_player: wait for subscribers, play the bag once, linger until every reader acknowledged it."""
-    return spin_node(BagPlayerNode, args, run=_play_once)
+    return spin_node(BagPlayerNode, args, run=play_once)
 
 if __name__ == '__main__':
     sys.exit(main())

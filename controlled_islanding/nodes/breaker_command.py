@@ -101,8 +101,8 @@ def _descriptor(text: str, low: float | None = None, high: float | None = None, 
 class BreakerCommandNode(Node):
     """Executes signed islanding decisions as breaker commands, at most once each, only while armed."""
 
-    def __init__(self) -> None:
-        super().__init__('breaker_command')
+    def __init__(self, **node_options) -> None:
+        super().__init__('breaker_command', **node_options)
         self._armed_descriptor = _descriptor('true while armed; read-only: arm and disarm through the signed '
                                              '~/set_armed service. The node always starts disarmed.')
         self.declare_parameter('armed', False, self._armed_descriptor, ignore_override=True)

@@ -44,8 +44,8 @@ from controlled_islanding.wire.messages import MAX_REQUEST_ID, split_stamp, stam
 class CoherencyNode(Node):
     """Sliding-window DTW coherency."""
 
-    def __init__(self) -> None:
-        super().__init__('coherency')
+    def __init__(self, **node_options) -> None:
+        super().__init__('coherency', **node_options)
         self.declare_parameter('window_s', 3.0)
         self.declare_parameter('period_s', 0.5)
         self.declare_parameter('min_samples', 30)

@@ -93,8 +93,8 @@ def decision_to_msg(decision: Decision, request: IslandingRequest, method: str, 
 class PartitioningNode(Node):
     """Keeps the network and recent groups; answers every islanding request with one signed decision."""
 
-    def __init__(self) -> None:
-        super().__init__('partitioning')
+    def __init__(self, **node_options) -> None:
+        super().__init__('partitioning', **node_options)
         self.tolerance_s = float(declare_bounded(
             self, 'groups_tolerance_s', 0.05, 0.0, 10.0,
             "groups whose newest sample is within this of the request stamp are the request's groups, s", True))

@@ -42,8 +42,8 @@ from controlled_islanding.wire.topics import relative
 class RecorderNode(Node):
     """Records topics into an MCAP bag."""
 
-    def __init__(self) -> None:
-        super().__init__('recorder')
+    def __init__(self, **node_options) -> None:
+        super().__init__('recorder', **node_options)
         self.declare_parameter('output', '')
         self.declare_parameter('topics', [''])
         self.declare_parameter('discovery_period_s', 0.2)

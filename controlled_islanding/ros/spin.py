@@ -1,7 +1,7 @@
 """The node process: DDS memory settings, the heap settled before spinning, init, spin, Ctrl-C and shutdown.
 
 Readers and writers allocate each DDS sample's buffer when it arrives and free it when it is taken
-(Fast DDS history memory policy DYNAMIC, see `_dds_memory_profile`): under rmw_fastrtps' default
+(Fast DDS history memory policy DYNAMIC, see `dds_memory_profile`): under rmw_fastrtps' default
 (PREALLOCATED_WITH_REALLOC) every pooled buffer keeps the largest size it ever held, so a KEEP_LAST 1000
 reader that now and then gets a frame of 10,000 PMUs grows towards 1000 x 720 kB.
 
@@ -54,7 +54,7 @@ _DDS_MEMORY_XML = """<?xml version="1.0" encoding="UTF-8" ?>
 """
 
 
-def _dds_memory_profile() -> str | None:
+def dds_memory_profile() -> str | None:
     """Point Fast DDS at a profile with the DYNAMIC history memory policy; return the file to delete.
 
     rmw_fastrtps forces PREALLOCATED_WITH_REALLOC unless RMW_FASTRTPS_USE_QOS_FROM_XML is set, and takes the
@@ -98,7 +98,7 @@ def spin_node(factory: Callable[[], Node], args: list[str] | None = None,
 
     """
     _log_to_stderr()
-    profile = _dds_memory_profile()
+    profile = dds_memory_profile()
     rclpy.init(args=args)
     node = None
     status = 0
