@@ -15,10 +15,14 @@ The tests, each judged on one station's own channel, frame by frame:
   error bound ``noise_tve``, taken as 3 sigma, as sim/pmu.py draws it), plus C37.118.1's frequency error bound
   ``frequency_error_hz`` integrated over the window, plus the discretisation of the PMU's own frequency
   estimate: a central or backward difference (or a group delay of one frame) leaves at most one frame's
-  period times the spread of the reported frequency over the window, counted twice. z is the normal quantile of
+  period times the spread of the reported frequency over the window, counted twice, plus the second largest
+  one-frame residual in the window: a central difference spreads an honest angle jump (a fault) over two
+  frames as two equal and opposite one-frame residuals, and an oscillation the frequency estimate averages out
+  (one faster than half the frame rate) gives many, while a time shift of the angles gives one. z is the normal quantile of
   the per-test false-alarm rate ``false_alarm`` (1e-9: about one false test in a year of 30 frames/s per
-  station). f0 is the standard nominal frequency (50 or 60 Hz) nearest the station's reported frequency: no
-  grid strays 5 Hz from its nominal.
+  station). f0 is the standard nominal frequency (50 or 60 Hz) nearest the station's first reported frequency:
+  no grid at rest strays 5 Hz from its nominal. The angle is unwrapped along the reported frequency (a machine
+  slipping poles moves more than pi between frames), so the test sees a lie of up to pi per frame.
 - ``frozen``: the station's six values (phasors, frequency, ROCOF) repeat exactly for ``frozen_frames``
   frames while another station's values changed. Float phasors carrying TVE noise, or a grid in motion,
   never repeat bit for bit; a network at rest repeats everywhere at once, which is not a frozen station.
@@ -61,7 +65,7 @@ class _Station:
     flagged_at_s: float = math.nan  # the first time tag of the current suspicion
     clean_since_s: float = math.nan
     last_t_s: float = -math.inf
-    angle_rad: float = math.nan
+    f0_hz: float = math.nan  # nominal frequency, from the station's first frame
 
 
 @dataclass(frozen=True)
@@ -182,16 +186,20 @@ class BadDataDetector:
         # Consecutive frames only: across a lost frame the frequency between the two tags is unknown.
         if st.rows and not (t - st.rows[-1][0] <= 1.5 * self.period_s):
             st.rows.clear()
+        if math.isnan(st.f0_hz):
+            st.f0_hz = min(_NOMINALS_HZ, key=lambda f: abs(f - freq))
         if st.rows:
-            prev = st.rows[-1][1]
-            angle = prev + math.remainder(angle - prev, 2 * math.pi)
+            # Unwrapped along the reported frequency: a machine slipping poles moves more than pi in a frame.
+            t_prev, prev, f_prev = st.rows[-1]
+            step = 2 * math.pi * (0.5 * (freq + f_prev) - st.f0_hz) * (t - t_prev)
+            angle = prev + step + math.remainder(angle - prev - step, 2 * math.pi)
         st.rows.append((t, angle, freq))
         while st.rows and st.rows[0][0] < t - self.window_s - 1e-9:
             st.rows.popleft()
         if len(st.rows) < 3 or st.rows[-1][0] - st.rows[0][0] < self.window_s - 1.5 * self.period_s:
             return ''
         rows = np.array(st.rows)
-        f0 = min(_NOMINALS_HZ, key=lambda f: abs(f - rows[-1, 2]))
+        f0 = st.f0_hz
         span_s = rows[-1, 0] - rows[0, 0]
         # Each frame's frequency covers the period that ends at it (backward) or surrounds it (central): the
         # difference between the two is the spread term of the bound.
@@ -199,8 +207,10 @@ class BadDataDetector:
         residual_rad = abs(rows[-1, 1] - rows[0, 1] - integral_rad)
         sigma_angle_rad = self.noise_tve / 3.0
         spread_hz = float(rows[:, 2].max() - rows[:, 2].min())
+        per_frame_rad = np.abs(np.diff(rows[:, 1]) - 2 * math.pi * (rows[1:, 2] - f0) * np.diff(rows[:, 0]))
+        second_rad = float(np.sort(per_frame_rad)[-2]) if len(per_frame_rad) > 1 else 0.0
         bound_rad = (self.z * math.sqrt(2.0) * sigma_angle_rad + 2 * math.pi * self.frequency_error_hz * span_s
-                     + 2 * 2 * math.pi * self.period_s * spread_hz)
+                     + 2 * 2 * math.pi * self.period_s * spread_hz + second_rad)
         return 'frequency_mismatch' if residual_rad > bound_rad else ''
 
     def _settle(self, st: _Station, t: float, reason: str) -> None:
