@@ -6,23 +6,23 @@ frames that pass every test.
 
 The tests, each judged on one station's own channel, frame by frame:
 
-- ``frequency_mismatch``: a PMU reports the frequency it measures, f = f0 + (d theta / dt) / (2 pi), theta
-  the voltage angle against the nominal-frequency reference. Over a window of ``window_s`` of consecutive
-  frames the angle's change must equal 2 pi times the integral of f - f0. An angle ramp (a spoofed speed), or a
-  step of the angle (a GPS time shift), breaks it while the reported frequency stays honest; so does a
-  frequency channel that no longer follows the angles. The bound is derived, not tuned:
-  ``z`` standard deviations of the angle noise (two angle samples of TVE/3 each: C37.118.1's total vector
-  error bound ``noise_tve``, taken as 3 sigma, as sim/pmu.py draws it), plus C37.118.1's frequency error bound
-  ``frequency_error_hz`` integrated over the window, plus the discretisation of the PMU's own frequency
-  estimate: a central or backward difference (or a group delay of one frame) leaves at most one frame's
-  period times the spread of the reported frequency over the window, counted twice, plus the second largest
-  one-frame residual in the window: a central difference spreads an honest angle jump (a fault) over two
-  frames as two equal and opposite one-frame residuals, and an oscillation the frequency estimate averages out
-  (one faster than half the frame rate) gives many, while a time shift of the angles gives one. z is the normal quantile of
-  the per-test false-alarm rate ``false_alarm`` (1e-9: about one false test in a year of 30 frames/s per
-  station). f0 is the standard nominal frequency (50 or 60 Hz) nearest the station's first reported frequency:
-  no grid at rest strays 5 Hz from its nominal. The angle is unwrapped along the reported frequency (a machine
-  slipping poles moves more than pi between frames), so the test sees a lie of up to pi per frame.
+- ``frequency_mismatch``: a PMU reports the frequency it measures, f = f0 + (d theta / dt) / (2 pi), theta the
+  voltage angle against the nominal-frequency reference. Over a window of ``window_s`` of consecutive frames the
+  angle's change must equal 2 pi times the integral of f - f0. An angle ramp (a spoofed speed), or a step of the
+  angle (a GPS time shift), breaks it while the reported frequency stays honest; so does a frequency channel that
+  no longer follows the angles. The bound is derived, not tuned: ``z`` standard deviations of the angle noise (two
+  angle samples of TVE/3 each: C37.118.1's total vector error bound ``noise_tve``, taken as 3 sigma, as sim/pmu.py
+  draws it), plus C37.118.1's frequency error bound ``frequency_error_hz`` integrated over the window, plus the
+  discretisation of the PMU's own frequency estimate: a central or backward difference (or a group delay of one
+  frame) leaves at most one frame's period times the spread of the reported frequency over the window, counted
+  twice, plus the second largest one-frame residual in the window: a central difference spreads an honest angle
+  jump (a fault) over two frames as two equal and opposite one-frame residuals, and an oscillation the frequency
+  estimate averages out (one faster than half the frame rate) gives many, while a time shift of the angles gives
+  one. z is the normal quantile of the per-test false-alarm rate ``false_alarm`` (1e-9: about one false test in a
+  year of 30 frames/s per station). f0 is the standard nominal frequency (50 or 60 Hz) nearest the station's first
+  reported frequency: no grid at rest strays 5 Hz from its nominal. The angle is unwrapped along the reported
+  frequency (a machine slipping poles moves more than pi between frames), so the test sees a lie of up to pi per
+  frame.
 - ``frozen``: the station's six values (phasors, frequency, ROCOF) repeat exactly for ``frozen_frames``
   frames while another station's values changed. Float phasors carrying TVE noise, or a grid in motion,
   never repeat bit for bit; a network at rest repeats everywhere at once, which is not a frozen station.
