@@ -19,7 +19,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ['ATTACKS', 'AttackError', 'attack']
+__all__ = ['ATTACKS', 'AttackError', 'attack', 'with_tve_noise']
 
 ATTACKS = ('ramp', 'replay', 'frozen', 'current', 'step', 'ramp2')
 RAMP_RAD_PER_S = 2.0
@@ -76,3 +76,17 @@ def attack(channels, name: str, stations: Sequence[str], start_s: float):
             # Read from the unaltered channels: a replay of replayed frames would repeat the attack's own output.
             out[f][idx] = np.asarray(getattr(channels, f))[np.ix_(source, cols)]
     return dataclasses.replace(channels, **out)
+
+
+def with_tve_noise(channels, noise_tve: float, seed: int = 0):
+    """Return a copy of `channels` with the scenario format's TVE noise (sim/pmu.py) added to every phasor.
+
+    Each phasor is multiplied by (1 + e), e complex Gaussian of sigma noise_tve / 3 per part, |e| clipped to
+    noise_tve; frequency and ROCOF are left as they are (they are derived from the noise-free angle there too).
+    """
+    from controlled_islanding.sim.pmu import _noisy
+
+    rng = np.random.default_rng(seed)
+    v_mag, v_ang = _noisy(rng, np.asarray(channels.v_mag_pu), np.asarray(channels.v_angle_rad), noise_tve)
+    i_mag, i_ang = _noisy(rng, np.asarray(channels.i_mag_pu), np.asarray(channels.i_angle_rad), noise_tve)
+    return dataclasses.replace(channels, v_mag_pu=v_mag, v_angle_rad=v_ang, i_mag_pu=i_mag, i_angle_rad=i_ang)
