@@ -1,12 +1,13 @@
-"""The attack sweep: does one spoofed or failing PMU station steer the decision, and is it flagged in time?
+"""The attack sweep: whether one spoofed or failing PMU station steers the decision, and is flagged in time.
 
-Offline, as the graph decides, frame by frame: core/bad_data judges every station; a suspect one is stepped as
-lost in core/dse's filter from the frame it is flagged (as pmu_ingestion does); the coherency window (3 s, the
-node's rule, band and cap from config/coherency.yaml) ending at the request excludes any generator flagged in
-it (as nodes/coherency.py does); more suspects than `max_suspect_share` of the generators refuse the request
-(STATUS_REFUSED_SUSPECT_DATA, as nodes/partitioning.py); else core/islanding.decide with the portfolio.
-"Steered" = the cut set, or split/no split, differs from the clean bag's decision under the same pipeline; a
-refusal is never steered (it commands nothing). The attacks (sim/attacks.py) start at the bag's first event.
+Offline, as the graph decides, frame by frame: core/bad_data judges every station; a suspect one is stepped as lost
+in core/dse's filter from the frame it is flagged (as pmu_ingestion does); the coherency window (3 s, the node's
+rule, band and cap from config/coherency.yaml) ending at the request excludes any generator flagged in it (as
+nodes/coherency.py does); more suspects than `max_suspect_share` of the generators refuse the request
+(STATUS_REFUSED_SUSPECT_DATA, as nodes/partitioning.py; by default, refuse_any_suspect, any suspect does); else
+core/islanding.decide with the portfolio. "Steered" = the cut set, or split/no split, differs from the clean bag's
+decision under the same pipeline; a refusal is never steered (it commands nothing). The attacks (sim/attacks.py)
+start at the bag's first event.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ class Outcome:
     error: str = ''
 
     def key(self) -> tuple:
-        """What 'steered' compares."""
+        """Return what 'steered' compares."""
         return (self.split, self.cut)
 
 
@@ -81,7 +82,8 @@ class AttackRow:
                 for s in self.stations]
 
 
-def run_pipeline(bag, channels, *, params: dict, max_suspect_share: float = 0.25) -> Outcome:
+def run_pipeline(bag, channels, *, params: dict, max_suspect_share: float = 0.25,
+                 refuse_any_suspect: bool = True) -> Outcome:
     """Decide at the bag's first request from `channels` (see the module docstring)."""
     grid = bag.grid
     gens = grid.generators
@@ -114,7 +116,7 @@ def run_pipeline(bag, channels, *, params: dict, max_suspect_share: float = 0.25
     excluded = bad_block[in_window].any(axis=0)
     seen = (np.isfinite(block[in_window]).sum(axis=0) >= int(params.get('min_samples', 30))) & ~excluded
     out.suspect_generators = tuple(g.name for g, x in zip(gens, excluded, strict=True) if x)
-    if out.suspect_generators and len(out.suspect_generators) > max_suspect_share * len(gens):
+    if out.suspect_generators and (refuse_any_suspect or len(out.suspect_generators) > max_suspect_share * len(gens)):
         out.refused = True
         return out
     names = [g.name for g, s in zip(gens, seen, strict=True) if s]
@@ -134,6 +136,23 @@ def run_pipeline(bag, channels, *, params: dict, max_suspect_share: float = 0.25
     out.split = bool(decision.split)
     out.cut = tuple(sorted(b.branch_id for b in decision.cut_branches))
     return out
+
+
+def attack_start_s(bag) -> float:
+    """Return the first event (fault or trip), s after t0, from the scenario file beside the bag (else its request)."""
+    from pathlib import Path
+
+    from controlled_islanding.sim.manifest import entry_for_bag
+    from controlled_islanding.sim.scenario import load_scenario
+
+    entry = entry_for_bag(bag.path) or {}
+    path = Path(bag.path).parent / str(entry.get('scenario', f'{Path(bag.path).name}.yaml'))
+    if path.is_file():
+        scenario = load_scenario(path)
+        times = [f.start_s for f in scenario.faults] + [t.t_s for t in scenario.trips]
+        if times:
+            return float(min(times))
+    return float(bag.request_t_s[0])
 
 
 def stations_per_group(bag) -> list[str]:
@@ -185,7 +204,7 @@ def false_alarms(bag, *, noise_tve: float = 0.01, seed: int = 0) -> tuple[int, i
 
 
 def table(rows: Sequence[AttackRow]) -> list[str]:
-    """A Markdown table of the sweep."""
+    """Return the sweep as a Markdown table."""
     lines = ['| bag | attack | station(s) | clean decision | attacked decision | steered | flagged before request '
              '| time to flag, s |', '|---|---|---|---|---|---|---|---|']
 
@@ -199,3 +218,37 @@ def table(rows: Sequence[AttackRow]) -> list[str]:
         lines.append(f'| {r.bag} | {r.attack} | {", ".join(r.stations)} | {show(r.clean)} | {show(r.outcome)} | '
                      f'{"yes" if r.steered else "no"} | {"yes" if r.flagged_in_time else "no"} | {ttf} |')
     return lines
+
+
+def report(rows: Sequence[AttackRow], alarms: Sequence[tuple[str, int, int]]) -> list[str]:
+    """Return the figures, the table and the false alarms, as Markdown lines."""
+    single = [r for r in rows if r.attack != 'ramp2']
+    pair = [r for r in rows if r.attack == 'ramp2']
+    refused = sum(r.outcome.refused and not r.outcome.error for r in rows)
+    lines = [f'- single-station attacks: {len(single)}; steered {sum(r.steered for r in single)}; every attacked '
+             f'station flagged before the request in {sum(r.flagged_in_time for r in single)}',
+             f'- two-station ramp: {len(pair)}; steered {sum(r.steered for r in pair)}; both flagged before the '
+             f'request in {sum(r.flagged_in_time for r in pair)}',
+             f'- refused for suspect data: {refused} of {len(rows)}; refused because the split failed: '
+             f'{sum(bool(r.outcome.error) for r in rows)}',
+             f'- false alarms: stations flagged on clean bags {sum(a[1] for a in alarms)}, with 1 % TVE noise '
+             f'added {sum(a[2] for a in alarms)} (over {len(alarms)} bags)', '']
+    lines += table(rows)
+    lines += ['', '| bag | stations flagged, clean | with 1 % TVE noise |', '|---|---|---|']
+    lines += [f'| {name} | {clean} | {noisy} |' for name, clean, noisy in alarms]
+    return lines
+
+
+def write_report(lines: Sequence[str], path, *, command: str) -> None:
+    """Write the generated page."""
+    from pathlib import Path
+
+    from controlled_islanding.atomic import write_text
+
+    body = ['# PMU attack sweep: does one spoofed or failing station steer the cut?', '',
+            f'Generated by `{command}`; do not edit by hand (code: `controlled_islanding/evaluation/attack_sweep.py`).',
+            '',
+            'What one spoofed or failing PMU station does to the decision (evaluation/attack_sweep.py: the '
+            "graph's pipeline offline, frame by frame; attacks of sim/attacks.py from each bag's first event; "
+            'bad-data tests of core/bad_data.py).', '', *lines, '']
+    write_text(Path(path), '\n'.join(body))

@@ -104,6 +104,11 @@ class PartitioningNode(Node):
             'largest share of the generators whose PMU data may be suspect (excluded by pmu_ingestion) for a '
             'decision; with more, the request is refused (STATUS_REFUSED_SUSPECT_DATA): a coordinated attack on '
             'that many stations leaves too little trusted evidence', True))
+        self.declare_parameter('refuse_any_suspect', True)
+        # Whether excluding a suspect machine changes k cannot be known from trusted data: its own data are the
+        # doubt, and where it is the only evidence of a separation the others show none. So by default any
+        # suspect in the window refuses; false decides with the suspects unconstrained (partial observability).
+        self.refuse_any_suspect = bool(self.get_parameter('refuse_any_suspect').value)
         self.exact_s = float(declare_bounded(
             self, 'groups_exact_s', 0.02, 0.0, 10.0,
             "groups whose newest sample is within this of the request stamp answer it at once; others within "
@@ -339,7 +344,8 @@ class PartitioningNode(Node):
 
     def _too_suspect(self, groups: Groups) -> bool:
         total = len(groups.names) + len(groups.unobserved)
-        return bool(groups.suspect) and len(groups.suspect) > self.max_suspect_share * total
+        many = len(groups.suspect) > self.max_suspect_share * total
+        return bool(groups.suspect) and (self.refuse_any_suspect or many)
 
     def _refusal(self, request: IslandingRequest, status: int, detail: str) -> IslandingDecision:
         self.diag.fault('last_request', f'request {request.request_id}: {detail}')
@@ -362,8 +368,8 @@ class PartitioningNode(Node):
             names = ', '.join(f'{g} ({why})' for g, why in groups.suspect)
             msg = self._refusal(request, IslandingDecision.STATUS_REFUSED_SUSPECT_DATA,
                                 f'{len(groups.suspect)} of {len(groups.names) + len(groups.unobserved)} generators '
-                                f'have suspect PMU data, more than max_suspect_share={self.max_suspect_share:g}: '
-                                f'{names}'[:500])
+                                f'have suspect PMU data (refuse_any_suspect={self.refuse_any_suspect}, '
+                                f'max_suspect_share={self.max_suspect_share:g}): {names}'[:500])
             msg.suspect_generator_names = [g for g, _ in groups.suspect]
         elif groups is None:
             held = ', '.join(f'{g.stamp_s:.3f}' for g in self.groups[-3:]) or 'none'
