@@ -7,6 +7,7 @@ import logging
 from pathlib import Path
 
 from controlled_islanding.commands import CliError, progress_bar
+from controlled_islanding.commands.evaluate_attacks import sweep_attacks
 from controlled_islanding.evaluation.cases import (
     PAPER_CASES,
     EvaluateError,
@@ -101,15 +102,12 @@ def add_arguments(parser) -> None:
                         help='instead, sweep PMU coverage (100/75/50/25 %%: the largest machines first, and '
                              '--draws seeded random placements) on the bags and write the table '
                              '(docs/observability.md)')
-    parser.add_argument('--attacks', type=Path, metavar='FILE.md',
-                        help='attack sweep (evaluation/attack_sweep.py): each PMU attack on a station of each group '
-                             'of every BAG, steered / flagged / time to flag, and false alarms; writes FILE.md')
+    parser.add_argument('--attacks', type=Path, metavar='FILE.md', help='instead, the attack sweep (docs/attacks.md)')
     parser.add_argument('--draws', type=int, default=5, help='random placements per coverage (--observability)')
     parser.add_argument('--seed', type=int, default=0, help='seed of the random placements (--observability)')
     parser.add_argument('--andes', action='append', type=Path, metavar='SCENARIO.yaml', default=[],
                         help='with --k-rules: also simulate this scenario in ANDES and compare on its rotor angles')
-    parser.add_argument('--time-limit-s', type=float, default=60.0,
-                        help='MILP time limit per solve, s (default: 60)')
+    parser.add_argument('--time-limit-s', type=float, default=60.0, help='MILP time limit per solve, s (default: 60)')
     parser.add_argument('--closed-loop', action='store_true',
                         help="also run each row's cut in ANDES on the bag's scenario and judge every island "
                              '(sim/closed_loop.py, as the testbed does): the closed-loop column; a minute or more of '
@@ -140,10 +138,8 @@ def run(args) -> int:
             raise CliError(str(exc)) from exc
     if args.k_rules:
         return _compare_rules(args, bags)
-    if args.observability:
-        return _sweep_observability(args, bags)
-    if args.attacks:
-        return _sweep_attacks(args, bags)
+    if args.observability or args.attacks:
+        return _sweep_observability(args, bags) if args.observability else sweep_attacks(args, bags)
     if args.andes:
         raise CliError('--andes is for --k-rules')
     cases = []
@@ -251,26 +247,4 @@ def _sweep_observability(args, bags) -> int:
                         f'--draws {args.draws} --seed {args.seed}'])
     obs.write_report(rows, args.observability, command=command, k_rule=args.k_rule, window_s=args.window_s)
     log.info('report: %s', args.observability)
-    return 0
-
-
-def _sweep_attacks(args, bags) -> int:
-    """Every attack on every bag; print the table and write the page."""
-    from controlled_islanding.evaluation import attack_sweep as sweep
-    from controlled_islanding.evaluation.cases import coherency_node_parameters
-
-    if not bags:
-        raise CliError('--attacks needs at least one BAG')
-    params = coherency_node_parameters()
-    rows, alarms = [], []
-    with progress_bar(len(bags), 'attacks', 'bag') as bar:
-        for bag in bags:
-            alarms.append((bag.path.name, *sweep.false_alarms(bag, seed=args.seed)))
-            rows += sweep.sweep_bag(bag, sweep.attack_start_s(bag), params=params, progress=log.info)
-            bar.update()
-    lines = sweep.report(rows, alarms)
-    print('\n'.join(lines))
-    command = ' '.join(['controlled-islanding evaluate', *args.bags, '--attacks', str(args.attacks)])
-    sweep.write_report(lines, args.attacks, command=command)
-    log.info('report: %s', args.attacks)
     return 0

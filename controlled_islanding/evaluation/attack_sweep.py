@@ -252,3 +252,18 @@ def write_report(lines: Sequence[str], path, *, command: str) -> None:
             "graph's pipeline offline, frame by frame; attacks of sim/attacks.py from each bag's first event; "
             'bad-data tests of core/bad_data.py).', '', *lines, '']
     write_text(Path(path), '\n'.join(body))
+
+
+def sweep(bags, *, seed: int = 0, progress: Callable[[str], None] | None = None,
+          done: Callable[[], object] | None = None) -> list[str]:
+    """Run the sweep and the false alarms on every bag, with the coherency node's parameters; return the page lines."""
+    from controlled_islanding.evaluation.cases import coherency_node_parameters
+
+    params = coherency_node_parameters()
+    rows, alarms = [], []
+    for bag in bags:
+        alarms.append((bag.path.name, *false_alarms(bag, seed=seed)))
+        rows += sweep_bag(bag, attack_start_s(bag), params=params, progress=progress)
+        if done:
+            done()
+    return report(rows, alarms)
