@@ -175,9 +175,11 @@ def test_breaker_rules_on_a_real_process(tmp_path):
             assert probe.wait_counter(NODE, f'rejected.{reason}', 1) >= 1, reason
         no_split = decision_msg(other, [], now_ns(probe), status=IslandingDecision.STATUS_NO_SPLIT)
         stale_groups = decision_msg(other, [], now_ns(probe), status=IslandingDecision.STATUS_REFUSED_STALE_GROUPS)
+        suspect = decision_msg(other, [], now_ns(probe), status=IslandingDecision.STATUS_REFUSED_SUSPECT_DATA)
         send(probe, no_split)
         send(probe, stale_groups)
-        assert handled(probe, base + 5 + len(bad) + 2)
+        send(probe, suspect)
+        assert handled(probe, base + 5 + len(bad) + 3)
         probe.spin_for(0.3)
         assert len(commands) == len(cut), 'a refused decision produced a command'
 

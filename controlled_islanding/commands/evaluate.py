@@ -7,6 +7,7 @@ import logging
 from pathlib import Path
 
 from controlled_islanding.commands import CliError, progress_bar
+from controlled_islanding.commands.evaluate_attacks import sweep_attacks
 from controlled_islanding.evaluation.cases import (
     PAPER_CASES,
     EvaluateError,
@@ -101,12 +102,12 @@ def add_arguments(parser) -> None:
                         help='instead, sweep PMU coverage (100/75/50/25 %%: the largest machines first, and '
                              '--draws seeded random placements) on the bags and write the table '
                              '(docs/observability.md)')
+    parser.add_argument('--attacks', type=Path, metavar='FILE.md', help='instead, the attack sweep (docs/attacks.md)')
     parser.add_argument('--draws', type=int, default=5, help='random placements per coverage (--observability)')
     parser.add_argument('--seed', type=int, default=0, help='seed of the random placements (--observability)')
     parser.add_argument('--andes', action='append', type=Path, metavar='SCENARIO.yaml', default=[],
                         help='with --k-rules: also simulate this scenario in ANDES and compare on its rotor angles')
-    parser.add_argument('--time-limit-s', type=float, default=60.0,
-                        help='MILP time limit per solve, s (default: 60)')
+    parser.add_argument('--time-limit-s', type=float, default=60.0, help='MILP time limit per solve, s (default: 60)')
     parser.add_argument('--closed-loop', action='store_true',
                         help="also run each row's cut in ANDES on the bag's scenario and judge every island "
                              '(sim/closed_loop.py, as the testbed does): the closed-loop column; a minute or more of '
@@ -137,8 +138,8 @@ def run(args) -> int:
             raise CliError(str(exc)) from exc
     if args.k_rules:
         return _compare_rules(args, bags)
-    if args.observability:
-        return _sweep_observability(args, bags)
+    if args.observability or args.attacks:
+        return _sweep_observability(args, bags) if args.observability else sweep_attacks(args, bags)
     if args.andes:
         raise CliError('--andes is for --k-rules')
     cases = []

@@ -53,6 +53,7 @@ _NOT_DECIDED = {
     IslandingDecision.STATUS_REFUSED_NO_SNAPSHOT: 'no snapshot',
     IslandingDecision.STATUS_REFUSED_TOPOLOGY_PENDING: 'topology pending',
     IslandingDecision.STATUS_REFUSED_FAILED: 'failed',
+    IslandingDecision.STATUS_REFUSED_SUSPECT_DATA: 'suspect data',
 }
 
 

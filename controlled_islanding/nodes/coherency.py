@@ -94,6 +94,7 @@ class CoherencyNode(Node):
         self.buses: list[int] = []
         self.t_s: list[float] = []
         self.angles: list[np.ndarray] = []  # NaN where invalid
+        self.suspect: list[dict[int, str]] = []  # per sample: column -> why its PMU data were suspect
         self.dirty = False
         self.computed_end_s = -1.0  # newest sample time of the last published groups, s
         self.late_inserts_before_s = -1.0  # newest time tag of a sample inserted behind that, s
@@ -146,7 +147,7 @@ class CoherencyNode(Node):
                 self.diag.counts['window_resets'] += 1
             self.names = tuple(g.name for g in grid.generators)
             self.column = {n: i for i, n in enumerate(self.names)}
-            self.t_s, self.angles, self.dirty = [], [], False
+            self.t_s, self.angles, self.suspect, self.dirty = [], [], [], False
             self.computed_end_s, self.late_inserts_before_s = -1.0, -1.0
         self.buses = [bus_of[n] for n in self.names]
         while self.early:
@@ -181,7 +182,7 @@ class CoherencyNode(Node):
             self.diag.reject('too_large', f'rotor angles name {n} generators, more than '
                                           f'max_generators={self.limits.max_generators}')
             return
-        if any(x != n for x in lengths):
+        if any(x != n for x in lengths) or len(msg.suspect_reason) not in (0, n):
             self.diag.reject('array_length', f'rotor angles: {n} names but buses/angles/valid have {lengths}')
             return
         t = stamp_s(msg.header.stamp)
@@ -214,6 +215,7 @@ class CoherencyNode(Node):
             return
         row = np.full(len(self.names), np.nan)
         row[cols] = np.where(valid, angles, np.nan)
+        suspect = {cols[j]: str(why) for j, why in enumerate(msg.suspect_reason) if why}
         t = stamp_s(msg.header.stamp)
         if self.t_s and t < self.t_s[-1] - self.max_sample_age_s:
             self.diag.reject('time_backwards', f'sample at {t:.3f} s is {self.t_s[-1] - t:.3f} s older than '
@@ -227,11 +229,12 @@ class CoherencyNode(Node):
             self.late_inserts_before_s = max(self.late_inserts_before_s, t)
         self.t_s.insert(i, t)
         self.angles.insert(i, row)
+        self.suspect.insert(i, suspect)
         # Keep twice the window: a request stamped a little in the past still finds its whole window.
         cut = bisect.bisect_left(self.t_s, self.t_s[-1] - 2 * self.window_s)
         cut = max(cut, len(self.t_s) - self.max_window_samples)
         if cut:
-            del self.t_s[:cut], self.angles[:cut]
+            del self.t_s[:cut], self.angles[:cut], self.suspect[:cut]
         self.dirty = True
         if self.pending:
             self.pending.serve()
@@ -284,7 +287,13 @@ class CoherencyNode(Node):
         assert self.names is not None
         # A generator whose PMU gave fewer than min_samples usable angles in the window is unobserved: it joins
         # no group and constrains no island, rather than being grouped on a handful of points.
+        # A generator whose PMU data were suspect anywhere in the window is excluded: its other samples there may
+        # carry the same attack, not yet flagged.
+        suspect: dict[int, str] = {}
+        for marks in self.suspect[lo:hi]:
+            suspect.update(marks)
         seen = np.flatnonzero(np.isfinite(block).sum(axis=0) >= self.min_samples)
+        seen = np.array([j for j in seen if j not in suspect], dtype=int)
         observed = set(seen.tolist())
         unobserved = [name for j, name in enumerate(self.names) if j not in observed]
         if len(seen) == 0:
@@ -307,7 +316,9 @@ class CoherencyNode(Node):
         msg = CoherentGroups(generator_names=[self.names[j] for j in seen],
                              generator_buses=[self.buses[j] for j in seen], group=labels, k=k, method='dtw',
                              distance=distance, window_s=float(self.t_s[hi - 1] - self.t_s[lo]),
-                             unobserved_generator_names=unobserved, request_id=request_id)
+                             unobserved_generator_names=unobserved, request_id=request_id,
+                             suspect_generator_names=[self.names[j] for j in sorted(suspect)],
+                             suspect_reasons=[suspect[j] for j in sorted(suspect)])
         newest = self.t_s[hi - 1]
         self.computed_end_s, self.late_inserts_before_s = newest, -1.0
         msg.header.stamp.sec, msg.header.stamp.nanosec = split_stamp(newest)

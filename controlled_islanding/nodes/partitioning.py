@@ -68,7 +68,7 @@ PARTITIONERS = {'spectral': ConstrainedSpectralPartition, 'portfolio': Portfolio
 
 
 def decision_to_msg(decision: Decision, request: IslandingRequest, method: str, compute_time_s: float,
-                    generator_bus: dict[str, int] | None = None) -> IslandingDecision:
+                    generator_bus: dict[str, int] | None = None, suspect: tuple[str, ...] = ()) -> IslandingDecision:
     """Encode a core decision as an (unsigned) IslandingDecision message answering a request.
 
     generator_bus (name -> bus) places the decision's unobserved generators; it must name each of them.
@@ -87,7 +87,8 @@ def decision_to_msg(decision: Decision, request: IslandingRequest, method: str, 
         disrupted_mw=decision.disrupted_mw, compute_time_s=compute_time_s,
         unobserved_generator_names=unobserved,
         unobserved_generator_island=[decision.bus_island[(generator_bus or {})[n]] for n in unobserved],
-        partitioner=decision.partitioner_summary, constraint_fallback=decision.constraint_fallback)
+        partitioner=decision.partitioner_summary, constraint_fallback=decision.constraint_fallback,
+        suspect_generator_names=list(suspect))
 
 
 class PartitioningNode(Node):
@@ -98,6 +99,16 @@ class PartitioningNode(Node):
         self.tolerance_s = float(declare_bounded(
             self, 'groups_tolerance_s', 0.05, 0.0, 10.0,
             "groups whose newest sample is within this of the request stamp are the request's groups, s", True))
+        self.max_suspect_share = float(declare_bounded(
+            self, 'max_suspect_share', 0.25, 0.0, 1.0,
+            'largest share of the generators whose PMU data may be suspect (excluded by pmu_ingestion) for a '
+            'decision; with more, the request is refused (STATUS_REFUSED_SUSPECT_DATA): a coordinated attack on '
+            'that many stations leaves too little trusted evidence', True))
+        self.declare_parameter('refuse_any_suspect', True)
+        # Whether excluding a suspect machine changes k cannot be known from trusted data: its own data are the
+        # doubt, and where it is the only evidence of a separation the others show none. So by default any
+        # suspect in the window refuses; false decides with the suspects unconstrained (partial observability).
+        self.refuse_any_suspect = bool(self.get_parameter('refuse_any_suspect').value)
         self.exact_s = float(declare_bounded(
             self, 'groups_exact_s', 0.02, 0.0, 10.0,
             "groups whose newest sample is within this of the request stamp answer it at once; others within "
@@ -331,6 +342,11 @@ class PartitioningNode(Node):
             return False
         return self.topology.changes_known(stamp_s(request.header.stamp)) < int(request.branch_changes_before)
 
+    def _too_suspect(self, groups: Groups) -> bool:
+        total = len(groups.names) + len(groups.unobserved)
+        many = len(groups.suspect) > self.max_suspect_share * total
+        return bool(groups.suspect) and (self.refuse_any_suspect or many)
+
     def _refusal(self, request: IslandingRequest, status: int, detail: str) -> IslandingDecision:
         self.diag.fault('last_request', f'request {request.request_id}: {detail}')
         self.diag.reject('refused', f'request {request.request_id}: {detail}')
@@ -348,6 +364,13 @@ class PartitioningNode(Node):
                                 f'{self.topology.changes_known(req_s)} branch status changes stamped up to the '
                                 f'request applied, the requester knows of {request.branch_changes_before}, after '
                                 f'groups_wait_s={self.wait_s}')
+        elif groups is not None and self._too_suspect(groups):
+            names = ', '.join(f'{g} ({why})' for g, why in groups.suspect)
+            msg = self._refusal(request, IslandingDecision.STATUS_REFUSED_SUSPECT_DATA,
+                                f'{len(groups.suspect)} of {len(groups.names) + len(groups.unobserved)} generators '
+                                f'have suspect PMU data (refuse_any_suspect={self.refuse_any_suspect}, '
+                                f'max_suspect_share={self.max_suspect_share:g}): {names}'[:500])
+            msg.suspect_generator_names = [g for g, _ in groups.suspect]
         elif groups is None:
             held = ', '.join(f'{g.stamp_s:.3f}' for g in self.groups[-3:]) or 'none'
             msg = self._refusal(request, IslandingDecision.STATUS_REFUSED_STALE_GROUPS,
@@ -365,7 +388,7 @@ class PartitioningNode(Node):
                     self.diag.values['last_partition'] = decision.partitioner_summary[:200]
                 grid = self.topology.snapshot_at(req_s)[1]
                 msg = decision_to_msg(decision, request, groups.method, time.perf_counter() - t0,
-                                      {g.name: g.bus for g in grid.generators})
+                                      {g.name: g.bus for g in grid.generators}, tuple(g for g, _ in groups.suspect))
                 self.diag.fault('last_request', None)
             except Exception as exc:  # the core's errors name the bad input; the node must keep running
                 msg = self._refusal(request, IslandingDecision.STATUS_REFUSED_FAILED, f'split failed: {exc}'[:500])

@@ -19,6 +19,11 @@ the flux states move after a fault (docs/benchmarks.md). Machines without dynami
 steady-state estimate; /diagnostics names them (`dse_fallback`). With 'dse', `valid` still means "this frame
 had usable data for the generator": where it is false the angle is the filter's prediction.
 
+Bad data (core/bad_data.py): every station's usable data are judged frame by frame (reported frequency against
+its angles' own rate, frozen and replayed content). A suspect station is excluded: its generator gets
+`valid = false` with the test in `suspect_reason`, the filter steps it as lost, /diagnostics warns naming it
+(`suspect_stations`, counted in `suspect_flags`), and it returns after `bad_data_clean_s` of clean data.
+
 Time tags are bounded by the node's own clock (sim time in replay): a frame or snapshot stamped more than
 `future_tolerance_s` ahead of it is refused, so it never becomes "the newest" that every honest frame would
 then be judged too old against. Until that clock starts (sim time before the first /clock), inputs are held,
@@ -38,6 +43,7 @@ import numpy as np
 from controlled_islanding_msgs.msg import NetworkSnapshot, PmuFrame, PmuMeasurement, RotorAngles
 from rclpy.node import Node
 
+from controlled_islanding.core.bad_data import BadDataDetector, BadDataError
 from controlled_islanding.core.dse import DSEError, MachineData, StreamingDSE, TagGrid
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.core.rotor_angle import RotorAngleError, estimate_rotor_angle_rad
@@ -102,6 +108,19 @@ class PmuIngestionNode(Node):
             'how long, s, the filter waits for a missing time tag once a newer frame has come (frames are still '
             'answered at once; a longer wait uses more late frames, at the cost of more work while it waits)'))
         self.stream: StreamingDSE | None = None
+        self.declare_parameter('bad_data', True)
+        noise_tve = float(declare_bounded(
+            self, 'bad_data_noise_tve', 0.01, 1e-6, 0.5,
+            "the PMUs' total vector error bound (3 sigma; C37.118.1: 0.01), from which the bad-data bounds follow"))
+        clean_s = float(declare_bounded(
+            self, 'bad_data_clean_s', 1.0, 0.0, 3600.0,
+            'clean data, s of time tags, a suspect PMU station needs before it is used again'))
+        try:
+            self.detector = (BadDataDetector(noise_tve=noise_tve, clean_s=clean_s)
+                             if self.get_parameter('bad_data').value else None)
+        except BadDataError as exc:
+            raise NodeSetupError(str(exc)) from exc
+        self.suspect_named = ''
         self.diag = Diagnostics(self)
         self.intake = SnapshotIntake(self, self.diag)
         self.diag.values['estimator'] = self.estimator
@@ -159,6 +178,8 @@ class PmuIngestionNode(Node):
         self.last_angle_rad = {n: a for n, a in self.last_angle_rad.items() if n in names}
         for station in [s for s, (bus, _) in self.stations.items() if bus not in self.buses]:
             del self.stations[station]
+        if self.detector is not None:
+            self.detector.forget(set(self.stations))
         while self.early:
             self._take_frame(self.early.popleft())
 
@@ -260,9 +281,11 @@ class PmuIngestionNode(Node):
                 by_generator[m.station_id.rpartition('/')[2]] = m
             if verdict != 'rejected':
                 self._remember(m.station_id, int(m.bus), t if verdict == 'use' else -math.inf)
+        suspect = self._screen(t, by_bus, by_generator)
         try:
             angles = (self._dse_angles(frame, t, by_bus, by_generator) if self.stream is not None
                       else self._angles(frame, by_bus, by_generator))
+            self._mark_suspect(angles, suspect)
         except (RotorAngleError, DSEError) as exc:  # the snapshot validator should make this impossible
             self.diag.reject('compute_failed', f'rotor angles of the frame at {t:.3f} s: {exc}')
             return
@@ -275,6 +298,36 @@ class PmuIngestionNode(Node):
         self.tag_grid.add(key)
         self.pub.publish(angles)
         self._account(t0)
+
+    def _screen(self, t: float, by_bus: dict[int, PmuMeasurement],
+                by_generator: dict[str, PmuMeasurement]) -> dict[str, str]:
+        """Judge the frame's usable stations; drop the suspect ones; return generator name -> reason."""
+        if self.detector is None or self.grid is None:
+            return {}
+        used = {m.station_id: m for m in [*by_bus.values(), *by_generator.values()]}
+        ms = list(used.values())
+        suspects = self.detector.judge(t, [m.station_id for m in ms], *(
+            [getattr(m, f) for m in ms] for f in (*_FIELDS, 'frequency_hz', 'rocof_hz_per_s')))
+        out = {}
+        for g in self.grid.generators:
+            m = by_generator.get(g.name) or by_bus.get(g.bus)
+            if m is not None and m.station_id in suspects:
+                out[g.name] = f'{suspects[m.station_id]}: {m.station_id}'
+        for table in (by_bus, by_generator):
+            for key in [k for k, m in table.items() if m.station_id in suspects]:
+                del table[key]
+        named = ','.join(f'{sid} ({why})' for sid, why in sorted(suspects.items())[:_MAX_STALE_NAMED])
+        if named != self.suspect_named:
+            self.suspect_named = named
+            self.diag.values['suspect_stations'] = named
+            self.diag.values['suspect_flags'] = str(self.detector.flags)
+            self.diag.warn('suspect_data', f'{len(suspects)} PMU station(s) excluded as suspect data: {named}'
+                           if suspects else None)
+        return out
+
+    def _mark_suspect(self, angles: RotorAngles, suspect: dict[str, str]) -> None:
+        if suspect:
+            angles.suspect_reason = [suspect.get(n, '') for n in angles.generator_names]
 
     def _angles(self, frame: PmuFrame, by_bus: dict[int, PmuMeasurement],
                 by_generator: dict[str, PmuMeasurement]) -> RotorAngles:

@@ -215,6 +215,7 @@ class Groups:
         method: Coherency method.
         unobserved: Generators in no group because they had no usable data (partial observability).
         request_id: The islanding request coherency computed these groups for ('' for a periodic grouping).
+        suspect: (generator, reason) for those of `unobserved` excluded because their PMU data were suspect.
 
     """
 
@@ -225,6 +226,7 @@ class Groups:
     method: str
     unobserved: tuple[str, ...] = ()
     request_id: str = ''
+    suspect: tuple[tuple[str, str], ...] = ()
 
     def as_mapping(self) -> dict[str, int]:
         """Return generator name -> group."""
@@ -267,5 +269,12 @@ def groups_from_msg(msg: object, limits: Limits = Limits()) -> Groups:
     request_id = str(getattr(msg, 'request_id', ''))
     if len(request_id) > MAX_REQUEST_ID:
         raise MessageError('bad_value', f'coherent groups request_id is longer than {MAX_REQUEST_ID} characters')
+    suspect_names = [str(x) for x in getattr(msg, 'suspect_generator_names', ())]
+    reasons = [str(x) for x in getattr(msg, 'suspect_reasons', ())]
+    if len(reasons) != len(suspect_names) or len(suspect_names) > limits.max_generators:
+        raise MessageError('array_length', f'{len(suspect_names)} suspect generators but {len(reasons)} reasons')
+    if not set(suspect_names) <= set(unobserved):
+        raise MessageError('unknown_id', 'coherent groups list suspect generators that are not unobserved')
     return Groups(names=names, labels=labels, k=len(order), stamp_s=stamp, method=str(msg.method),
-                  unobserved=tuple(sorted(unobserved)), request_id=request_id)
+                  unobserved=tuple(sorted(unobserved)), request_id=request_id,
+                  suspect=tuple(sorted(zip(suspect_names, reasons, strict=True))))

@@ -1,0 +1,277 @@
+"""Bad-data detection per PMU station, from evidence the measurements already carry (no rclpy).
+
+Why: C37.118.2 carries no authentication and a spoofer leaves STAT "good". A station whose data contradict
+themselves, or repeat, is excluded before its angles can steer a cut; it comes back only after `clean_s` of
+frames that pass every test.
+
+The tests, each judged on one station's own channel, frame by frame:
+
+- ``frequency_mismatch``: a PMU reports the frequency it measures, f = f0 + (d theta / dt) / (2 pi), theta the
+  voltage angle against the nominal-frequency reference. Over a window of ``window_s`` of consecutive frames the
+  angle's change must equal 2 pi times the integral of f - f0. An angle ramp (a spoofed speed), or a step of the
+  angle (a GPS time shift), breaks it while the reported frequency stays honest; so does a frequency channel that
+  no longer follows the angles. The bound is derived, not tuned: ``z`` standard deviations of the angle noise (two
+  angle samples of TVE/3 each: C37.118.1's total vector error bound ``noise_tve``, taken as 3 sigma, as sim/pmu.py
+  draws it), plus C37.118.1's frequency error bound ``frequency_error_hz`` integrated over the window, plus the
+  discretisation of the PMU's own frequency estimate: a central or backward difference (or a group delay of one
+  frame) leaves at most one frame's period times the spread of the reported frequency over the window, counted
+  twice, plus the second largest one-frame residual in the window: a central difference spreads an honest angle
+  jump (a fault) over two frames as two equal and opposite one-frame residuals, and an oscillation the frequency
+  estimate averages out (one faster than half the frame rate) gives many, while a time shift of the angles gives
+  one. z is the normal quantile of the per-test false-alarm rate ``false_alarm`` (1e-9: about one false test in a
+  year of 30 frames/s per station). f0 is the standard nominal frequency (50 or 60 Hz) nearest the station's first
+  reported frequency: no grid at rest strays 5 Hz from its nominal. The angle is unwrapped along the reported
+  frequency (a machine slipping poles moves more than pi between frames), so the test sees a lie of up to pi per
+  frame.
+- ``frozen``: the station's six values (phasors, frequency, ROCOF) repeat exactly for ``frozen_frames``
+  frames while another station's values changed. Float phasors carrying TVE noise, or a grid in motion,
+  never repeat bit for bit; a network at rest repeats everywhere at once, which is not a frozen station.
+- ``replayed``: the station's values equal, bit for bit, those of an earlier time tag within ``history_s``
+  (other than the previous frame, which is the frozen test), while another station's values changed: frames
+  recorded and played back under fresh time tags.
+
+The tests see only frames the caller found usable (STAT bits 15 and 13 already make a station's data unusable
+in pmu_ingestion, and absent frames are not stepped). The Kalman filter's innovations and the machine model's
+bound on jumps are the next evidence to add (core/dse.py does not yet expose its innovation covariance).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import norm
+
+__all__ = ['BadDataDetector', 'BadDataError', 'REASONS', 'StationVerdict']
+
+REASONS = ('frequency_mismatch', 'frozen', 'replayed')
+_NOMINALS_HZ = (50.0, 60.0)
+
+
+class BadDataError(ValueError):
+    """Settings the detector cannot use."""
+
+
+@dataclass(frozen=True)
+class StationVerdict:
+    """One station's state after a frame.
+
+    Attributes:
+        station_id: The station.
+        reason: '' when trusted; else the test (a name in REASONS) that made it suspect, kept until it returns.
+        flagged_at_s: Time tag at which the current suspicion began, s (NaN when trusted).
+
+    """
+
+    station_id: str
+    reason: str
+    flagged_at_s: float
+
+
+class BadDataDetector:
+    """Judges each PMU station from its own frames; a suspect station returns after ``clean_s`` of clean data.
+
+    The stations of a frame are judged together, in arrays (a frame of 394 stations costs about a millisecond).
+
+    Args:
+        noise_tve: Total vector error bound of the phasors, as a 3-sigma bound (C37.118.1: 0.01).
+        frequency_error_hz: Frequency error bound of the PMU (C37.118.1, class P steady state: 0.005 Hz).
+        window_s: Window of the frequency test, s: long enough that a spoofed speed of 1 rad/s (0.16 Hz) leaves
+            a residual of 0.5 rad, far above the bound; short enough to flag it within that time.
+        false_alarm: Probability that one frequency test of an honest station exceeds the bound (sets z).
+        frozen_frames: Consecutive exact repeats that make a station frozen.
+        history_s: How far back replayed content is looked for, s.
+        clean_s: Clean data a suspect station needs before it returns, s: twice the frequency window, so that
+            the evidence that flagged it has left every window.
+
+    """
+
+    def __init__(self, noise_tve: float = 0.01, frequency_error_hz: float = 0.005, window_s: float = 0.5,
+                 false_alarm: float = 1e-9, frozen_frames: int = 3, history_s: float = 2.0,
+                 clean_s: float = 1.0) -> None:
+        if not (0 < noise_tve < 1 and frequency_error_hz >= 0 and window_s > 0 and 0 < false_alarm < 0.5
+                and frozen_frames >= 1 and history_s >= 0 and clean_s >= 0):
+            raise BadDataError(f'bad settings: noise_tve={noise_tve}, frequency_error_hz={frequency_error_hz}, '
+                               f'window_s={window_s}, false_alarm={false_alarm}, frozen_frames={frozen_frames}, '
+                               f'history_s={history_s}, clean_s={clean_s}')
+        self.noise_tve, self.frequency_error_hz, self.window_s = noise_tve, frequency_error_hz, window_s
+        self.z = float(norm.isf(false_alarm / 2))
+        self.frozen_frames, self.history_s, self.clean_s = frozen_frames, history_s, clean_s
+        self.period_s = math.inf  # the smallest spacing of one station's time tags seen, s
+        self.flags = 0  # suspicions raised
+        self.row: dict[str, int] = {}
+        self.ids: list[str] = []
+        self._m = 0  # frames in the frequency window (its ring length); 0 until the period is known
+        self._alloc(0)
+        self._seen: dict[tuple[int, bytes], float] = {}  # (row, content) -> newest time tag, s
+        self._order: deque[tuple[float, tuple[int, bytes]]] = deque()
+
+    def _alloc(self, n: int) -> None:
+        self.last_t = np.full(n, -np.inf)
+        self.last_angle = np.full(n, np.nan)
+        self.last_freq = np.full(n, np.nan)
+        self.f0 = np.full(n, np.nan)
+        self.count = np.zeros(n, dtype=int)  # consecutive frames, for the frequency window
+        self.ptr = np.zeros(n, dtype=int)
+        self.ring_e = np.zeros((n, self._m))  # one-frame residuals, rad
+        self.ring_f = np.zeros((n, self._m))  # reported frequencies, Hz
+        self.content = np.full((n, 6), np.nan)
+        self.repeats = np.zeros(n, dtype=int)
+        self.reason = np.full(n, '', dtype=object)
+        self.flagged_at = np.full(n, np.nan)
+        self.clean_since = np.full(n, np.nan)
+
+    def _grow(self, n: int) -> None:
+        old = {k: v for k, v in vars(self).items() if isinstance(v, np.ndarray)}
+        self._alloc(n)
+        for k, v in old.items():
+            getattr(self, k)[:len(v)] = v
+
+    def forget(self, keep: set[str]) -> None:
+        """Forget every station not in keep (memory follows the network)."""
+        if set(self.ids) <= keep:
+            return
+        kept = [sid for sid in self.ids if sid in keep]
+        rows = np.array([self.row[sid] for sid in kept], dtype=int)
+        for k, v in list(vars(self).items()):
+            if isinstance(v, np.ndarray):
+                setattr(self, k, v[rows])
+        self.ids, self.row = kept, {sid: j for j, sid in enumerate(kept)}
+        self._seen.clear()
+        self._order.clear()
+
+    def suspects(self) -> dict[str, str]:
+        """Return station id -> reason for every station now suspect."""
+        return {self.ids[j]: str(self.reason[j]) for j in np.flatnonzero(self.reason != '')}
+
+    def verdict(self, station_id: str) -> StationVerdict:
+        """Return one station's current state (trusted when never seen)."""
+        j = self.row.get(station_id)
+        if j is None or not self.reason[j]:
+            return StationVerdict(station_id, '', math.nan)
+        return StationVerdict(station_id, str(self.reason[j]), float(self.flagged_at[j]))
+
+    def judge(self, t_s: float, station_ids, v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, frequency_hz,
+              rocof_hz_per_s) -> dict[str, str]:
+        """Take one frame's usable measurements (one value per station) and return the suspects after it.
+
+        Frames must come in time-tag order per station; an older or repeated tag is ignored for that station.
+
+        Returns:
+            Station id -> reason, for every station suspect after this frame.
+
+        """
+        t = float(t_s)
+        ids = [str(x) for x in station_ids]
+        new = [sid for sid in dict.fromkeys(ids) if sid not in self.row]
+        if new:
+            self.row.update((sid, len(self.ids) + j) for j, sid in enumerate(new))
+            self.ids.extend(new)
+            self._grow(len(self.ids))
+        values = np.column_stack([np.asarray(a, dtype=float).reshape(-1) for a in
+                                  (v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, frequency_hz, rocof_hz_per_s)])
+        rows = np.array([self.row[sid] for sid in ids], dtype=int)
+        fresh = t > self.last_t[rows]
+        _, first = np.unique(rows, return_index=True)
+        once = np.zeros(len(rows), dtype=bool)
+        once[first] = True
+        keep = fresh & once
+        rows, values = rows[keep], values[keep]
+        if not len(rows):
+            return self.suspects()
+        gaps = t - self.last_t[rows]
+        if np.isfinite(gaps).any():
+            self.period_s = min(self.period_s, float(np.min(gaps[np.isfinite(gaps)])))
+            if not self._m and math.isfinite(self.period_s) and self.period_s > 0:
+                self._m = max(2, int(round(self.window_s / self.period_s)))
+                self._alloc_rings()
+        reason = self._content_test(t, rows, values)
+        freq_bad = self._frequency_test(t, rows, values, gaps)
+        reason = np.where((reason == '') & freq_bad, 'frequency_mismatch', reason)
+        self._settle(t, rows, reason)
+        self.last_t[rows] = t
+        return self.suspects()
+
+    def _alloc_rings(self) -> None:
+        n = len(self.ids)
+        self.ring_e, self.ring_f = np.zeros((n, self._m)), np.zeros((n, self._m))
+        self.count[:] = 0
+        self.ptr[:] = 0
+
+    # ------------------------------------------------------------------------------------------------ the tests
+    def _content_test(self, t: float, rows: np.ndarray, values: np.ndarray) -> np.ndarray:
+        prev = self.content[rows]
+        had = np.isfinite(self.last_t[rows])
+        same = had & np.all(values == prev, axis=1)
+        changed = had & ~same
+        others_moved = (changed.sum() - changed) > 0
+        self.repeats[rows] = np.where(same, self.repeats[rows] + 1, 0)
+        self.content[rows] = values
+        out = np.full(len(rows), '', dtype=object)
+        out[same & others_moved & (self.repeats[rows] >= self.frozen_frames)] = 'frozen'
+        for j in np.flatnonzero(~same):
+            key = (int(rows[j]), values[j].tobytes())
+            if others_moved[j] and key in self._seen:
+                out[j] = 'replayed'
+            self._seen[key] = t
+            self._order.append((t, key))
+        while self._order and self._order[0][0] < t - self.history_s:
+            old_t, key = self._order.popleft()
+            if self._seen.get(key) == old_t:
+                del self._seen[key]
+        return out
+
+    def _frequency_test(self, t: float, rows: np.ndarray, values: np.ndarray, gaps: np.ndarray) -> np.ndarray:
+        angle, freq = values[:, 1], values[:, 4]
+        ok = np.isfinite(angle) & np.isfinite(freq)
+        f0 = self.f0[rows]
+        f0 = np.where(np.isnan(f0), np.where(np.abs(freq - 50.0) < np.abs(freq - 60.0), 50.0, 60.0), f0)
+        self.f0[rows] = np.where(ok, f0, self.f0[rows])
+        # Consecutive frames only: across a lost frame the frequency between the two tags is unknown.
+        follows = ok & (gaps <= 1.5 * self.period_s) & np.isfinite(self.last_angle[rows])
+        prev, f_prev = self.last_angle[rows], self.last_freq[rows]
+        with np.errstate(invalid='ignore'):
+            # Unwrapped along the reported frequency: a machine slipping poles moves more than pi in a frame.
+            step = 2 * np.pi * (0.5 * (freq + f_prev) - f0) * gaps
+            unwrapped = prev + step + np.remainder(angle - prev - step + np.pi, 2 * np.pi) - np.pi
+            e = unwrapped - prev - 2 * np.pi * (freq - f0) * gaps
+        self.last_angle[rows] = np.where(ok, np.where(follows, unwrapped, angle), np.nan)
+        self.last_freq[rows] = np.where(ok, freq, np.nan)
+        bad = np.zeros(len(rows), dtype=bool)
+        if not self._m:
+            return bad
+        self.count[rows] = np.where(follows, self.count[rows] + 1, 0)
+        live = follows
+        r, p = rows[live], self.ptr[rows[live]]
+        self.ring_e[r, p] = e[live]
+        self.ring_f[r, p] = freq[live]
+        self.ptr[r] = (p + 1) % self._m
+        full = live & (self.count[rows] >= self._m)
+        if not full.any():
+            return bad
+        fr = rows[full]
+        residual = np.abs(self.ring_e[fr].sum(axis=1))
+        second = np.partition(np.abs(self.ring_e[fr]), -2, axis=1)[:, -2]
+        spread = np.ptp(self.ring_f[fr], axis=1)
+        span_s = self._m * self.period_s
+        bound = (self.z * math.sqrt(2.0) * self.noise_tve / 3.0 + 2 * np.pi * self.frequency_error_hz * span_s
+                 + 2 * 2 * np.pi * self.period_s * spread + second)
+        bad[full] = residual > bound
+        return bad
+
+    def _settle(self, t: float, rows: np.ndarray, reason: np.ndarray) -> None:
+        flagged = reason != ''
+        raised = flagged & (self.reason[rows] == '')
+        self.flags += int(raised.sum())
+        self.reason[rows[raised]] = reason[raised]
+        self.flagged_at[rows[raised]] = t
+        self.clean_since[rows[flagged]] = np.nan
+        calm = rows[~flagged & (self.reason[rows] != '')]
+        start = calm[np.isnan(self.clean_since[calm])]
+        self.clean_since[start] = t
+        back = calm[t - self.clean_since[calm] >= self.clean_s]
+        self.reason[back] = ''
+        self.flagged_at[back] = np.nan
+        self.clean_since[back] = np.nan

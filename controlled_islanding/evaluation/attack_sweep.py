@@ -1,0 +1,269 @@
+"""The attack sweep: whether one spoofed or failing PMU station steers the decision, and is flagged in time.
+
+Offline, as the graph decides, frame by frame: core/bad_data judges every station; a suspect one is stepped as lost
+in core/dse's filter from the frame it is flagged (as pmu_ingestion does); the coherency window (3 s, the node's
+rule, band and cap from config/coherency.yaml) ending at the request excludes any generator flagged in it (as
+nodes/coherency.py does); more suspects than `max_suspect_share` of the generators refuse the request
+(STATUS_REFUSED_SUSPECT_DATA, as nodes/partitioning.py; by default, refuse_any_suspect, any suspect does); else
+core/islanding.decide with the portfolio. "Steered" = the cut set, or split/no split, differs from the clean bag's
+decision under the same pipeline; a refusal is never steered (it commands nothing). The attacks (sim/attacks.py)
+start at the bag's first event.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from controlled_islanding.core.bad_data import BadDataDetector
+from controlled_islanding.core.coherency import DTWCoherency
+from controlled_islanding.core.dse import MachineData, RotorAngleDSE
+from controlled_islanding.core.islanding import decide
+from controlled_islanding.core.portfolio import PortfolioPartition
+from controlled_islanding.sim.attacks import ATTACKS, attack, with_tve_noise
+
+_FIELDS = ('v_mag_pu', 'v_angle_rad', 'i_mag_pu', 'i_angle_rad', 'frequency_hz', 'rocof_hz_per_s')
+
+
+@dataclass
+class Outcome:
+    """One run of the pipeline on (possibly attacked) channels.
+
+    Attributes:
+        flagged: Station -> (reason, first time tag flagged, s).
+        refused: Whether the request was refused for suspect data.
+        split: The decision splits.
+        cut: Cut branch ids, sorted.
+        suspect_generators: Generators excluded at the request.
+        error: Why no decision could be computed ('' when one was).
+
+    """
+
+    flagged: dict[str, tuple[str, float]] = field(default_factory=dict)
+    refused: bool = False
+    split: bool = False
+    cut: tuple[str, ...] = ()
+    suspect_generators: tuple[str, ...] = ()
+    error: str = ''
+
+    def key(self) -> tuple:
+        """Return what 'steered' compares."""
+        return (self.split, self.cut)
+
+
+@dataclass
+class AttackRow:
+    """One attack on one bag."""
+
+    bag: str
+    attack: str
+    stations: tuple[str, ...]
+    start_s: float
+    request_s: float
+    outcome: Outcome
+    clean: Outcome
+
+    @property
+    def steered(self) -> bool:
+        """The decision differs from the clean one and is not a refusal."""
+        return not self.outcome.refused and self.outcome.key() != self.clean.key()
+
+    @property
+    def flagged_in_time(self) -> bool:
+        """Every attacked station flagged before the request."""
+        return all(s in self.outcome.flagged and self.outcome.flagged[s][1] <= self.request_s for s in self.stations)
+
+    def time_to_flag_s(self) -> list[float]:
+        """Seconds from the attack's start to each attacked station's first flag (NaN: never)."""
+        return [self.outcome.flagged[s][1] - self.start_s if s in self.outcome.flagged else math.nan
+                for s in self.stations]
+
+
+def run_pipeline(bag, channels, *, params: dict, max_suspect_share: float = 0.25,
+                 refuse_any_suspect: bool = True) -> Outcome:
+    """Decide at the bag's first request from `channels` (see the module docstring)."""
+    grid = bag.grid
+    gens = grid.generators
+    cols = [bag.pmu_column(g.name, g.bus) for g in gens]
+    station_of = [bag.station_ids[c] for c in cols]
+    request_s = float(bag.request_t_s[0])
+    det = BadDataDetector()
+    dse = RotorAngleDSE(model=str(params.get('dse_model', 'auto'))).fit(MachineData.of_generators(gens))
+    window_s = float(params.get('window_s', 3.0))
+    out = Outcome()
+    rows = np.flatnonzero(np.asarray(bag.frame_present) & (np.asarray(channels.tag_s) <= request_s + 1e-9))
+    angles, tags, suspect_rows = [], [], []
+    for k in rows:
+        t = float(channels.tag_s[k])
+        values = [np.asarray(getattr(channels, f))[k] for f in _FIELDS]
+        usable = np.isfinite(values[0]) & np.isfinite(values[2])
+        idx = np.flatnonzero(usable)
+        suspects = det.judge(t, [channels.station_ids[j] for j in idx], *(v[idx] for v in values)) if idx.size \
+            else det.suspects()
+        for sid, why in suspects.items():
+            out.flagged.setdefault(sid, (why, t))
+        bad = np.array([s in suspects for s in station_of])
+        valid = usable[cols] & ~bad
+        a = dse.update(t, values[0][cols], values[1][cols], values[2][cols], values[3][cols], valid)
+        angles.append(np.where(valid, a, np.nan))
+        tags.append(t)
+        suspect_rows.append(bad)
+    tags_arr, block, bad_block = np.array(tags), np.array(angles), np.array(suspect_rows)
+    in_window = tags_arr >= request_s - window_s - 1e-9
+    excluded = bad_block[in_window].any(axis=0)
+    seen = (np.isfinite(block[in_window]).sum(axis=0) >= int(params.get('min_samples', 30))) & ~excluded
+    out.suspect_generators = tuple(g.name for g, x in zip(gens, excluded, strict=True) if x)
+    if out.suspect_generators and (refuse_any_suspect or len(out.suspect_generators) > max_suspect_share * len(gens)):
+        out.refused = True
+        return out
+    names = [g.name for g, s in zip(gens, seen, strict=True) if s]
+    unobserved = [g.name for g, s in zip(gens, seen, strict=True) if not s]
+    try:
+        band = int(params.get('dtw_band_samples', 30)) or None
+        model = DTWCoherency(max_groups=int(params.get('max_groups', 8)), window=band,
+                             k_rule=str(params.get('k_rule', 'separation')))
+        series = [block[in_window][:, j] for j in np.flatnonzero(seen)]
+        labels = [0] * len(series) if len(series) == 1 else [int(x) for x in model.fit(series).labels_]
+        decision = decide(bag.grid_at(request_s + 1e-9), dict(zip(names, labels, strict=True)), PortfolioPartition(),
+                          unobserved=unobserved)
+    except Exception as exc:  # a failed split is a result here: the node would refuse it (REFUSED_FAILED)
+        out.error = str(exc)[:200]
+        out.refused = True
+        return out
+    out.split = bool(decision.split)
+    out.cut = tuple(sorted(b.branch_id for b in decision.cut_branches))
+    return out
+
+
+def attack_start_s(bag) -> float:
+    """Return the first event (fault or trip), s after t0, from the scenario file beside the bag (else its request)."""
+    from pathlib import Path
+
+    from controlled_islanding.sim.manifest import entry_for_bag
+    from controlled_islanding.sim.scenario import load_scenario
+
+    entry = entry_for_bag(bag.path) or {}
+    path = Path(bag.path).parent / str(entry.get('scenario', f'{Path(bag.path).name}.yaml'))
+    if path.is_file():
+        scenario = load_scenario(path)
+        times = [f.start_s for f in scenario.faults] + [t.t_s for t in scenario.trips]
+        if times:
+            return float(min(times))
+    return float(bag.request_t_s[0])
+
+
+def stations_per_group(bag) -> list[str]:
+    """One PMU station per true coherent group (the machine of each group with the largest inertia)."""
+    groups: dict[int, list] = {}
+    for g in bag.grid.generators:
+        groups.setdefault((bag.truth_groups or {}).get(g.name, 0), []).append(g)
+    out = []
+    for _, members in sorted(groups.items()):
+        best = max(members, key=lambda g: (g.m_s if np.isfinite(g.m_s) else 0.0, g.name))
+        out.append(bag.station_ids[bag.pmu_column(best.name, best.bus)])
+    return out
+
+
+def sweep_bag(bag, start_s: float, *, params: dict, attacks: Sequence[str] = ATTACKS,
+              progress: Callable[[str], None] | None = None) -> list[AttackRow]:
+    """Every attack on a station of each true group of one bag (ramp2: on the first two)."""
+    clean = run_pipeline(bag, bag, params=params)
+    stations = stations_per_group(bag)
+    request_s = float(bag.request_t_s[0])
+    rows = []
+    for name in attacks:
+        targets = [tuple(stations[:2])] if name == 'ramp2' else [(s,) for s in stations]
+        if name == 'ramp2' and len(stations) < 2:
+            continue
+        for target in targets:
+            attacked = attack(bag, name, list(target), start_s)
+            rows.append(AttackRow(bag.path.name, name, target, start_s, request_s,
+                                  run_pipeline(bag, attacked, params=params), clean))
+            if progress:
+                progress(f'{bag.path.name} {name} {",".join(target)}')
+    return rows
+
+
+def false_alarms(bag, *, noise_tve: float = 0.01, seed: int = 0) -> tuple[int, int]:
+    """Stations flagged on the clean bag, and on it with the scenario format's TVE noise added."""
+    counts = []
+    for channels in (bag, with_tve_noise(bag, noise_tve, seed)):
+        det = BadDataDetector()
+        flagged: set[str] = set()
+        for k in np.flatnonzero(np.asarray(bag.frame_present)):
+            values = [np.asarray(getattr(channels, f))[k] for f in _FIELDS]
+            idx = np.flatnonzero(np.isfinite(values[0]) & np.isfinite(values[2]))
+            if idx.size:
+                flagged |= set(det.judge(float(channels.tag_s[k]), [channels.station_ids[j] for j in idx],
+                                         *(v[idx] for v in values)))
+        counts.append(len(flagged))
+    return counts[0], counts[1]
+
+
+def table(rows: Sequence[AttackRow]) -> list[str]:
+    """Return the sweep as a Markdown table."""
+    lines = ['| bag | attack | station(s) | clean decision | attacked decision | steered | flagged before request '
+             '| time to flag, s |', '|---|---|---|---|---|---|---|---|']
+
+    def show(o: Outcome) -> str:
+        if o.refused:
+            return 'refused: suspect data' if not o.error else 'refused: failed'
+        return ('cut ' + ', '.join(o.cut)) if o.split else 'no split'
+
+    for r in rows:
+        ttf = ', '.join('never' if math.isnan(x) else f'{x:.3f}' for x in r.time_to_flag_s())
+        lines.append(f'| {r.bag} | {r.attack} | {", ".join(r.stations)} | {show(r.clean)} | {show(r.outcome)} | '
+                     f'{"yes" if r.steered else "no"} | {"yes" if r.flagged_in_time else "no"} | {ttf} |')
+    return lines
+
+
+def report(rows: Sequence[AttackRow], alarms: Sequence[tuple[str, int, int]]) -> list[str]:
+    """Return the figures, the table and the false alarms, as Markdown lines."""
+    single = [r for r in rows if r.attack != 'ramp2']
+    pair = [r for r in rows if r.attack == 'ramp2']
+    refused = sum(r.outcome.refused and not r.outcome.error for r in rows)
+    lines = [f'- single-station attacks: {len(single)}; steered {sum(r.steered for r in single)}; every attacked '
+             f'station flagged before the request in {sum(r.flagged_in_time for r in single)}',
+             f'- two-station ramp: {len(pair)}; steered {sum(r.steered for r in pair)}; both flagged before the '
+             f'request in {sum(r.flagged_in_time for r in pair)}',
+             f'- refused for suspect data: {refused} of {len(rows)}; refused because the split failed: '
+             f'{sum(bool(r.outcome.error) for r in rows)}',
+             f'- false alarms: stations flagged on clean bags {sum(a[1] for a in alarms)}, with 1 % TVE noise '
+             f'added {sum(a[2] for a in alarms)} (over {len(alarms)} bags)', '']
+    lines += table(rows)
+    lines += ['', '| bag | stations flagged, clean | with 1 % TVE noise |', '|---|---|---|']
+    lines += [f'| {name} | {clean} | {noisy} |' for name, clean, noisy in alarms]
+    return lines
+
+
+def write_report(lines: Sequence[str], path, *, command: str) -> None:
+    """Write the generated page."""
+    from pathlib import Path
+
+    from controlled_islanding.atomic import write_text
+
+    body = ['# PMU attack sweep: does one spoofed or failing station steer the cut?', '',
+            f'Generated by `{command}`; do not edit by hand (code: `controlled_islanding/evaluation/attack_sweep.py`).',
+            '',
+            'What one spoofed or failing PMU station does to the decision (evaluation/attack_sweep.py: the '
+            "graph's pipeline offline, frame by frame; attacks of sim/attacks.py from each bag's first event; "
+            'bad-data tests of core/bad_data.py).', '', *lines, '']
+    write_text(Path(path), '\n'.join(body))
+
+
+def sweep(bags, *, seed: int = 0, progress: Callable[[str], None] | None = None,
+          done: Callable[[], object] | None = None) -> list[str]:
+    """Run the sweep and the false alarms on every bag, with the coherency node's parameters; return the page lines."""
+    from controlled_islanding.evaluation.cases import coherency_node_parameters
+
+    params = coherency_node_parameters()
+    rows, alarms = [], []
+    for bag in bags:
+        alarms.append((bag.path.name, *false_alarms(bag, seed=seed)))
+        rows += sweep_bag(bag, attack_start_s(bag), params=params, progress=progress)
+        if done:
+            done()
+    return report(rows, alarms)

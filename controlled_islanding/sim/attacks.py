@@ -1,0 +1,92 @@
+"""Attacks on a bag's PMU channels, as a spoofer or a failing field device would make them (pure numpy).
+
+Each transform takes PMU channel arrays (wire.bagdata.PmuChannels, or the BagData that is one) and returns a
+copy in which the named stations' data, from `start_s` on, are altered; STAT is left "good", as a spoofer would
+leave it. Rows are time tags (BagData's uniform grid), columns channels.
+
+- ``ramp``: +2 rad/s on both angles (a spoofed speed of 0.32 Hz; the frequency channel left honest).
+- ``replay``: each frame replaced by the station's frame of 1 s earlier, under its fresh time tag.
+- ``frozen``: every value held at the last frame before `start_s`.
+- ``current``: current magnitude x1.5 (a CT ratio error).
+- ``step``: +20 degrees on both angles (a GPS time shift of about 0.9 ms at 60 Hz).
+- ``ramp2``: the ramp on two stations at once (the coordinated case; give two stations).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import numpy as np
+
+__all__ = ['ATTACKS', 'AttackError', 'attack', 'with_tve_noise']
+
+ATTACKS = ('ramp', 'replay', 'frozen', 'current', 'step', 'ramp2')
+RAMP_RAD_PER_S = 2.0
+REPLAY_LAG_S = 1.0
+CURRENT_FACTOR = 1.5
+STEP_RAD = np.deg2rad(20.0)
+_FIELDS = ('v_mag_pu', 'v_angle_rad', 'i_mag_pu', 'i_angle_rad', 'frequency_hz', 'rocof_hz_per_s', 'stat')
+
+
+class AttackError(ValueError):
+    """An attack that cannot be applied (unknown name or station, no frame before the start)."""
+
+
+def attack(channels, name: str, stations: Sequence[str], start_s: float):
+    """Return a copy of `channels` with attack `name` on `stations` from time tag `start_s`, s, on.
+
+    Raises:
+        AttackError: Unknown attack or station; ramp2 without two stations; nothing before `start_s` to replay
+            or freeze.
+
+    """
+    if name not in ATTACKS:
+        raise AttackError(f'unknown attack {name!r}; one of {ATTACKS}')
+    if name == 'ramp2' and len(stations) != 2:
+        raise AttackError(f'ramp2 attacks two stations, got {list(stations)}')
+    cols = []
+    for sid in stations:
+        if sid not in channels.station_ids:
+            raise AttackError(f'no PMU station {sid!r} in the bag')
+        cols.append(channels.station_ids.index(sid))
+    tags = np.asarray(channels.tag_s, dtype=float)
+    rows = np.flatnonzero(tags >= start_s - 1e-9)
+    out = {f: np.array(getattr(channels, f), copy=True) for f in _FIELDS}
+    elapsed = (tags[rows] - start_s)[:, None]
+    idx = np.ix_(rows, cols)
+    if name in ('ramp', 'ramp2'):
+        out['v_angle_rad'][idx] += RAMP_RAD_PER_S * elapsed
+        out['i_angle_rad'][idx] += RAMP_RAD_PER_S * elapsed
+    elif name == 'step':
+        out['v_angle_rad'][idx] += STEP_RAD
+        out['i_angle_rad'][idx] += STEP_RAD
+    elif name == 'current':
+        out['i_mag_pu'][idx] *= CURRENT_FACTOR
+    else:
+        if name == 'replay':
+            period_s = float(np.median(np.diff(tags))) if len(tags) > 1 else 0.0
+            source = rows - int(round(REPLAY_LAG_S / period_s)) if period_s > 0 else rows
+        else:
+            source = np.full(len(rows), rows[0] - 1 if len(rows) else -1)
+        if len(rows) and source.min() < 0:
+            raise AttackError(f'{name}: no frame {REPLAY_LAG_S if name == "replay" else 0:g} s before '
+                              f'{start_s:.3f} s to take')
+        for f in _FIELDS:
+            # Read from the unaltered channels: a replay of replayed frames would repeat the attack's own output.
+            out[f][idx] = np.asarray(getattr(channels, f))[np.ix_(source, cols)]
+    return dataclasses.replace(channels, **out)
+
+
+def with_tve_noise(channels, noise_tve: float, seed: int = 0):
+    """Return a copy of `channels` with the scenario format's TVE noise (sim/pmu.py) added to every phasor.
+
+    Each phasor is multiplied by (1 + e), e complex Gaussian of sigma noise_tve / 3 per part, |e| clipped to
+    noise_tve; frequency and ROCOF are left as they are (they are derived from the noise-free angle there too).
+    """
+    from controlled_islanding.sim.pmu import _noisy
+
+    rng = np.random.default_rng(seed)
+    v_mag, v_ang = _noisy(rng, np.asarray(channels.v_mag_pu), np.asarray(channels.v_angle_rad), noise_tve)
+    i_mag, i_ang = _noisy(rng, np.asarray(channels.i_mag_pu), np.asarray(channels.i_angle_rad), noise_tve)
+    return dataclasses.replace(channels, v_mag_pu=v_mag, v_angle_rad=v_ang, i_mag_pu=i_mag, i_angle_rad=i_ang)

@@ -1,0 +1,134 @@
+"""A suspect PMU station through the real pmu_ingestion, coherency and partitioning node code, in one process.
+
+The nodes are constructed as they run, and their inputs are handed to the methods their subscriptions call
+(after the clock gate); what each publishes is caught at its publisher. The wire itself is covered by the
+process tests (test_nodes_bad_input.py); these check what the new message fields carry.
+"""
+
+from __future__ import annotations
+
+import copy
+import sys
+from pathlib import Path
+
+import pytest
+import rclpy
+from controlled_islanding_msgs.msg import IslandingDecision, IslandingRequest, NetworkSnapshot, PmuFrame, RotorAngles
+from rclpy.serialization import deserialize_message
+from rosbags.highlevel import AnyReader
+
+from controlled_islanding.sim.manifest import default_bag, manifest_entries
+from controlled_islanding.wire import topics
+from controlled_islanding.wire.interfaces import typestore
+from controlled_islanding.wire.messages import groups_from_msg
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).parent))
+
+
+@pytest.fixture(scope='module')
+def bag():
+    if not manifest_entries():
+        pytest.skip('no bags in bags/index.yaml')
+    frames, snapshot = [], None
+    with AnyReader([REPO / 'bags' / default_bag()['bag']], default_typestore=typestore()) as reader:
+        for conn, _, raw in reader.messages():
+            if conn.topic == topics.NETWORK_SNAPSHOT and snapshot is None:
+                snapshot = deserialize_message(bytes(raw), NetworkSnapshot)
+            elif conn.topic == topics.PMU_FRAMES and len(frames) < 200:
+                frames.append(deserialize_message(bytes(raw), PmuFrame))
+    rclpy.init()
+    yield snapshot, frames
+    rclpy.shutdown()
+
+
+def caught(node, attribute: str) -> list:
+    out: list = []
+    getattr(node, attribute).publish = out.append
+    return out
+
+
+def frozen_samples(snapshot, frames) -> tuple[list[RotorAngles], object, str]:
+    from controlled_islanding.nodes.pmu_ingestion import PmuIngestionNode
+
+    node = PmuIngestionNode()
+    angles = caught(node, 'pub')
+    node._take_snapshot(snapshot)
+    for frame in frames:
+        msg = copy.deepcopy(frame)
+        msg.measurements[0] = copy.deepcopy(frames[0].measurements[0])  # one station frozen, STAT good
+        node._take_frame(msg)
+    return angles, node, frames[0].measurements[0].station_id
+
+
+def test_pmu_ingestion_marks_a_frozen_station_invalid_with_its_reason_and_warns(bag):
+    snapshot, frames = bag
+    angles, node, victim = frozen_samples(snapshot, frames)
+    gen = next(g for g, b in zip(snapshot.generator_names, snapshot.generator_bus, strict=True)
+               if b == frames[0].measurements[0].bus)
+    j = list(angles[-1].generator_names).index(gen)
+    marked = [a for a in angles if a.suspect_reason]
+    assert marked and all(a.suspect_reason[j] == f'frozen: {victim}' and not a.valid[j] for a in marked)
+    assert all(not any(r for i, r in enumerate(a.suspect_reason) if i != j) for a in marked)
+    # Flagged after frozen_frames repeats, and kept to the end: the values never move again.
+    assert len(marked) >= len(frames) - 5 and angles[-1].suspect_reason[j]
+    assert victim in node.diag.values['suspect_stations'] and node.diag.values['suspect_flags'] == '1'
+    assert 'suspect_data' in node.diag.warnings
+    node.destroy_node()
+
+
+def test_an_honest_stream_marks_nothing(bag):
+    from controlled_islanding.nodes.pmu_ingestion import PmuIngestionNode
+
+    snapshot, frames = bag
+    node = PmuIngestionNode()
+    angles = caught(node, 'pub')
+    node._take_snapshot(snapshot)
+    for frame in frames:
+        node._take_frame(frame)
+    assert len(angles) == len(frames) and not any(a.suspect_reason for a in angles)
+    assert all(all(a.valid) for a in angles[1:])
+    node.destroy_node()
+
+
+def test_coherency_lists_the_suspect_apart_and_partitioning_refuses_naming_it(bag):
+    from controlled_islanding.nodes.coherency import CoherencyNode
+    from controlled_islanding.nodes.partitioning import PartitioningNode
+
+    snapshot, frames = bag
+    angles, ingestion, victim = frozen_samples(snapshot, frames)
+    ingestion.destroy_node()
+    coherency = CoherencyNode()
+    groups = caught(coherency, 'pub')
+    coherency._take_snapshot(snapshot)
+    for sample in angles:
+        coherency._take_angles(sample)
+    coherency._compute(coherency.t_s[-1], 'r1')
+    msg = groups[-1]
+    gen = next(g for g, b in zip(snapshot.generator_names, snapshot.generator_bus, strict=True)
+               if b == frames[0].measurements[0].bus)
+    assert list(msg.suspect_generator_names) == [gen] and list(msg.suspect_reasons) == [f'frozen: {victim}']
+    assert gen in msg.unobserved_generator_names and gen not in msg.generator_names
+    coherency.destroy_node()
+
+    partitioning = PartitioningNode()
+    decisions = caught(partitioning, 'decision_pub')
+    partitioning._apply_input(('snapshot', *partitioning_snapshot(partitioning, snapshot)))
+    decoded = groups_from_msg(msg, partitioning.intake.limits)
+    assert decoded.suspect == ((gen, f'frozen: {victim}'),)
+    request = IslandingRequest(request_id='r1', reason='test')
+    request.header.stamp = msg.header.stamp
+    partitioning._answer(request, decoded)
+    decision = decisions[-1]
+    assert decision.status == IslandingDecision.STATUS_REFUSED_SUSPECT_DATA and not decision.split
+    assert list(decision.suspect_generator_names) == [gen] and victim in decision.status_detail
+    assert not decision.cut_branch_ids
+    partitioning.destroy_node()
+
+
+def partitioning_snapshot(node, snapshot) -> tuple:
+    from controlled_islanding.wire.messages import stamp_s
+
+    grid = node.intake.grid(snapshot)
+    assert grid is not None
+    return grid, stamp_s(snapshot.header.stamp)
