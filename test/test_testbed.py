@@ -14,7 +14,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controlled_islanding.sim.closed_loop import LoopConfig, Sample, assess, generation_to_reject, out_of_step
+from controlled_islanding.sim.closed_loop import (
+    LoopConfig,
+    Sample,
+    SwitchingEvents,
+    assess,
+    generation_to_reject,
+    out_of_step,
+)
 from controlled_islanding.wire.topics import GLOBAL
 
 REPO = Path(__file__).resolve().parents[1]
@@ -184,6 +191,9 @@ def test_one_scenario_closed_loop_commands_opens_and_judges_every_island():
     loop = result['closed_loop']
     opened = {e['branch_id']: e['at_s'] for e in result['events'] if e['what'] == 'opened'}
     assert set(opened) == cut, result['events']
+    assert len(set(opened.values())) == 1, opened  # one decision, one switching event
+    (event,) = [e for e in result['events'] if e['what'] == 'switching event']
+    assert set(event['branch_ids']) == cut and not event['missing'] and not event['late'], event
     request_s = loop['request_s']
     # Opened no earlier than the breaker operating time after the request, and within a few steps of it.
     assert all(request_s + 0.05 <= t <= request_s + 1.0 for t in opened.values()), opened
@@ -327,3 +337,60 @@ def test_a_testbed_result_exports_with_its_cut_open_and_each_island_solving_as_d
     assert result['decision'] and result['decision']['split'], result['decision']
     check_islands_as_decided(listing, result['decision'], tmp_path / 'list', '--scenario', result['scenario'])
     check_islands_as_decided(results / result['scenario'] / 'result.json', result['decision'], tmp_path / 'one')
+
+
+def test_one_decision_switches_its_breakers_together_and_different_decisions_apart():
+    """Commands 0.2 to 1.4 ms apart, as the graph sends them: one event at the last one's time, per decision."""
+    ev = SwitchingEvents(wait_s=2.0)
+    cut = ['a-b', 'c-d', 'e-f', 'g-h']
+    for k, (branch, at) in enumerate(zip(cut[:3], (5.0502, 5.0510, 5.0516), strict=True)):
+        assert ev.add('D1', branch, at, wall_s=100.0 + k * 1e-3) is None
+    assert ev.due({'D1': cut}, wall_s=100.1) == []  # the fourth has not come: nothing opens yet
+    ev.add('D1', 'g-h', 5.0514, wall_s=100.1)
+    ev.add('D2', 'x-y', 6.0, wall_s=100.2)
+    (one,) = ev.due({'D1': cut, 'D2': ['x-y', 'y-z']}, wall_s=100.2)
+    assert one.decision_id == 'D1' and one.branch_ids == tuple(cut) and one.at_s == 5.0516 and not one.missing
+    # D2's second command never comes: after the wait, what came opens together and the rest is named.
+    assert ev.due({'D2': ['x-y', 'y-z']}, wall_s=102.1) == []
+    (two,) = ev.due({'D2': ['x-y', 'y-z']}, wall_s=102.3)
+    assert two.branch_ids == ('x-y',) and two.missing == ('y-z',)
+    late = ev.add('D2', 'y-z', 6.5, wall_s=103.0)  # after its decision switched: it opens alone, marked late
+    assert late is not None and late.late and late.branch_ids == ('y-z',)
+    # A decision never seen (its message lost) still switches, after the wait, with nothing called missing.
+    ev.add('D3', 'p-q', 7.0, wall_s=200.0)
+    (three,) = ev.due({}, wall_s=202.5)
+    assert three.branch_ids == ('p-q',) and three.missing == ()
+
+
+def _bus6000_run(stagger_s: float | None):
+    from controlled_islanding.sim.closed_loop import GridRun
+    from controlled_islanding.sim.scenario import load_scenario
+
+    cut = ['5400-6000', '5600-6000', '6000-6001', '6000-6100']
+    run = GridRun(load_scenario(REPO / 'bags' / 'nordic44_bus6000_three_groups.yaml'), LoopConfig(run_after_s=1.5))
+    if stagger_s is None:
+        run.open_branches(cut, 1.383, why='open cut')
+    else:
+        for k, b in enumerate(cut):
+            run.open_branches([b], 1.383 + k * stagger_s, why=f'open {b}')
+    run.run()
+    t = np.array([s.t_s for s in run.samples])
+    omega = np.vstack([s.omega_pu for s in run.samples])
+    cols = [j for j, b in enumerate(run.generator_buses) if b == 6000]
+    return run, float(omega[t > 1.383][:, cols].max() * float(run.ss.config.freq))
+
+
+def test_a_four_branch_cut_opens_in_one_step_and_one_branch_at_a_time_ends_elsewhere():
+    """Nordic 44, bus 6000 cut off by 4 branches (the graph's cut) at 1.383 s, as one event and a step apart.
+
+    One at a time, the cut passes through three topologies nobody chose, and the island of bus 6000's four
+    machines ends on overspeed instead of below 51 Hz.
+    """
+    together, peak_together = _bus6000_run(None)
+    (opening,) = [a for a in together.actions if a.what == 'open cut']
+    assert len(opening.detail['branches']) == 4 and together.stopped_s is None
+    staggered, peak_staggered = _bus6000_run(together.scenario.step_s)
+    openings = [a.applied_s for a in staggered.actions if a.what.startswith('open ')]
+    assert len(openings) == 4 and len(set(openings)) == 4  # four steps, four topologies
+    assert peak_together < 52.0 < 60.0 < peak_staggered, (peak_together, peak_staggered)
+    assert not together.overspeed and len(staggered.overspeed) == 4

@@ -98,7 +98,7 @@ def render(results: list[dict]) -> str:
             for c in d['breaker_commands']:
                 lines.append(f'  command {c["action"]} {c["breaker_id"]} ({c["branch_id"]})')
         for e in r['events']:
-            if e['what'] in ('command', 'opened', 'shed scheduled'):
+            if e['what'] in ('command', 'switching event', 'opened', 'shed scheduled'):
                 lines.append('  ' + ', '.join(f'{k}={v:.3f}' if isinstance(v, float) else f'{k}={v}'
                                               for k, v in e.items()))
         for isl in r['closed_loop']['islands']:
