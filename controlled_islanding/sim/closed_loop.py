@@ -18,11 +18,11 @@ One decision, one switching event. The breakers one signed decision commands ope
 step, once the last of their commands has arrived and the breaker operating time has passed (SwitchingEvents):
 a remedial action scheme trips its breakers within a cycle of each other, and opened one by one, as each
 command's own arrival would have it, the run passes through topologies no one chose. Measured on Nordic 44's
-4-branch cut of bus 6000 at 1.383 s, one step (8.3 ms) apart: the bus-6000 island peaks at 60.9 Hz and its four
-machines trip on overspeed, against below 51 Hz and none as one event, with no shed or rejection (test_testbed.py). Breakers of different
-decisions open separately, each decision's together. A decision whose commands do not all come within a wait
-(grid_sim's command_wait_s, wall) opens those that came, together, and says which were missing; a command for a
-decision already switched opens on its own, late.
+4-branch cut of bus 6000 at 1.383 s, one step (8.3 ms) apart, with no shed or rejection: the bus-6000 island
+peaks at 60.9 Hz and its four machines trip on overspeed, against below 51 Hz and none as one event
+(test_testbed.py). Breakers of different decisions open separately, each decision's together. A decision whose
+commands do not all come within a wait (grid_sim's command_wait_s, wall) opens those that came, together, and
+says which were missing; a command for a decision already switched opens on its own, late.
 
 Load shedding (the decision's "load to shed"). `shed_delay_s` after the cut, every ANDES load (PQ) on the buses of
 an island the decision says is short of generation is scaled by (1 - shed / load), load = the island's
