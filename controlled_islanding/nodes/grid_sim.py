@@ -34,7 +34,8 @@ Time. Stamps are sim time plus sim/bag.START_TIME_UNIX_S, as in the bags, and /c
   so a one-shot trigger asked once, too early, and never again. A relay is not disabled by a request that was
   answered; the operator-side bound is the cap.
 - `rate: R > 0`: paced at R times real time, nothing waits; a command opens its branch at max(its stamp, the sim
-  time it arrived) + breaker_operating_s, the decision's latest. If ANDES is slower than R x real time, the pace is ANDES'.
+  time it arrived) + breaker_operating_s, the decision's latest. If ANDES is slower than R x real time, the
+  pace is ANDES'.
 """
 
 from __future__ import annotations
