@@ -394,3 +394,51 @@ def test_a_four_branch_cut_opens_in_one_step_and_one_branch_at_a_time_ends_elsew
     assert len(openings) == 4 and len(set(openings)) == 4  # four steps, four topologies
     assert peak_together < 52.0 < 60.0 < peak_staggered, (peak_together, peak_staggered)
     assert not together.overspeed and len(staggered.overspeed) == 4
+
+
+def test_a_simulator_failure_is_its_own_outcome_never_load_lost():
+    """PJM 5-bus with a machine switched off at 1.266 s: ANDES stops converging (measured); that is a result."""
+    from controlled_islanding.evaluation.testbed_report import render, table_rows
+    from controlled_islanding.sim.closed_loop import Applied, GridRun
+    from controlled_islanding.sim.scenario import load_scenario
+
+    scenario = load_scenario(REPO / 'bags' / 'pjm5bus_three_groups.yaml')
+    run = GridRun(scenario)
+    model = run._syn[0]
+
+    def trip() -> None:
+        model.set_status(model.idx.v[3], 0)
+        run.ss.TDS.custom_event = True
+
+    run._pending.append((1.266, Applied('trip', 1.266), trip))
+    run.run()  # no traceback: the failure is recorded
+    assert run.stopped_s is not None and 1.2 < run.stopped_s < 1.3, run.stopped_s
+    out = run.outcome('no action', (), None, None, scenario.request_s, {})
+    assert out.simulation_failed.startswith(f'simulation failed at {run.stopped_s:.3f} s: ANDES')
+    assert out.all_survived is None and out.load_lost_mw is None and out.load_served_mw is None
+    assert all(i.survived is None for i in out.islands) and out.pre_fault_load_mw > 0
+    summary = json.loads(json.dumps(out.summary()))
+    assert summary['simulation_failed'] == out.simulation_failed and summary['load_served_pct'] is None
+    result = {'scenario': scenario.name, 'decision': None, 'events': [], 'closed_loop': summary,
+              'runs': {'no action': summary}}
+    (row,) = table_rows([result])
+    assert row[3].startswith('simulation failed at 1.2') and row[5].startswith('-'), row
+    assert 'undetermined' in render([result])
+
+
+def test_table_reasons_are_cut_at_a_word_and_load_served_is_net_of_shed():
+    from controlled_islanding.evaluation.testbed_report import clip, table_rows
+
+    text = 'frequency 59.56..67.63 Hz outside 57.80..61.80; voltage 0.270..1.3 pu outside 0.8..1.2'
+    for width in range(20, len(text)):
+        cut = clip(text, width)
+        assert len(cut) <= width and cut.endswith(' ...')
+        assert text.startswith(cut[:-4]) and text[len(cut) - 4] in ' ;', cut  # a whole word, never a part
+    assert clip(text, 200) == text
+    isl = [{'island': 0, 'survived': True, 'why_not': [], 'load_mw': 900.0, 'shed_mw': 100.0},
+           {'island': 1, 'survived': False, 'why_not': ['machines tripped: G3'], 'load_mw': 100.0, 'shed_mw': 0.0}]
+    run = {'cut_branch_ids': ['1-2'], 'islands': isl, 'load_lost_mw': 200.0, 'shed_mw': 100.0, 'f_nadir_hz': 59.0,
+           'f_peak_hz': 60.5, 'v_min_pu': 0.9, 'request_to_opening_s': 0.1, 'simulation_failed': None,
+           'load_served_mw': 800.0, 'load_served_pct': 80.0}
+    (row,) = table_rows([{'scenario': 's', 'runs': {'dtw': run}}])
+    assert row[3] == '800 (80.0 %)' and row[4] == '1/2 (machines tripped: G3)'

@@ -16,8 +16,25 @@ def _fmt(x: Any, spec: str) -> str:
     return '-' if x is None else format(x, spec)
 
 
-def table_rows(results: list[dict]) -> list[list[str]]:
-    """Return one row per scenario and run: the comparison table."""
+def clip(text: str, width: int) -> str:
+    """Return text cut to at most width characters at a word boundary, '...' marking the cut."""
+    if len(text) <= width:
+        return text
+    head = text[:width - 4]
+    return head[:head.rfind(' ')].rstrip(';,') + ' ...' if ' ' in head else head + ' ...'
+
+
+def served_text(run: dict) -> str:
+    """Return a run's load served as a table cell: MW (% of the pre-fault load), or its simulation failure."""
+    if run.get('simulation_failed'):
+        return 'simulation failed at ' + run['simulation_failed'].split(' at ', 1)[1].split(':', 1)[0]
+    if run.get('load_served_mw') is None:  # a result written before load served was recorded
+        return '-'
+    return f'{run["load_served_mw"]:.0f} ({run["load_served_pct"]:.1f} %)'
+
+
+def table_rows(results: list[dict], reason_width: int | None = 80) -> list[list[str]]:
+    """Return one row per scenario and run: the comparison table (reasons clipped at a word, or in full)."""
     rows = []
     for r in results:
         for label in ('no action', 'dtw', 'milp'):
@@ -26,10 +43,16 @@ def table_rows(results: list[dict]) -> list[list[str]]:
                 continue
             isl = run['islands']
             ok = sum(1 for i in isl if i['survived'])
-            rows.append([r['scenario'], label, ', '.join(run['cut_branch_ids']) or 'none',
-                         f'{ok}/{len(isl)}' + ('' if ok == len(isl) else ' (' + '; '.join(
-                             w for i in isl for w in i['why_not'])[:80] + ')'),
-                         f'{run["load_lost_mw"]:.0f} ({run["shed_mw"]:.0f} shed)', f'{run.get("rejected_mw", 0.0):.0f}',
+            why = '; '.join(w for i in isl for w in i['why_not'])
+            if run.get('simulation_failed'):
+                verdict = f'? (undetermined: {run["simulation_failed"]})'
+            else:
+                verdict = f'{ok}/{len(isl)}' + ('' if ok == len(isl) else f' ({why})')
+            lost = run['load_lost_mw']
+            rows.append([r['scenario'], label, ', '.join(run['cut_branch_ids']) or 'none', served_text(run),
+                         verdict if reason_width is None else clip(verdict, reason_width),
+                         f'{"-" if lost is None else format(lost, ".0f")} ({run["shed_mw"]:.0f} shed)',
+                         f'{run.get("rejected_mw", 0.0):.0f}',
                          f'{run["f_nadir_hz"]:.2f} / {run["f_peak_hz"]:.2f}', f'{run["v_min_pu"]:.3f}',
                          _fmt(run['request_to_opening_s'], '.3f')])
     return rows
@@ -61,7 +84,6 @@ def failure_text(isl: dict) -> str:
                    f'{_span(isl["v_outside_s"])}, worst at bus {isl["v_worst_bus"]}')
     if isl['machines_tripped']:
         out.append(f'machines tripped: {", ".join(isl["machines_tripped"])}')
-    out += [w for w in isl['why_not'] if w.startswith('simulation stopped')]
     return f'{head}: {"; ".join(out)}'
 
 
@@ -73,15 +95,18 @@ def failure_lines(results: list[dict]) -> list[str]:
             run = r['runs'].get(label)
             if run is None or (label == 'milp' and run.get('label', '').startswith('milp (same cut')):
                 continue
+            if run.get('simulation_failed'):
+                out.append(f'- {r["scenario"]} `{label}`: {run["simulation_failed"]}; its islands are undetermined, '
+                           'none counted lost.')
+                continue
             for isl in run['islands']:
-                if not isl['survived']:
+                if isl['survived'] is False:
                     out.append(f'- {r["scenario"]} `{label}` {failure_text(isl)}.')
     return out
 
 
-HEADER = ['scenario', 'run', 'cut', 'islands survived', 'load lost MW', 'generation tripped MW', 'f nadir / peak Hz',
-          'V min pu',
-          'request -> opening s']
+HEADER = ['scenario', 'run', 'cut', 'load served MW (% pre-fault)', 'islands survived', 'load lost MW',
+          'generation tripped MW', 'f nadir / peak Hz', 'V min pu', 'request -> opening s']
 
 
 def render(results: list[dict]) -> str:
@@ -101,9 +126,15 @@ def render(results: list[dict]) -> str:
             if e['what'] in ('command', 'switching event', 'opened', 'shed scheduled'):
                 lines.append('  ' + ', '.join(f'{k}={v:.3f}' if isinstance(v, float) else f'{k}={v}'
                                               for k, v in e.items()))
-        for isl in r['closed_loop']['islands']:
-            lines.append(f'  island {isl["island"]} ({", ".join(isl["generators"])}): '
-                         f'{"survived" if isl["survived"] else "LOST: " + "; ".join(isl["why_not"])}')
+        loop = r['runs'].get('dtw', r['closed_loop'])
+        if loop.get('simulation_failed'):
+            lines.append(f'  {loop["simulation_failed"]} (undetermined, not counted as load lost)')
+        if loop.get('remedy'):
+            lines.append(f'  remedy: {loop["remedy"]}')
+        for isl in loop['islands']:
+            verdict = ('survived' if isl['survived'] else 'undetermined' if isl['survived'] is None
+                       else 'LOST: ' + '; '.join(isl['why_not']))
+            lines.append(f'  island {isl["island"]} ({", ".join(isl["generators"])}): {verdict}')
     widths = [max(len(h), *(len(row[i]) for row in table_rows(results))) for i, h in enumerate(HEADER)] \
         if results else [len(h) for h in HEADER]
     lines.append('')

@@ -461,8 +461,10 @@ class GridSimNode(Node):
         array.header.stamp = _stamp(self.t_now)
         for isl in outcome.islands:
             status = DiagnosticStatus(name=f'grid_sim: island {isl.island}', hardware_id=self.scenario.name,
-                                      level=DiagnosticStatus.OK if isl.survived else DiagnosticStatus.ERROR,
-                                      message='survived' if isl.survived else '; '.join(isl.why_not))
+                                      level=DiagnosticStatus.OK if isl.survived else DiagnosticStatus.WARN
+                                      if isl.survived is None else DiagnosticStatus.ERROR,
+                                      message='survived' if isl.survived else outcome.simulation_failed
+                                      if isl.survived is None else '; '.join(isl.why_not))
             status.values = [KeyValue(key=k, value=str(v)) for k, v in (
                 ('coherent', isl.coherent), ('max_pair_swing_rad', f'{isl.max_pair_swing_rad:.4f}'),
                 ('f_nadir_hz', f'{isl.f_nadir_hz:.4f}'), ('f_peak_hz', f'{isl.f_peak_hz:.4f}'),
@@ -472,8 +474,9 @@ class GridSimNode(Node):
                 ('rejected', ','.join(isl.rejected)), ('rejected_mw', f'{isl.rejected_mw:.2f}'))]
             array.status.append(status)
         self.assessment_pub.publish(array)
-        self.get_logger().info(f'assessment: {"every island survived" if outcome.all_survived else "NOT every island"}'
-                               f' survived; cut {cut or "none"} at {opened_s}; wall {run.wall_s:.1f} s')
+        verdict = ('every island survived' if outcome.all_survived else outcome.simulation_failed
+                   if outcome.all_survived is None else 'NOT every island survived')
+        self.get_logger().info(f'assessment: {verdict}; cut {cut or "none"} at {opened_s}; wall {run.wall_s:.1f} s')
         if self.report_file:
             report = {'scenario': str(self.scenario.path), 'outcome': outcome.summary(), 'events': self.events,
                       'request_id': self.request_id, 'held_wall_s': self.held_wall_s,

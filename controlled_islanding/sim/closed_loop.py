@@ -63,12 +63,20 @@ the cut would have been made) to the end of the run:
   and a stopped run loses every island, the healthy ones too. The setting lies well above the frequency band
   (1.03 pu), so the island of such a machine has already failed on frequency; the machine's trajectory after
   its trip is the simulation's, not what a tripped machine would do.
-An island survives when all four hold. If ANDES stops converging after an action (it zeroes the voltage of a bus
-left with no in-service branch, so an island of one bus is numerically fragile), the run ends there and every
-island is reported as not survived, with the time: the simulation cannot say which one failed.
-Load lost = load shed + the whole load of every island that did not survive (it would be lost to protection);
-an island with no machine, or whose every machine was rejected (an island with no load left), is lost by
-definition.
+An island survives when all four hold. Load lost = load shed + the whole load of every island that did not
+survive (it would be lost to protection); an island with no machine, or whose every machine was rejected (an
+island with no load left), is lost by definition.
+
+A simulator failure is its own outcome. If ANDES stops before the end (it does not converge, typically after a
+switching: it zeroes the voltage of a bus left with no in-service branch, so an island of one bus is numerically
+fragile) or raises, the run says "simulation failed at t s: reason" (Outcome.simulation_failed). Its islands are
+judged neither survived nor lost (survived None) and no load is counted lost or served: the simulation cannot
+say what happened, and a failed solver is not a blackout. Before that, run_offline tries the remedies in
+REMEDIES, each a whole new run of the same actions at the same times: the step divided by 4, then by 16 (ANDES
+shrinks a failing step itself, down to a floor; a smaller fixed step gives Newton a start nearer the solution
+across the switching). Every opening already re-initialises the new islands' voltages (_warm_start) and restarts
+buses left at the trivial root (_reseed_trivial_roots). The outcome names the remedy that worked
+(Outcome.remedy), or the failure with the remedies tried.
 """
 
 from __future__ import annotations
@@ -89,6 +97,7 @@ from controlled_islanding.sim.scenario import Scenario
 log = logging.getLogger(__name__)
 
 _LOAD_CONSTANTS = ('Ppf', 'Qpf', 'Req', 'Xeq', 'Ipeq', 'Iqeq')
+REMEDIES = (4, 16)  # the integration step is divided by each in turn when a run fails (see the module docstring)
 _PROGRESS_CHUNK_S = 1.0
 
 
@@ -190,7 +199,7 @@ class IslandOutcome:
         f_nadir_hz, f_peak_hz: Lowest and highest machine frequency after the cut, Hz.
         v_min_pu, v_max_pu: Lowest and highest bus voltage once settled, pu.
         machines_tripped: Machines switched off during the run, other than by generation rejection.
-        survived: All of the above within bounds.
+        survived: All of the above within bounds; None: undetermined, the simulation failed before the end.
         why_not: What failed, empty when it survived.
 
     """
@@ -207,7 +216,7 @@ class IslandOutcome:
     v_min_pu: float
     v_max_pu: float
     machines_tripped: tuple[str, ...]
-    survived: bool
+    survived: bool | None
     why_not: tuple[str, ...] = ()
     rejected: tuple[str, ...] = ()
     rejected_mw: float = 0.0
@@ -234,13 +243,16 @@ class Outcome:
         opened_s: When the cut took effect, s (None: nothing opened).
         judged_from_s: Start of the assessment window, s.
         islands: Assessment per island.
-        load_lost_mw: Shed load plus the load of every island that did not survive, MW.
+        load_lost_mw: Shed load plus the load of every island that did not survive, MW (None: the simulation
+            failed).
         actions: Every action carried out.
         t_s, delta_rad, omega_pu, bus_v_pu: Trajectories at every step, shapes (nt,), (nt, n_gen) twice,
             (nt, n_bus).
         generator_names, generator_buses, bus_numbers: Their columns.
         wall_s: Wall time of the run, s.
         f0_hz: Nominal frequency, Hz.
+        simulation_failed: "simulation failed at t s: reason", or None when the run reached its end.
+        remedy: The remedy the run needed (REMEDIES), or None.
 
     """
 
@@ -250,7 +262,7 @@ class Outcome:
     opened_s: float | None
     judged_from_s: float
     islands: tuple[IslandOutcome, ...]
-    load_lost_mw: float
+    load_lost_mw: float | None
     actions: tuple[Applied, ...]
     t_s: np.ndarray
     delta_rad: np.ndarray
@@ -261,9 +273,13 @@ class Outcome:
     bus_numbers: tuple[int, ...]
     wall_s: float
     f0_hz: float = 60.0
+    simulation_failed: str | None = None
+    remedy: str | None = None
 
     def rejudged(self, from_s: float, config: LoopConfig) -> Outcome:
         """Return this run of the whole grid as one island judged over [from_s, end] instead."""
+        if self.simulation_failed is not None:
+            return replace(self, judged_from_s=from_s)
         islands = assess(self.t_s, self.delta_rad, self.omega_pu, self.bus_v_pu, self.generator_names,
                          self.generator_buses, self.bus_numbers, None, from_s, config, self.f0_hz,
                          {0: sum(i.load_mw for i in self.islands)}, {})
@@ -271,9 +287,30 @@ class Outcome:
         return replace(self, islands=tuple(islands), judged_from_s=from_s, load_lost_mw=lost)
 
     @property
-    def all_survived(self) -> bool:
-        """Whether every island survived."""
-        return all(i.survived for i in self.islands)
+    def all_survived(self) -> bool | None:
+        """Whether every island survived (None: the simulation failed, undetermined)."""
+        return None if self.simulation_failed is not None else all(i.survived for i in self.islands)
+
+    @property
+    def pre_fault_load_mw(self) -> float:
+        """The load of every island before any shed, MW: the pre-fault load."""
+        return sum(i.load_mw for i in self.islands)
+
+    @property
+    def load_served_mw(self) -> float | None:
+        """Load still served at the end: the load of every island that survived, net of its shed, MW.
+
+        None when the simulation failed: what it would have served is unknown, not zero.
+        """
+        if self.simulation_failed is not None:
+            return None
+        return sum(i.load_mw - i.shed_mw for i in self.islands if i.survived)
+
+    @property
+    def load_served_pct(self) -> float | None:
+        """load_served_mw as a percentage of the pre-fault load (None: the simulation failed)."""
+        served, total = self.load_served_mw, self.pre_fault_load_mw
+        return None if served is None or total <= 0 else 100.0 * served / total
 
     @property
     def shed_mw(self) -> float:
@@ -291,7 +328,9 @@ class Outcome:
                 'opened_s': self.opened_s, 'judged_from_s': self.judged_from_s,
                 'request_to_opening_s': None if self.opened_s is None else self.opened_s - self.request_s,
                 'all_survived': self.all_survived, 'load_lost_mw': self.load_lost_mw, 'shed_mw': self.shed_mw,
-                'rejected_mw': self.rejected_mw,
+                'pre_fault_load_mw': self.pre_fault_load_mw, 'load_served_mw': self.load_served_mw,
+                'load_served_pct': self.load_served_pct,
+                'rejected_mw': self.rejected_mw, 'simulation_failed': self.simulation_failed, 'remedy': self.remedy,
                 'f_nadir_hz': min(i.f_nadir_hz for i in self.islands),
                 'f_peak_hz': max(i.f_peak_hz for i in self.islands),
                 'v_min_pu': min(i.v_min_pu for i in self.islands),
@@ -403,7 +442,8 @@ class GridRun:
         self.actions: list[Applied] = []
         self._pending: list[tuple[float, Applied, Callable[[], None]]] = []
         self.wall_s = 0.0
-        self.stopped_s: float | None = None  # where ANDES gave up after an action, if it did
+        self.stopped_s: float | None = None  # where ANDES gave up, if it did
+        self.failure = ''  # why
         self._flat: tuple[np.ndarray, np.ndarray, list[tuple[Any, int, int, float]]] | None = None
         self._reseeds: dict[int, int] = {}  # bus uid -> times restarted off the trivial root
         self.overspeed: dict[str, tuple[float, float]] = {}  # machine -> (when tripped, s; its speed then, pu)
@@ -671,18 +711,23 @@ class GridRun:
                 next_report[0] += _PROGRESS_CHUNK_S
 
         tds.callpert = pert
+        raised = ''
         try:
             tds.run()
+        except Exception as exc:  # noqa: BLE001 - ANDES' own failure is an outcome (module docstring), not a crash
+            raised = f'ANDES raised {type(exc).__name__}: {exc}'
+            log.warning('%s: %s', self.scenario.name, raised)
         finally:
             tds.callpert = None
             self.wall_s = time.monotonic() - start
-        reached = float(ss.dae.t)
-        if reached < self.run_until_s - 1e-6 or tds.busted:
-            if not self.actions:
-                raise ClosedLoopError(f'{self.scenario.path}: ANDES stopped at t = {reached:.3f} s before '
-                                      f'{self.run_until_s} s (the solver did not converge)')
-            # After a cut the solver can fail (an island of one bus is one ANDES zeroes): an outcome, not a crash.
+        reached = float(self.samples[-1].t_s) if self.samples else 0.0
+        if raised or float(ss.dae.t) < self.run_until_s - 1e-6 or tds.busted:
+            if not self.samples or reached <= 0.0:
+                raise ClosedLoopError(f'{self.scenario.path}: ANDES stopped at its start'
+                                      f'{": " + raised if raised else " (the solver did not converge)"}')
             self.stopped_s = reached
+            self.failure = raised or 'ANDES did not converge (its step reduced to its floor)'
+
 
     def machines_tripped(self) -> tuple[str, ...]:
         """Return machines in service at the start that protection tripped, but not rejected.
@@ -736,10 +781,11 @@ class GridRun:
                          bus_island, judged_from_s, self.config, float(self.ss.config.freq),
                          {k: self.island_load_mw(b) for k, b in _island_buses(self.bus_numbers, bus_island).items()},
                          shed_by_island or {}, self.machines_tripped(), self.rejected())
+        failed = None
         if self.stopped_s is not None:
-            why = f'simulation stopped at {self.stopped_s:.3f} s (ANDES did not converge)'
-            islands = [replace(i, survived=False, why_not=(*i.why_not, why)) for i in islands]
-        lost = sum(i.shed_mw + (0.0 if i.survived else i.load_mw - i.shed_mw) for i in islands)
+            failed = f'simulation failed at {self.stopped_s:.3f} s: {self.failure}'
+            islands = [replace(i, survived=None) for i in islands]  # undetermined: neither lost nor served
+        lost = None if failed else sum(i.shed_mw + (0.0 if i.survived else i.load_mw - i.shed_mw) for i in islands)
         return Outcome(label=label, cut_branch_ids=tuple(cut_branch_ids), request_s=self.scenario.request_s,
                        opened_s=opened_s, judged_from_s=judged_from_s, islands=tuple(islands), load_lost_mw=lost,
                        actions=tuple(self.actions) + tuple(  # recorded only: they changed nothing in the run
@@ -748,7 +794,8 @@ class GridRun:
                            for name, (at, speed) in self.overspeed.items()),
                        t_s=t, delta_rad=delta, omega_pu=omega, bus_v_pu=volts,
                        generator_names=self.generator_names, generator_buses=self.generator_buses,
-                       bus_numbers=self.bus_numbers, wall_s=self.wall_s, f0_hz=float(self.ss.config.freq))
+                       bus_numbers=self.bus_numbers, wall_s=self.wall_s, f0_hz=float(self.ss.config.freq),
+                       simulation_failed=failed)
 
 
 def _island_buses(bus_numbers: Sequence[int], bus_island: Mapping[int, int] | None) -> dict[int, list[int]]:
@@ -947,7 +994,7 @@ def apply_decision(run: GridRun, cut_branch_ids: Sequence[str], bus_island: Mapp
 def run_offline(scenario: Scenario, label: str, *, cut_branch_ids: Sequence[str] = (),
                 bus_island: Mapping[int, int] | None = None, island_shed_mw: Sequence[float] = (),
                 opened_s: float | None = None, judged_from_s: float | None = None,
-                config: LoopConfig = LoopConfig(), progress: bool = False) -> Outcome:
+                config: LoopConfig = LoopConfig(), progress: bool = False, remedies: bool = True) -> Outcome:
     """Run a scenario with a given cut (or none) applied at opened_s, with no graph; return its outcome.
 
     Args:
@@ -960,15 +1007,24 @@ def run_offline(scenario: Scenario, label: str, *, cut_branch_ids: Sequence[str]
         judged_from_s: Start of the assessment window, s (default opened_s, else the request time).
         config: Loop settings.
         progress: Report progress on stderr.
+        remedies: If the run fails, try REMEDIES (see the module docstring).
 
     """
-    run = GridRun(scenario, config, progress=progress)
-    shed: dict[int, float] = {}
-    if cut_branch_ids:
-        if bus_island is None or opened_s is None:
-            raise ClosedLoopError('a cut needs its islands and its time')
-        shed = apply_decision(run, cut_branch_ids, bus_island, island_shed_mw, opened_s)
-    run.run()
-    opened = next((a.applied_s for a in run.actions if a.what == 'open cut'), None)
-    start = judged_from_s if judged_from_s is not None else (opened if opened is not None else scenario.request_s)
-    return run.outcome(label, cut_branch_ids, bus_island if cut_branch_ids else None, opened, start, shed)
+    if cut_branch_ids and (bus_island is None or opened_s is None):
+        raise ClosedLoopError('a cut needs its islands and its time')
+    failures = []
+    for divisor in (1, *(REMEDIES if remedies else ())):
+        run = GridRun(replace(scenario, step_s=scenario.step_s / divisor), config, progress=progress)
+        shed = apply_decision(run, cut_branch_ids, bus_island, island_shed_mw, opened_s) if cut_branch_ids else {}
+        run.run()
+        opened = next((a.applied_s for a in run.actions if a.what == 'open cut'), None)
+        start = judged_from_s if judged_from_s is not None else (opened if opened is not None else scenario.request_s)
+        out = run.outcome(label, cut_branch_ids, bus_island if cut_branch_ids else None, opened, start, shed)
+        if out.simulation_failed is None:
+            return replace(out, remedy=None if divisor == 1 else
+                           f"step {scenario.step_s / divisor:.6g} s (1/{divisor} of the scenario's, after: "
+                           + '; '.join(failures) + ')')
+        failures.append(f'step 1/{divisor}: {out.simulation_failed}')
+        log.warning('%s %s: %s', scenario.name, label, failures[-1])
+    return replace(out, simulation_failed=out.simulation_failed + (
+        f' (remedies tried: {", ".join(f"step 1/{d}" for d in REMEDIES)}, each failed)' if remedies else ''))
