@@ -114,10 +114,16 @@ class LoopConfig:
         shed_delay_s: From the opening to the load shed, s.
         run_after_s: The run lasts at least this long after the islanding request, s (and at least end_s).
         coherence_bound_rad: Largest change of a machine pair's angle difference within an island, rad.
-        f_min_pu, f_max_pu: Frequency band an island must stay in, pu of the case's nominal frequency
-            (frequency_band_hz).
-        v_min_pu, v_max_pu: Voltage band every bus must stay in once settled, pu.
-        voltage_settle_s: Voltage is judged from this long after the cut, s.
+        f_min_pu, f_max_pu: The continuous frequency band an island must be back in at the end of the run, pu
+            of the case's nominal frequency (frequency_band_hz): PRC-024's continuous zone, 59.5..60.5 Hz.
+        v_min_pu, v_max_pu: The continuous voltage band every bus must be back in at the end, pu (PRC-024's
+            0.90..1.10 pu).
+        voltage_settle_s: Voltage excursions are reported from this long after the cut, s (diagnostic only).
+        ride_through: Generator protection by the PRC-024 ride-through curves (prc024_trips).
+        ufls_stages: Under-frequency load shedding, the grid's own: (level, pu of nominal frequency; fraction of
+            each load's pre-fault value shed) per stage, in the style of PRC-006 (empty: none).
+        ufls_delay_s: How long an island's frequency must stay below a stage's level before it sheds, s.
+        end_window_s: "At the end of the run" is its last end_window_s, s.
         rejection_margin: Generation surplus an island keeps without tripping machines, as a fraction of its
             load after the shed (generation_to_reject).
         overspeed_trip_pu: Speed above which a machine's overspeed protection trips it, pu of rated speed (None:
@@ -129,13 +135,17 @@ class LoopConfig:
     shed_delay_s: float = 0.2
     run_after_s: float = 3.0
     coherence_bound_rad: float = math.pi
-    f_min_pu: float = 57.8 / 60.0
-    f_max_pu: float = 61.8 / 60.0
-    v_min_pu: float = 0.8
-    v_max_pu: float = 1.2
+    f_min_pu: float = 59.5 / 60.0
+    f_max_pu: float = 60.5 / 60.0
+    v_min_pu: float = 0.9
+    v_max_pu: float = 1.1
     voltage_settle_s: float = 0.5
     rejection_margin: float = 0.05
     overspeed_trip_pu: float | None = 1.10
+    ride_through: bool = True
+    ufls_stages: tuple[tuple[float, float], ...] = ((59.3 / 60.0, 0.1), (59.0 / 60.0, 0.1), (58.7 / 60.0, 0.1))
+    ufls_delay_s: float = 0.3
+    end_window_s: float = 0.2
 
     def frequency_band_hz(self, f0_hz: float) -> tuple[float, float]:
         """Return the frequency band, Hz, of a grid whose nominal frequency is f0_hz (Hz)."""
@@ -194,6 +204,9 @@ class IslandOutcome:
         v_outside_s: First and last time a bus voltage was outside its band once settled, s after the cut (None:
             never).
         v_worst_bus: The bus whose voltage went furthest outside its band (None: none did).
+        ufls_shed_mw: Load shed by the grid's under-frequency load shedding in the island, MW.
+        f_end_hz: The island's mean machine frequency at the last step, Hz.
+        v_end_pu: Lowest and highest bus voltage over the end window, pu.
         max_pair_swing_rad: Largest change of a machine pair's angle difference after the cut, rad.
         coherent: max_pair_swing_rad <= the bound.
         f_nadir_hz, f_peak_hz: Lowest and highest machine frequency after the cut, Hz.
@@ -224,6 +237,14 @@ class IslandOutcome:
     f_outside_since_s: float | None = None
     v_outside_s: tuple[float, float] | None = None
     v_worst_bus: int | None = None
+    ufls_shed_mw: float = 0.0
+    f_end_hz: float = float('nan')
+    v_end_pu: tuple[float, float] = (float('nan'), float('nan'))
+
+
+def _load_lost_mw(islands: Iterable[IslandOutcome]) -> float:
+    """Return the load shed (by the decision and by UFLS) plus the rest of every island that did not survive, MW."""
+    return sum(i.load_mw if not i.survived else i.shed_mw + i.ufls_shed_mw for i in islands)
 
 
 def _outside_span(t_s: np.ndarray, outside: np.ndarray, from_s: float) -> tuple[float, float] | None:
@@ -282,9 +303,9 @@ class Outcome:
             return replace(self, judged_from_s=from_s)
         islands = assess(self.t_s, self.delta_rad, self.omega_pu, self.bus_v_pu, self.generator_names,
                          self.generator_buses, self.bus_numbers, None, from_s, config, self.f0_hz,
-                         {0: sum(i.load_mw for i in self.islands)}, {})
-        lost = sum(i.shed_mw + (0.0 if i.survived else i.load_mw - i.shed_mw) for i in islands)
-        return replace(self, islands=tuple(islands), judged_from_s=from_s, load_lost_mw=lost)
+                         {0: sum(i.load_mw for i in self.islands)}, {},
+                         ufls_by_island={0: sum(i.ufls_shed_mw for i in self.islands)})
+        return replace(self, islands=tuple(islands), judged_from_s=from_s, load_lost_mw=_load_lost_mw(islands))
 
     @property
     def all_survived(self) -> bool | None:
@@ -304,7 +325,7 @@ class Outcome:
         """
         if self.simulation_failed is not None:
             return None
-        return sum(i.load_mw - i.shed_mw for i in self.islands if i.survived)
+        return sum(i.load_mw - i.shed_mw - i.ufls_shed_mw for i in self.islands if i.survived)
 
     @property
     def load_served_pct(self) -> float | None:
@@ -403,6 +424,74 @@ class SwitchingEvents:
         return out
 
 
+# PRC-024 no-trip zones (the module docstring gives the sources). Voltage: (level, pu; longest time beyond it, s),
+# beyond = at or above a high level, below a low one. Frequency: the Eastern Interconnection curve, per unit of
+# 60 Hz, as (level, pu; longest time, s) on a 0.05 Hz grid of its log-linear segments.
+PRC024_V_HIGH = ((1.20, 0.0), (1.175, 0.20), (1.15, 0.50), (1.10, 1.00))
+PRC024_V_LOW = ((0.45, 0.15), (0.65, 0.30), (0.75, 2.00), (0.90, 3.00))
+
+
+def _prc024_frequency_levels() -> tuple[tuple[tuple[float, float], ...], tuple[tuple[float, float], ...]]:
+    high = [(62.2, 0.0)] + [(f, 10.0 ** (90.935 - 1.45713 * f)) for f in np.arange(62.15, 60.5, -0.05)]
+    low = [(57.8, 0.0)] + [(f, 10.0 ** (1.7373 * f - 100.116)) for f in np.arange(57.85, 59.5, 0.05)]
+    return (tuple((float(f) / 60.0, float(d)) for f, d in high), tuple((float(f) / 60.0, float(d)) for f, d in low))
+
+
+PRC024_F_HIGH, PRC024_F_LOW = _prc024_frequency_levels()
+
+
+def _first_trip(t_s: np.ndarray, beyond: np.ndarray, allowed_s: float) -> np.ndarray:
+    """Return, per column, the first time a run of samples beyond a level has lasted longer than allowed_s (NaN).
+
+    A sample stands for its step: a run of n samples from index a lasts t[a + n - 1] - t[a] + step.
+    """
+    nt = t_s.size
+    step = np.diff(t_s, append=t_s[-1] + (t_s[-1] - t_s[-2] if nt > 1 else 0.0))
+    idx = np.where(beyond, -1, np.arange(nt)[:, None])
+    last_clear = np.maximum.accumulate(idx, axis=0)
+    start = np.clip(last_clear + 1, 0, nt - 1)
+    lasted = t_s[:, None] + step[:, None] - t_s[start]
+    trip = beyond & (lasted > allowed_s + 1e-9)
+    first = np.argmax(trip, axis=0)
+    return np.where(trip.any(axis=0), t_s[first], np.nan)
+
+
+def prc024_trips(t_s: np.ndarray, speed_pu: np.ndarray, terminal_v_pu: np.ndarray,
+                 names: Sequence[str]) -> dict[str, tuple[float, str]]:
+    """Return the machines PRC-024 lets their protection trip: name -> (when, s; which curve, how long).
+
+    A machine trips when its frequency (its speed times nominal) or its terminal voltage stays beyond a level
+    of the PRC-024 no-trip zone longer than the curve allows there (PRC024_*); the first such time counts.
+
+    Args:
+        t_s: Step times, s, shape (nt,).
+        speed_pu: Machine speeds, pu of nominal, shape (nt, n) (NaN: not running, never beyond).
+        terminal_v_pu: Each machine's bus voltage, pu, shape (nt, n).
+        names: Machine names, the columns.
+
+    """
+    t_s = np.asarray(t_s, dtype=float)
+    out: dict[str, tuple[float, str]] = {}
+    if t_s.size == 0:
+        return out
+    with np.errstate(invalid='ignore'):
+        checks = [(speed_pu >= lvl, d, f'frequency at or above {lvl * 60:.2f} Hz (at 60 Hz) for more than {d:.2f} s')
+                  for lvl, d in PRC024_F_HIGH]
+        checks += [(speed_pu <= lvl, d, f'frequency at or below {lvl * 60:.2f} Hz (at 60 Hz) for more than '
+                    f'{d:.2f} s') for lvl, d in PRC024_F_LOW]
+        checks += [(terminal_v_pu >= lvl, d, f'voltage at or above {lvl:.3f} pu for more than {d:.2f} s')
+                   for lvl, d in PRC024_V_HIGH]
+        checks += [(terminal_v_pu < lvl, d, f'voltage below {lvl:.2f} pu for more than {d:.2f} s')
+                   for lvl, d in PRC024_V_LOW]
+    for beyond, allowed, what in checks:
+        when = _first_trip(t_s, beyond, allowed)
+        for j in np.flatnonzero(np.isfinite(when)):
+            name = names[j]
+            if name not in out or when[j] < out[name][0]:
+                out[name] = (float(when[j]), f'PRC-024 {what}')
+    return out
+
+
 def _var(dae: Any, var: Any) -> np.ndarray:
     # A model's .v is refreshed only at events; the solver's own arrays hold the state of every step.
     return (dae.x if var.v_code == 'x' else dae.y)[var.a]
@@ -447,6 +536,11 @@ class GridRun:
         self._flat: tuple[np.ndarray, np.ndarray, list[tuple[Any, int, int, float]]] | None = None
         self._reseeds: dict[int, int] = {}  # bus uid -> times restarted off the trivial root
         self.overspeed: dict[str, tuple[float, float]] = {}  # machine -> (when tripped, s; its speed then, pu)
+        self._load_left = np.ones(self.ss.PQ.n)  # each load's share of its pre-fault value still connected
+        self._load_p0_mw = np.asarray(self.ss.PQ.p0.v, dtype=float) * float(self.ss.config.mva)
+        self._ufls_below: dict[tuple[frozenset[int], int], float] = {}  # (island's loads, stage) -> below since, s
+        self._ufls_done: set[tuple[int, int]] = set()  # (load row, stage)
+        self._ufls_islands: tuple[int, list[tuple[list[int], list[int]]]] | None = None
 
     # --- actions ---------------------------------------------------------------------------------------------
     def open_branches(self, branch_ids: Sequence[str], at_s: float, why: str = 'open') -> Applied:
@@ -485,10 +579,7 @@ class GridRun:
                                  'fraction': fraction})
 
         def do() -> None:
-            for i in rows:
-                for name in _LOAD_CONSTANTS:
-                    values = getattr(ss.PQ, name).v
-                    ss.PQ.set(name, ss.PQ.idx.v[i], float(values[i]) * (1.0 - fraction))
+            self._scale_loads(rows, 1.0 - fraction)
 
         self._pending.append((float(at_s), action, do))
         return action
@@ -536,6 +627,72 @@ class GridRun:
 
         self._pending.append((float(at_s), action, do))
         return action
+
+    def _scale_loads(self, rows: Iterable[int], factor: float) -> None:
+        """Scale these ANDES loads (PQ rows) by factor, P and Q alike, now."""
+        ss = self.ss
+        for i in rows:
+            for name in _LOAD_CONSTANTS:
+                ss.PQ.set(name, ss.PQ.idx.v[i], float(getattr(ss.PQ, name).v[i]) * factor)
+            self._load_left[i] *= factor
+
+    def _ufls(self, sample: Sample) -> None:
+        """Under-frequency load shedding, the grid's own protection, in the style of PRC-006 (module docstring).
+
+        Per island of the present topology: its frequency is the mean speed of its running machines; once it has
+        stayed below a stage's level for ufls_delay_s, every load of the island still connected sheds that
+        stage's fraction of its pre-fault value, once per load and stage.
+        """
+        stages = self.config.ufls_stages
+        if not stages or self._flat is None:
+            return
+        ss = self.ss
+        if self._ufls_islands is None or self._ufls_islands[0] != len(self.actions):
+            uid_of_row = [int(ss.Bus.idx2uid(b)) for b in ss.PQ.bus.v]
+            machine_uids = [uid for _, _, uid, _ in self._flat[2]]
+            islands = []
+            for comp in self._components():
+                cols = [j for j, uid in enumerate(machine_uids) if uid in comp]
+                rows = [i for i, uid in enumerate(uid_of_row) if uid in comp and ss.PQ.u.v[i]]
+                if cols and rows:
+                    islands.append((cols, rows))
+            self._ufls_islands = (len(self.actions), islands)
+        gone = set(self.rejected()) | set(self.overspeed)
+        for cols, rows in self._ufls_islands[1]:
+            live = [j for j in cols if self.generator_names[j] not in gone]
+            if not live:
+                continue
+            speed = float(np.mean(sample.omega_pu[live]))
+            key_rows = frozenset(rows)
+            for k, (level_pu, fraction) in enumerate(stages):
+                key = (key_rows, k)
+                if speed >= level_pu:
+                    self._ufls_below.pop(key, None)
+                    continue
+                since = self._ufls_below.setdefault(key, sample.t_s)
+                todo = [i for i in rows if (i, k) not in self._ufls_done]
+                if not todo or sample.t_s - since < self.config.ufls_delay_s - 1e-9:
+                    continue
+                by_bus: dict[int, float] = {}
+                for i in todo:
+                    self._ufls_done.add((i, k))
+                    left = self._load_left[i]
+                    if left <= 1e-9:
+                        continue
+                    after = max(0.0, left - fraction)
+                    bus = int(ss.PQ.bus.v[i])
+                    by_bus[bus] = by_bus.get(bus, 0.0) + float((left - after) * self._load_p0_mw[i])
+                    self._scale_loads([i], after / left)
+                self.actions.append(Applied(
+                    what=f'UFLS stage {k + 1}', scheduled_s=since + self.config.ufls_delay_s, applied_s=sample.t_s,
+                    detail={'level_hz': level_pu * float(ss.config.freq), 'speed_hz': speed * float(ss.config.freq),
+                            'shed_mw': sum(by_bus.values()), 'shed_mw_by_bus': by_bus}))
+
+    def ufls_shed_mw(self, buses: Iterable[int]) -> float:
+        """Return the load UFLS shed on these buses so far, MW."""
+        bus_set = {int(b) for b in buses}
+        return float(sum(mw for a in self.actions if a.what.startswith('UFLS')
+                         for b, mw in a.detail['shed_mw_by_bus'].items() if b in bus_set))
 
     def rejected(self) -> dict[str, tuple[float, float]]:
         """Return each machine tripped by generation rejection so far: (when, s; its output, MW)."""
@@ -699,6 +856,7 @@ class GridRun:
             if self.actions:
                 self._reseed_trivial_roots(t_s)
             self._overspeed_trips(sample)
+            self._ufls(sample)
             due = [p for p in self._pending if p[0] <= t_s + 1e-9]
             for entry in due:
                 self._pending.remove(entry)
@@ -780,12 +938,13 @@ class GridRun:
         islands = assess(t, delta, omega, volts, self.generator_names, self.generator_buses, self.bus_numbers,
                          bus_island, judged_from_s, self.config, float(self.ss.config.freq),
                          {k: self.island_load_mw(b) for k, b in _island_buses(self.bus_numbers, bus_island).items()},
-                         shed_by_island or {}, self.machines_tripped(), self.rejected())
+                         shed_by_island or {}, self.machines_tripped(), self.rejected(),
+                         {k: self.ufls_shed_mw(b) for k, b in _island_buses(self.bus_numbers, bus_island).items()})
         failed = None
         if self.stopped_s is not None:
             failed = f'simulation failed at {self.stopped_s:.3f} s: {self.failure}'
             islands = [replace(i, survived=None) for i in islands]  # undetermined: neither lost nor served
-        lost = None if failed else sum(i.shed_mw + (0.0 if i.survived else i.load_mw - i.shed_mw) for i in islands)
+        lost = None if failed else _load_lost_mw(islands)
         return Outcome(label=label, cut_branch_ids=tuple(cut_branch_ids), request_s=self.scenario.request_s,
                        opened_s=opened_s, judged_from_s=judged_from_s, islands=tuple(islands), load_lost_mw=lost,
                        actions=tuple(self.actions) + tuple(  # recorded only: they changed nothing in the run
@@ -810,7 +969,7 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
            bus_island: Mapping[int, int] | None, from_s: float, config: LoopConfig, f0_hz: float,
            island_load_mw: Mapping[int, float], shed_by_island: Mapping[int, float],
            tripped: Sequence[str] = (), rejected: Mapping[str, tuple[float, float]] | None = None,
-           ) -> list[IslandOutcome]:
+           ufls_by_island: Mapping[int, float] | None = None) -> list[IslandOutcome]:
     """Judge every island over [from_s, end] (see the module docstring); pure numpy.
 
     Args:
@@ -829,6 +988,7 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
         tripped: Machines switched off during the run (by protection).
         rejected: Machines tripped by generation rejection: (when, s; output, MW). Each is judged with its
             island only until then.
+        ufls_by_island: Load shed by under-frequency load shedding per island, MW.
 
     Returns:
         One outcome per island, in island order.
@@ -850,6 +1010,11 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
             gone_from = t_s > rejected[name][0] + 1e-9
             delta_rad[gone_from, j] = np.nan
             omega_pu[gone_from, j] = np.nan
+    bus_col = {int(b): j for j, b in enumerate(bus_numbers)}
+    protection = {} if not config.ride_through else prc024_trips(
+        t_s, omega_pu, bus_v_pu[:, [bus_col[int(b)] for b in generator_buses]], generator_names)
+    end = t_s >= t_s[-1] - config.end_window_s - 1e-9
+    ufls_by_island = ufls_by_island or {}
     out = []
     for island, buses in _island_buses(bus_numbers, bus_island).items():
         bset = set(buses)
@@ -887,21 +1052,37 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
         worst = None if v_span is None else int(bus_numbers[vcols[int(np.argmax(beyond.max(axis=0)))]])
         coherent = swing <= config.coherence_bound_rad
         if not coherent:
-            why.append(f'machines {swing:.2f} rad apart (> {config.coherence_bound_rad:.2f})')
-        if cols and not (band_lo <= f_lo and f_hi <= band_hi):
-            why.append(f'frequency {f_lo:.2f}..{f_hi:.2f} Hz outside {band_lo:.2f}..{band_hi:.2f}')
-        if not (config.v_min_pu <= v_lo and v_hi <= config.v_max_pu):
-            why.append(f'voltage {v_lo:.3f}..{v_hi:.3f} pu outside {config.v_min_pu}..{config.v_max_pu}')
+            why.append(f'machines {swing:.2f} rad apart (> {config.coherence_bound_rad:.2f}): out of step')
         gone = tuple(n for n in tripped if n in names)
-        if gone:
-            why.append(f'machines tripped: {", ".join(gone)}')
+        trips = sorted((protection[n][0], n) for n in names if n in protection and n not in gone)
+        gone += tuple(n for _, n in trips)
+        if gone:  # recorded, not switched in ANDES: the island's simulated end is not what it would be
+            why.append('machines tripped: ' + ', '.join(
+                f'{n} at {protection[n][0]:.3f} s ({protection[n][1]})' if n in protection and n not in tripped
+                else n for n in gone))
+        f_end = float('nan')
+        if kept:
+            with np.errstate(invalid='ignore'):
+                mean_hz = np.nanmean(omega_pu[end][:, kept], axis=1) * f0_hz
+            mean_hz = mean_hz[np.isfinite(mean_hz)]
+            if mean_hz.size:
+                f_end = float(mean_hz[-1])
+                if not (band_lo <= mean_hz.min() and mean_hz.max() <= band_hi):
+                    why.append(f'frequency {mean_hz.min():.2f}..{mean_hz.max():.2f} Hz at the end, outside the '
+                               f'continuous {band_lo:.2f}..{band_hi:.2f}')
+        v_end = bus_v_pu[end][:, vcols]
+        v_end_lo, v_end_hi = float(v_end.min()), float(v_end.max())
+        if not (config.v_min_pu <= v_end_lo and v_end_hi <= config.v_max_pu):
+            why.append(f'voltage {v_end_lo:.3f}..{v_end_hi:.3f} pu at the end, outside the continuous '
+                       f'{config.v_min_pu}..{config.v_max_pu}')
         out.append(IslandOutcome(
             island=island, buses=len(buses), generators=names, load_mw=float(island_load_mw.get(island, 0.0)),
             shed_mw=float(shed_by_island.get(island, 0.0)), max_pair_swing_rad=swing, coherent=coherent,
             f_nadir_hz=f_lo, f_peak_hz=f_hi, v_min_pu=v_lo, v_max_pu=v_hi, machines_tripped=gone,
             survived=not why, why_not=tuple(why), rejected=tuple(n for n in names if n in rejected),
             rejected_mw=float(sum(rejected[n][1] for n in names if n in rejected)), f_outside_s=f_span,
-            f_outside_since_s=f_since, v_outside_s=v_span, v_worst_bus=worst))
+            f_outside_since_s=f_since, v_outside_s=v_span, v_worst_bus=worst,
+            ufls_shed_mw=float(ufls_by_island.get(island, 0.0)), f_end_hz=f_end, v_end_pu=(v_end_lo, v_end_hi)))
     return out
 
 
