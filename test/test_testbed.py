@@ -210,6 +210,19 @@ def test_one_scenario_closed_loop_commands_opens_and_judges_every_island():
     none = result['runs']['no action']
     assert not none['all_survived'] and none['islands'][0]['max_pair_swing_rad'] > math.pi
     assert Path(result['figure']).is_file()
+    groups = result['coherent_groups']  # as replay's summary gives them
+    assert groups['method'] and groups['k'] == decision['n_islands'] == len(groups['groups'])
+    assert all(isinstance(n, str) for g in groups['groups'] for n in g)
+    assert {c['branch_id'] for c in result['commanded_actions']} == cut
+    for label in ('dtw', 'no action', 'milp'):
+        run = result['runs'][label]
+        assert {'load_served_mw', 'load_served_pct', 'all_survived', 'simulation_failed', 'islands'} <= set(run)
+        if run['simulation_failed'] is None:
+            served = sum(i['load_mw'] - i['shed_mw'] - i['ufls_shed_mw'] for i in run['islands'] if i['survived'])
+            assert run['load_served_mw'] == pytest.approx(served), label
+        for isl in run['islands']:
+            assert isl['survived'] in (True, False, None) and all(isinstance(w, str) for w in isl['why_not'])
+    assert 'scenario 1/1' in proc.stderr or 'closed loop' in proc.stderr  # progress while it runs
     print(f'closed loop on {SCENARIO.name}: cut {sorted(cut)}, opened at {opened}, wall {wall:.0f} s')
 
 
@@ -525,3 +538,17 @@ def test_ufls_sheds_in_stages_as_the_grid_own_protection_and_load_served_is_net_
                        opened_s=1.65, config=LoopConfig(ufls_stages=()))
     assert not [a for a in none.actions if a.what.startswith('UFLS')]
     assert none.islands[1].f_end_hz < area2.f_end_hz  # the shed held area 2's frequency up
+
+
+def test_a_page_holds_notes_about_its_own_scenarios_only():
+    from controlled_islanding.evaluation.testbed_report import markdown
+    from controlled_islanding.graph.testbed import TestbedSettings
+
+    def page(name):
+        return markdown([{'scenario': name, 'runs': {}, 'events': []}], TestbedSettings(), [], Path('docs/x.md'),
+                        'cmd')
+
+    ei33, nordic = page('ei33_bus101048_pair_unstable'), page('nordic44_bus6000_three_groups')
+    assert 'EI 33:' in ei33 and 'Nordic 44 asks' not in ei33 and 'GBnetwork' not in ei33
+    assert 'Nordic 44 asks' in nordic and 'EI 33:' not in nordic
+    assert 'PRC-024' in ei33 and 'PRC-006' in ei33  # the judge's rules name their standards on every page

@@ -39,33 +39,43 @@ governor, exciter and stabiliser. The numbers are the simulation's at t = 0 (mac
 not the snapshot's: a case whose static generators feed several machines can list more generation than runs.
 A rejected machine is judged with its island until its trip and left out afterwards (its state is frozen).
 
-Post-islanding assessment, per island, over the window from the cut (for a run without a cut: from the time
-the cut would have been made) to the end of the run:
-- coherent: every pair of the island's machines stays within `coherence_bound_rad` (default pi rad) of where
-  they were relative to each other at the cut, |(d_p(t) - d_p(t0)) - (d_q(t) - d_q(t0))| <= pi. Pi is the
-  pole-slip scale, physics, not a tuned number: past it the pair's synchronising torque reverses.
-- frequency nadir and peak: the lowest and highest machine speed of the island times the nominal frequency
-  f0 (the case's own, ANDES `config.freq`: 50 Hz for Nordic 44, 60 Hz for the others), Hz, over the window.
-  Within [f_min_pu, f_max_pu] x f0 counts as held. The band is per unit of nominal so that it means the same
-  on a 50 Hz and a 60 Hz grid: the defaults 0.9633 .. 1.03 pu are NERC PRC-024's limits beyond which
-  generators' off-frequency protection may trip at once, 57.8 .. 61.8 Hz at 60 Hz (-3.67 %, +3 %); at 50 Hz
-  they are 48.17 .. 51.5 Hz, whose top is the 51.5 Hz up to which ENTSO-E's Requirements for Generators
-  (EU 2016/631) keep machines connected (its bottom, 47.5 Hz, is wider than ours).
-- voltage: the lowest and highest bus voltage magnitude of the island, pu; judged from `voltage_settle_s`
-  after the cut (the cut itself is a switching transient), within [v_min_pu, v_max_pu] (default 0.8 .. 1.2 pu).
-- machines tripped: synchronous machines switched off during the run other than by rejection, by a protection
-  model. The bundled ANDES cases have none, so the run adds one, turbine overspeed protection (GridRun.run): a
-  machine whose speed exceeds `overspeed_trip_pu` (1.10 pu) is recorded as tripped at that step (an action
-  'overspeed trip', with its speed). 110 % of rated speed is the usual emergency overspeed trip setting of steam
-  turbines (IEEE Std 122-1991, the recommended practice for their control systems, places it at about 110 %).
-  The trip is recorded, not switched in ANDES: switching the machine off as generation rejection does stopped
-  the solver within 10 ms on PJM 5-bus (machine 4 at 1.266 s) and Kundur (G3 and G4 at 3.10 s) with no action,
-  and a stopped run loses every island, the healthy ones too. The setting lies well above the frequency band
-  (1.03 pu), so the island of such a machine has already failed on frequency; the machine's trajectory after
-  its trip is the simulation's, not what a tripped machine would do.
-An island survives when all four hold. Load lost = load shed + the whole load of every island that did not
-survive (it would be lost to protection); an island with no machine, or whose every machine was rejected (an
-island with no load left), is lost by definition.
+The judge: the grid's own protection, and each island at the end of the run. Every rule comes from a standard,
+scaled to the case's nominal frequency f0 (ANDES `config.freq`: 50 Hz for Nordic 44, 60 Hz for the others) by
+per unit of 60 Hz, so that it means the same on a 50 Hz and a 60 Hz grid:
+- Generator protection, NERC PRC-024 (Generator Frequency and Voltage Protective Relay Settings): a machine
+  whose frequency (its speed x f0) or terminal voltage stays outside the standard's no-trip zone longer than
+  the curve allows there trips (prc024_trips), judged over the whole run, fault included, as a relay would.
+  Voltage (PRC-024 Attachment 2): at or above 1.20 pu at once, 1.175 pu 0.2 s, 1.15 pu 0.5 s, 1.10 pu 1.0 s;
+  below 0.45 pu 0.15 s, 0.65 pu 0.3 s, 0.75 pu 2.0 s, 0.90 pu 3.0 s. Frequency (Attachment 1, Eastern
+  Interconnection curve): at or above 62.2 Hz at once, from 60.5 Hz (600 s) to 62.2 Hz (2 s) log-linear,
+  t = 10^(90.935 - 1.45713 f) s; at or below 57.8 Hz at once, from 59.5 Hz (about 1800 s) to 57.8 Hz (2 s),
+  t = 10^(1.7373 f - 100.116) s; between 59.5 and 60.5 Hz continuous. The breakpoints are those of the
+  PRC-024 curves as encoded in github.com/jonlesage/Grid-Codes, gridCodeDefinitions.m (PRC024.LVRT/HVRT and
+  PRC024.East); the log-linear form is the standard's own formula through them. Sampled on a 0.05 Hz grid.
+  The machines of the bundled ANDES cases carry no protection models, so a trip is recorded, not switched in
+  ANDES: switching a machine off stopped the solver within 10 ms on PJM 5-bus (machine 4 at 1.266 s) and Kundur
+  (G3 and G4 at 3.10 s). An island with a tripped machine therefore did not survive: its simulated end is that
+  of an island still holding the machine. Turbine overspeed protection at `overspeed_trip_pu` (1.10 pu, the
+  usual emergency setting of steam turbines, IEEE Std 122-1991) is recorded the same way; PRC-024's 62.2 Hz
+  (1.037 pu) comes first.
+- Under-frequency load shedding, the grid's own protection in the style of NERC PRC-006 (automatic UFLS
+  programmes in stages): in each island of the present topology, whose frequency is the mean speed of its
+  running machines, once it has stayed below 59.3, 59.0 or 58.7 Hz (x f0 / 60) for `ufls_delay_s` (0.3 s,
+  a relay's time delay; PRC-006 leaves settings to the regions), every load of the island still connected
+  sheds 10 % of its pre-fault value, once per stage (GridRun._ufls, in the simulation: it changes the run).
+  The levels are those of the issue's example; PRC-006's regional programmes shed 25 to 35 % in all.
+- An island survives when, at the end of the run (its last `end_window_s`, 0.2 s), its machines are in step
+  (every pair within `coherence_bound_rad`, pi rad, of where they were relative to each other at the cut:
+  |(d_p(t) - d_p(t0)) - (d_q(t) - d_q(t0))| <= pi over the window from the cut; past pi a pair's synchronising
+  torque reverses, a pole slip, which PRC-024 R1 lets out-of-step protection trip), no machine of it has
+  tripped, its frequency (the mean speed of its running machines) is back in PRC-024's continuous band
+  (59.5 .. 60.5 Hz at 60 Hz: [f_min_pu, f_max_pu] x f0) and every bus voltage in 0.90 .. 1.10 pu
+  (PRC-024's continuous zone). An island with no machine, or whose every machine was rejected, is lost by
+  definition. Excursions on the way (frequency and voltage outside the continuous bands, the latter from
+  `voltage_settle_s` after the cut) are reported with their times, not judged.
+Load served = the load of every island that survived, net of the decision's shed and of UFLS, MW and % of the
+pre-fault load. Load lost = the load shed in surviving islands + the whole load of every island that did not
+survive.
 
 A simulator failure is its own outcome. If ANDES stops before the end (it does not converge, typically after a
 switching: it zeroes the voltage of a bus left with no in-service branch, so an island of one bus is numerically
