@@ -122,6 +122,17 @@ def _decision(obs: Observation, request_id: str) -> dict | None:
     return decision_dict(request_id, obs) if request_id in obs.decisions else None
 
 
+def _coherent_groups(obs: Observation, request_id: str) -> dict:
+    """Return the groups computed for this request, in replay's summary form (else the newest up to it)."""
+    mine = [m for m in obs.groups if m.request_id == request_id]
+    if mine:
+        g = mine[-1]
+        return {'method': g.method, 'k': int(g.k), 'window_s': g.window_s,
+                'groups': [[n for n, k in zip(g.generator_names, g.group, strict=True) if k == i] for i in range(g.k)],
+                'unobserved': list(g.unobserved_generator_names)}
+    return _groups_dict(obs, obs.decisions[request_id][1].request_stamp if request_id in obs.decisions else None)
+
+
 def _milp_cut(scenario: Any, decision: dict) -> dict:
     """Return the exact minimum-disruption partition for the decision's generator groups, on its network."""
     from controlled_islanding.core.islanding import evaluate_partition
@@ -201,8 +212,7 @@ def _run_scenario(path: Path, results: Path, args: TestbedSettings, cache: dict)
         scenario = replace(scenario, request_s=loop['request_s'],
                            end_s=max(scenario.end_s, loop['request_s'] + args.run_after_s))
     result: dict[str, Any] = {'scenario': scenario.name, 'path': str(path), 'decision': decision,
-                              'coherent_groups': _groups_dict(obs, obs.decisions[report['request_id']][1].request_stamp
-                                                              if decision else None),
+                              'coherent_groups': _coherent_groups(obs, report['request_id']),
                               'commanded_actions': [] if decision is None else decision['breaker_commands'],
                               'closed_loop': loop, 'events': report['events'],
                               'restarts': [r.__dict__ for r in obs.restarts], 'runs': {'dtw': loop},
