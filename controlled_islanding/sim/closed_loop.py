@@ -472,6 +472,9 @@ def prc024_trips(t_s: np.ndarray, speed_pu: np.ndarray, terminal_v_pu: np.ndarra
 
     A machine trips when its frequency (its speed times nominal) or its terminal voltage stays beyond a level
     of the PRC-024 no-trip zone longer than the curve allows there (PRC024_*); the first such time counts.
+    The case's own operating point is normal: a voltage level its first sample (the pre-fault power flow)
+    already lies beyond is moved, for that machine, to that voltage (1 mV further out), so a machine the case
+    runs at 1.11 pu is not tripped for running there.
 
     Args:
         t_s: Step times, s, shape (nt,).
@@ -489,10 +492,11 @@ def prc024_trips(t_s: np.ndarray, speed_pu: np.ndarray, terminal_v_pu: np.ndarra
                   for lvl, d in PRC024_F_HIGH]
         checks += [(speed_pu <= lvl, d, f'frequency at or below {lvl * 60:.2f} Hz (at 60 Hz) for more than '
                     f'{d:.2f} s') for lvl, d in PRC024_F_LOW]
-        checks += [(terminal_v_pu >= lvl, d, f'voltage at or above {lvl:.3f} pu for more than {d:.2f} s')
-                   for lvl, d in PRC024_V_HIGH]
-        checks += [(terminal_v_pu < lvl, d, f'voltage below {lvl:.2f} pu for more than {d:.2f} s')
-                   for lvl, d in PRC024_V_LOW]
+        v0 = terminal_v_pu[0]
+        checks += [(terminal_v_pu >= np.maximum(lvl, v0 + 1e-3), d,
+                    f'voltage at or above {lvl:.3f} pu for more than {d:.2f} s') for lvl, d in PRC024_V_HIGH]
+        checks += [(terminal_v_pu < np.minimum(lvl, v0 - 1e-3), d,
+                    f'voltage below {lvl:.2f} pu for more than {d:.2f} s') for lvl, d in PRC024_V_LOW]
     for beyond, allowed, what in checks:
         when = _first_trip(t_s, beyond, allowed)
         for j in np.flatnonzero(np.isfinite(when)):
@@ -1082,7 +1086,8 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
                                f'continuous {band_lo:.2f}..{band_hi:.2f}')
         v_end = bus_v_pu[end][:, vcols]
         v_end_lo, v_end_hi = float(v_end.min()), float(v_end.max())
-        if not (config.v_min_pu <= v_end_lo and v_end_hi <= config.v_max_pu):
+        v0 = bus_v_pu[0, vcols]  # a bus the case itself runs outside the band is judged against its own voltage
+        if ((v_end < np.minimum(config.v_min_pu, v0 - 1e-3)) | (v_end > np.maximum(config.v_max_pu, v0 + 1e-3))).any():
             why.append(f'voltage {v_end_lo:.3f}..{v_end_hi:.3f} pu at the end, outside the continuous '
                        f'{config.v_min_pu}..{config.v_max_pu}')
         out.append(IslandOutcome(
