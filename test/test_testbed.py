@@ -486,6 +486,10 @@ def test_prc024_trips_a_machine_only_when_it_stays_beyond_its_curve_longer_than_
     assert trip(speed_pu=57.98 / 60, hold=5.0)[0] == pytest.approx(1.0 + 10 ** (1.7373 * 58 - 100.116), abs=0.01)
     assert trip(speed_pu=62.3 / 60, hold=0.001)[0] == pytest.approx(1.0)
     assert trip(speed_pu=59.0 / 60, hold=6.0) is None and trip(speed_pu=61.0 / 60, hold=6.0) is None
+    # The case's own operating point is normal: run at 1.12 pu from the start, a machine is not tripped for it;
+    # brought there from 1.0 pu for 1.5 s, it is.
+    assert prc024_trips(t, np.ones((t.size, 1)), np.full((t.size, 1), 1.12), ['G']) == {}
+    assert trip(v_pu=1.12, hold=1.5)[0] == pytest.approx(2.0, abs=0.002)
     # Not running (NaN) is never beyond.
     assert prc024_trips(t, np.full((t.size, 1), np.nan), np.full((t.size, 1), np.nan), ['G']) == {}
 
