@@ -224,7 +224,8 @@ def markdown(results: list[dict], args: Any, figures: list[Path], page: Path, cm
            '- An island survives when at the end of the run (its last 0.2 s) its machines are in step (no pair '
            'more than pi rad from where it was at the cut: a pole slip, which PRC-024 R1 leaves to out-of-step '
            "protection), none has tripped, its mean machine frequency is in PRC-024's continuous band (59.5 to "
-           '60.5 Hz per unit of 60 Hz) and every bus voltage in 0.90 to 1.10 pu. An island with no machine, or whose '
+           '60.5 Hz per unit of 60 Hz) and every bus voltage in 0.90 to 1.10 pu (a bus or machine the case itself '
+           'runs beyond a level is judged against its own pre-fault voltage). An island with no machine, or whose '
            'every machine was rejected, is lost by definition.',
            "- Generation rejection: in every island whose machines' pre-fault output exceeds its load after the "
            'shed by more than 5 % of that load, machines are tripped at the time of the shed, largest output '
