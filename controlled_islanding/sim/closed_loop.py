@@ -72,8 +72,9 @@ per unit of 60 Hz, so that it means the same on a 50 Hz and a 60 Hz grid:
   (59.5 .. 60.5 Hz at 60 Hz: [f_min_pu, f_max_pu] x f0) and every bus voltage in 0.90 .. 1.10 pu
   (PRC-024's continuous zone). The case's own operating point is normal: a bus or machine whose pre-fault
   voltage already lies beyond a level (EI 33 runs GENROU_72 at 1.11 pu) is judged against its own voltage.
-  An island with no machine, or whose every machine was rejected, is lost by definition. Excursions on the way (frequency and voltage outside the continuous bands, the latter from
-  `voltage_settle_s` after the cut) are reported with their times, not judged.
+  An island with no machine, or whose every machine was rejected, is lost by definition. Excursions on the
+  way (frequency and voltage outside the continuous bands, the latter from `voltage_settle_s` after the cut)
+  are reported with their times, not judged.
 Load served = the load of every island that survived, net of the decision's shed and of UFLS, MW and % of the
 pre-fault load. Load lost = the load shed in surviving islands + the whole load of every island that did not
 survive.
