@@ -556,3 +556,25 @@ def test_a_page_holds_notes_about_its_own_scenarios_only():
     assert 'EI 33:' in ei33 and 'Nordic 44 asks' not in ei33 and 'GBnetwork' not in ei33
     assert 'Nordic 44 asks' in nordic and 'EI 33:' not in nordic
     assert 'PRC-024' in ei33 and 'PRC-006' in ei33  # the judge's rules name their standards on every page
+
+
+def test_a_bad_scenario_is_refused_with_simulates_message_before_any_node_starts(tmp_path):
+    import yaml
+
+    from controlled_islanding.graph import GraphError
+    from controlled_islanding.graph.testbed import TestbedSettings, run_scenario
+    from controlled_islanding.sim.andes_sim import prepare_case
+    from controlled_islanding.sim.scenario import ScenarioError, load_scenario
+
+    bad = yaml.safe_load(SCENARIO.read_text())
+    bad['events'][0]['bus'] = 999
+    path = tmp_path / 'ieee14_bad_bus.yaml'
+    path.write_text(yaml.safe_dump(bad))
+    with pytest.raises(ScenarioError) as simulate_says:
+        prepare_case(load_scenario(path))  # what `simulate` runs first, and prints
+    start = time.monotonic()
+    with pytest.raises(GraphError) as testbed_says:
+        run_scenario(path, tmp_path / 'results', TestbedSettings(), {})
+    assert str(testbed_says.value) == str(simulate_says.value) and '999' in str(testbed_says.value)
+    assert not (tmp_path / 'results').exists()  # no results folder, no logs: nothing started
+    print(f'refused in {time.monotonic() - start:.1f} s')
