@@ -441,6 +441,13 @@ def test_a_simulator_failure_is_its_own_outcome_never_load_lost():
     (row,) = table_rows([result])
     assert row[3].startswith('simulation failed at 1.2') and row[5].startswith('-'), row
     assert 'undetermined' in render([result])
+    from controlled_islanding.evaluation import plots
+
+    panel = plots.ClosedLoopPanel('no action', out.t_s, out.delta_rad, out.bus_v_pu, None, out.all_survived,
+                                  failed=out.simulation_failed)
+    figure = plots.plot_closed_loop([panel], out.generator_names, [0] * len(out.generator_names),
+                                    BUILD / 'test_testbed' / f'failed-{time.time_ns()}.png', request_s=1.5)
+    assert figure.stat().st_size > 0
 
 
 def test_table_reasons_are_cut_at_a_word_and_load_served_is_net_of_shed():

@@ -285,8 +285,12 @@ def _figure(scenario: Any, result: dict, trajectories: dict, loop_traj: dict, pa
             t_s=tr['t_s'], delta_rad=tr['delta_rad'], bus_v_pu=tr['bus_v_pu'], opened_s=run.get('opened_s'),
             survived=run['all_survived'], failed=run.get('simulation_failed'),
             served_pct=run.get('load_served_pct')))
+    from controlled_islanding.sim.closed_loop import LoopConfig
+
+    band = LoopConfig()
     return plots.plot_closed_loop(panels, names, gen_island, path, request_s=scenario.request_s,
-                                  title=f'{scenario.name}: rotor angles by island and bus voltages')
+                                  title=f'{scenario.name}: rotor angles by island and bus voltages',
+                                  v_limits_pu=(band.v_min_pu, band.v_max_pu))
 
 
 def run_all(paths: list[Path], results_dir: Path, settings: TestbedSettings,
