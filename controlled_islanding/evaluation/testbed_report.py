@@ -69,21 +69,17 @@ def failure_text(isl: dict) -> str:
     head += f'; rejected {", ".join(isl["rejected"])})' if isl.get('rejected') else ')'
     if 'f_outside_s' not in isl:  # a result written before the timings were recorded
         return f'{head}: {"; ".join(isl["why_not"])}'
-    out = []
+    out = list(isl['why_not'])  # the verdict's reasons in full, then what happened on the way
     if isl['generators'] and isl['rejected'] and len(isl['rejected']) == len(isl['generators']):
-        out.append(f'every machine tripped by generation rejection (island load {isl["load_mw"]:.0f} MW)')
-    if not isl['coherent']:
-        out.append(f'machines {isl["max_pair_swing_rad"]:.2f} rad apart')
+        out.append(f'island load {isl["load_mw"]:.0f} MW')
     if isl['f_outside_s']:
         since = isl['f_outside_since_s']
-        out.append(f'frequency {isl["f_nadir_hz"]:.2f}..{isl["f_peak_hz"]:.2f} Hz, out of band '
-                   f'{_span(isl["f_outside_s"])}' + ('' if since is None else f', already out at the cut (since '
-                                                                                f'{since:+.3f} s)'))
+        inherited = '' if since is None else f', already out at the cut (since {since:+.3f} s)'
+        out.append(f'on the way: frequency {isl["f_nadir_hz"]:.2f}..{isl["f_peak_hz"]:.2f} Hz, outside the '
+                   f'continuous band {_span(isl["f_outside_s"])}{inherited}')
     if isl['v_outside_s']:
-        out.append(f'voltage {isl["v_min_pu"]:.3f}..{isl["v_max_pu"]:.3f} pu, out of band '
-                   f'{_span(isl["v_outside_s"])}, worst at bus {isl["v_worst_bus"]}')
-    if isl['machines_tripped']:
-        out.append(f'machines tripped: {", ".join(isl["machines_tripped"])}')
+        out.append(f'on the way: voltage {isl["v_min_pu"]:.3f}..{isl["v_max_pu"]:.3f} pu, outside the continuous '
+                   f'band {_span(isl["v_outside_s"])}, worst at bus {isl["v_worst_bus"]}')
     return f'{head}: {"; ".join(out)}'
 
 
