@@ -23,13 +23,20 @@ PMU frames, trips and the scenario's islanding request, executes the breaker com
 simulation (breaker operating time, then the decision's load shed in islands short of generation and
 generation rejection in islands with a surplus), keeps
 simulating, and judges every island (docs/testbed.md and controlled_islanding/sim/closed_loop.py give the
-rules: machines within pi rad of each other, frequency within 0.9633..1.03 pu of the case's nominal frequency
-(57.8..61.8 Hz at 60 Hz, 48.17..51.5 Hz at 50 Hz), voltage 0.8..1.2 pu, no machine tripped).
+rules and their sources: machines trip by the NERC PRC-024 ride-through curves, with their durations; the
+grid's own under-frequency load shedding acts in stages in the style of PRC-006; an island survives when at
+the end of the run its machines are in step, none tripped, and its frequency and voltages are back in their
+continuous bands). The breakers of one decision open together, in one simulation step. A simulator failure
+is its own outcome ("simulation failed at t s: reason"), never load lost; the run is first repeated offline
+at a smaller step. The scenario is checked against its case, as simulate checks it, before any node starts.
 
 Then the same scenario runs twice more in-process, with no graph: with no action, and with the exact MILP cut
 (core/milp.py, the same generator groups as the decision) opened at the same time as the graph's cut, with its
-own load shed. One table compares the three: islands that survived, load lost (shed, plus the load of every
-island that did not survive), frequency nadir and peak, lowest voltage, request-to-opening time.
+own load shed. One table compares the three: load served at the end (MW and % of the pre-fault load, in the
+islands that survived, net of every shed), islands that survived, load lost, frequency nadir and peak, lowest
+voltage, request-to-opening time. --json prints per scenario the coherent groups, the decision, the commanded
+actions and every run (load_served_mw, load_served_pct, all_survived, simulation_failed, islands with their
+reasons in full); progress goes to stderr.
 A figure per scenario shows the rotor angles coloured by the decision's islands and the bus voltages, for no
 action and for the closed loop (as the paper's Figs. 6 and 11).
 
@@ -124,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
     settings = TestbedSettings(rate=args.rate, breaker_operating_s=args.breaker_operating_s,
                                shed_delay_s=args.shed_delay_s, run_after_s=args.run_after_s, trigger=args.trigger,
                                timeout_s=args.timeout, namespace=args.namespace, estimator=args.estimator,
-                               no_baselines=args.no_baselines, quiet=args.json)
+                               no_baselines=args.no_baselines, quiet=False)  # progress on stderr, --json or not
 
     def after_each(results: list[dict], missing: list[str]) -> None:
         bar.update()

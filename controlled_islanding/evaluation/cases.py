@@ -167,7 +167,8 @@ def closed_loop_outcomes(case: CaseReport, scenario_path: Path, config: Any = No
                 raise EvaluateError(f'{scenario_path}: closed loop: {exc}') from exc
             summary = run.summary()
             runs[cut] = {k: summary[k] for k in ('opened_s', 'judged_from_s', 'all_survived', 'load_lost_mw',
-                                                 'shed_mw', 'rejected_mw', 'f_nadir_hz', 'f_peak_hz', 'v_min_pu')}
+                                                 'shed_mw', 'rejected_mw', 'f_nadir_hz', 'f_peak_hz', 'v_min_pu',
+                                                 'load_served_mw', 'load_served_pct', 'simulation_failed')}
             runs[cut]['islands'] = [{k: i[k] for k in ('island', 'generators', 'survived', 'why_not',
                                                        'max_pair_swing_rad', 'f_nadir_hz', 'f_peak_hz', 'v_min_pu',
                                                        'v_max_pu', 'rejected')} for i in summary['islands']]

@@ -332,7 +332,9 @@ class ClosedLoopPanel:
         delta_rad: Rotor angles, rad, shape (nt, n_gen).
         bus_v_pu: Bus voltage magnitudes, pu, shape (nt, n_bus).
         opened_s: When the cut took effect, s (None: no cut).
-        survived: Whether every island survived (shown in the row title).
+        survived: Whether every island survived (shown in the row title); None: undetermined.
+        failed: "simulation failed at t s: reason" (a black line where the trajectories end), or None.
+        served_pct: Load served at the end, % of the pre-fault load (shown in the row title), or None.
 
     """
 
@@ -341,7 +343,9 @@ class ClosedLoopPanel:
     delta_rad: Sequence[Sequence[float]]
     bus_v_pu: Sequence[Sequence[float]]
     opened_s: float | None
-    survived: bool
+    survived: bool | None
+    failed: str | None = None
+    served_pct: float | None = None
 
 
 def plot_closed_loop(panels: Sequence[ClosedLoopPanel], names: Sequence[str], islands: Sequence[int],
@@ -388,8 +392,15 @@ def plot_closed_loop(panels: Sequence[ClosedLoopPanel], names: Sequence[str], is
             ax.axvline(request_s, color='0.3', linestyle='--', linewidth=0.9)
             if panel.opened_s is not None:
                 ax.axvline(panel.opened_s, color='tab:red', linestyle='-', linewidth=0.9)
+            if panel.failed is not None and t.size:
+                ax.axvline(float(t[-1]), color='black', linestyle='-', linewidth=1.6)
             ax.grid(True, alpha=0.3)
-        verdict = 'every island survived' if panel.survived else 'NOT every island survived'
+        if panel.failed is not None:
+            verdict = panel.failed.split(':')[0]
+        else:
+            verdict = 'every island survived' if panel.survived else 'NOT every island survived'
+            if panel.served_pct is not None:
+                verdict += f', {panel.served_pct:.0f} % of the load served'
         ax_a.set_title(f'{panel.label}: rotor angles ({verdict})', fontsize=9)
         ax_v.set_title(f'{panel.label}: bus voltages', fontsize=9)
         ax_a.set_ylabel('delta - delta(0) (rad)')
@@ -403,6 +414,8 @@ def plot_closed_loop(panels: Sequence[ClosedLoopPanel], names: Sequence[str], is
                for g in sorted(set(labels.tolist()))]
     handles += [Line2D([], [], color='0.3', linestyle='--', label='islanding request'),
                 Line2D([], [], color='tab:red', label='cut opened')]
+    if any(p.failed is not None for p in panels):
+        handles.append(Line2D([], [], color='black', linewidth=1.6, label='simulation failed (it stopped here)'))
     fig.legend(handles=handles, loc='lower center', ncol=min(4, len(handles)), fontsize=8, frameon=False,
                bbox_to_anchor=(0.5, -0.02 * max(1, 4 - len(panels))))
     if title:

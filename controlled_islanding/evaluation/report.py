@@ -22,6 +22,8 @@ def closed_loop_text(result: dict[str, Any] | None) -> str:
     """Return a closed-loop outcome as a table cell: islands survived / formed, and the first reason one was lost."""
     if result is None:
         return '-'
+    if result.get('simulation_failed'):
+        return result['simulation_failed'].split(':')[0]  # undetermined, not a loss
     islands = result['islands']
     ok = sum(1 for i in islands if i['survived'])
     why = next((f'island {i["island"]}: {i["why_not"][0]}' for i in islands if i['why_not']), '')

@@ -24,7 +24,7 @@ from controlled_islanding.graph import GraphError
 from controlled_islanding.graph.observer import INTERNAL_TOPICS, Observation, Observer, start_pipeline
 from controlled_islanding.graph.replay import namespace_name
 from controlled_islanding.graph.results import INTERRUPTED
-from controlled_islanding.graph.summary import decision_dict
+from controlled_islanding.graph.summary import _groups_dict, decision_dict
 from controlled_islanding.wire import topics
 
 log = logging.getLogger(__name__)
@@ -122,6 +122,17 @@ def _decision(obs: Observation, request_id: str) -> dict | None:
     return decision_dict(request_id, obs) if request_id in obs.decisions else None
 
 
+def _coherent_groups(obs: Observation, request_id: str) -> dict:
+    """Return the groups computed for this request, in replay's summary form (else the newest up to it)."""
+    mine = [m for m in obs.groups if m.request_id == request_id]
+    if mine:
+        g = mine[-1]
+        return {'method': g.method, 'k': int(g.k), 'window_s': g.window_s,
+                'groups': [[n for n, k in zip(g.generator_names, g.group, strict=True) if k == i] for i in range(g.k)],
+                'unobserved': list(g.unobserved_generator_names)}
+    return _groups_dict(obs, obs.decisions[request_id][1].request_stamp if request_id in obs.decisions else None)
+
+
 def _milp_cut(scenario: Any, decision: dict) -> dict:
     """Return the exact minimum-disruption partition for the decision's generator groups, on its network."""
     from controlled_islanding.core.islanding import evaluate_partition
@@ -141,25 +152,50 @@ def _milp_cut(scenario: Any, decision: dict) -> dict:
             'island_shed_mw': list(ev.island_shed_mw), 'disrupted_mw': ev.disrupted_mw, 'optimal': model.optimal_}
 
 
+def check_scenario(path: Path) -> Any:
+    """Return the scenario, checked against its case as `simulate` checks it, before any node starts.
+
+    Raises:
+        GraphError: The scenario is unreadable, or names a bus, branch or generator its case lacks (the message
+            and hint are simulate's).
+
+    """
+    from controlled_islanding.sim.andes_sim import SimulationError, prepare_case
+    from controlled_islanding.sim.scenario import ScenarioError, load_scenario
+
+    try:
+        scenario = load_scenario(path)
+        prepare_case(scenario)
+    except (ScenarioError, SimulationError) as exc:
+        raise GraphError(str(exc)) from None
+    return scenario
+
+
 def run_scenario(path: Path, results: Path, args: TestbedSettings, cache: dict) -> dict:
     """Run one scenario closed-loop, then the baselines; return its result (figures go under results).
 
     `cache` keeps the no-action runs of the scenarios seen so far, by their simulation (variants share one).
 
     Raises:
-        GraphError: The scenario is unreadable, a node died, or grid_sim gave no report in time.
+        GraphError: The scenario is unreadable, a node died, grid_sim gave no report in time, or an in-process
+            run could not start.
 
     """
+    from controlled_islanding.sim.closed_loop import ClosedLoopError
+
+    try:
+        return _run_scenario(path, results, args, cache)
+    except ClosedLoopError as exc:
+        raise GraphError(f'{path}: {exc}') from exc
+
+
+def _run_scenario(path: Path, results: Path, args: TestbedSettings, cache: dict) -> dict:
     import numpy as np
 
     from controlled_islanding.sim.closed_loop import LoopConfig, run_offline
-    from controlled_islanding.sim.scenario import ScenarioError, load_scenario
 
     quiet = args.quiet
-    try:
-        scenario = load_scenario(path)
-    except ScenarioError as exc:
-        raise GraphError(str(exc)) from exc
+    scenario = check_scenario(path)
     out = results / scenario.name
     out.mkdir(parents=True)
     config = LoopConfig(breaker_operating_s=args.breaker_operating_s, shed_delay_s=args.shed_delay_s,
@@ -176,6 +212,8 @@ def run_scenario(path: Path, results: Path, args: TestbedSettings, cache: dict) 
         scenario = replace(scenario, request_s=loop['request_s'],
                            end_s=max(scenario.end_s, loop['request_s'] + args.run_after_s))
     result: dict[str, Any] = {'scenario': scenario.name, 'path': str(path), 'decision': decision,
+                              'coherent_groups': _coherent_groups(obs, report['request_id']),
+                              'commanded_actions': [] if decision is None else decision['breaker_commands'],
                               'closed_loop': loop, 'events': report['events'],
                               'restarts': [r.__dict__ for r in obs.restarts], 'runs': {'dtw': loop},
                               'graph_topics': obs.graph_topics,
@@ -183,6 +221,20 @@ def run_scenario(path: Path, results: Path, args: TestbedSettings, cache: dict) 
                                                  if name.endswith('pmu_ingestion') and 'estimator' in d), None)}
     traj = dict(np.load(f'{out / "grid_sim.json"}.npz'))
     trajectories = {'dtw': traj}
+    if loop['simulation_failed'] is not None and decision and decision['split'] and loop['opened_s'] is not None:
+        # The graph's answer stands; the simulation of it is redone offline, the same cut and shed at the same
+        # time, with closed_loop.REMEDIES.
+        _say(quiet, f'{scenario.name}: the closed loop\'s {loop["simulation_failed"]}; its actions re-run offline')
+        bus_island = {b: isl['island'] for isl in decision['islands'] for b in isl['buses']}
+        again = run_offline(scenario, 'dtw', cut_branch_ids=loop['cut_branch_ids'], bus_island=bus_island,
+                            island_shed_mw=[isl['shed_mw'] for isl in decision['islands']],
+                            opened_s=loop['opened_s'], config=config, progress=not quiet)
+        if again.simulation_failed is None:
+            loop = dict(again.summary(), remedy=f'the closed loop\'s {loop["simulation_failed"]}; its cut and shed '
+                        f're-run offline at the same time with {again.remedy or "the same step"}')
+            result['runs']['dtw'] = loop
+            traj = dict(traj, t_s=again.t_s, delta_rad=again.delta_rad, bus_v_pu=again.bus_v_pu)
+            trajectories['dtw'] = traj
     if not args.no_baselines:
         key = (scenario.simulation_key(), args.run_after_s)
         if key not in cache:
@@ -231,9 +283,14 @@ def _figure(scenario: Any, result: dict, trajectories: dict, loop_traj: dict, pa
         panels.append(plots.ClosedLoopPanel(
             label={'dtw': 'closed loop (DTW decision)', 'milp': 'exact MILP cut', 'no action': 'no action'}[label],
             t_s=tr['t_s'], delta_rad=tr['delta_rad'], bus_v_pu=tr['bus_v_pu'], opened_s=run.get('opened_s'),
-            survived=run['all_survived']))
+            survived=run['all_survived'], failed=run.get('simulation_failed'),
+            served_pct=run.get('load_served_pct')))
+    from controlled_islanding.sim.closed_loop import LoopConfig
+
+    band = LoopConfig()
     return plots.plot_closed_loop(panels, names, gen_island, path, request_s=scenario.request_s,
-                                  title=f'{scenario.name}: rotor angles by island and bus voltages')
+                                  title=f'{scenario.name}: rotor angles by island and bus voltages',
+                                  v_limits_pu=(band.v_min_pu, band.v_max_pu))
 
 
 def run_all(paths: list[Path], results_dir: Path, settings: TestbedSettings,

@@ -2,8 +2,10 @@
 
 It publishes what the field would: the pre-fault network snapshot, PMU frames at the scenario's rate (with its
 noise and impairments, sim/pmu.PmuStream), branch status changes (the scenario's trips, and every branch
-it opens on command), the scenario's islanding request, and /clock. It executes /breaker/commands: an OPEN
-command opens its branch in the running simulation `breaker_operating_s` after the command, then
+it opens on command), the scenario's islanding request, and /clock. It executes /breaker/commands: the OPEN
+commands of one decision open their branches together, in one simulation step, `breaker_operating_s` after the
+last of them came (one switching event, sim/closed_loop.SwitchingEvents; those that came within
+`command_wait_s` wall of the first, if some never come), then
 `shed_delay_s` later sheds the load the decision named in each island short of generation and trips machines
 in each island with a surplus (generation rejection; sim/closed_loop.py says how). After `run_after_s` past
 the request it publishes a post-islanding assessment per island on /grid/assessment
@@ -32,7 +34,8 @@ Time. Stamps are sim time plus sim/bag.START_TIME_UNIX_S, as in the bags, and /c
   so a one-shot trigger asked once, too early, and never again. A relay is not disabled by a request that was
   answered; the operator-side bound is the cap.
 - `rate: R > 0`: paced at R times real time, nothing waits; a command opens its branch at max(its stamp, the sim
-  time it arrived) + breaker_operating_s. If ANDES is slower than R x real time, the pace is ANDES'.
+  time it arrived) + breaker_operating_s, the decision's latest. If ANDES is slower than R x real time, the
+  pace is ANDES'.
 """
 
 from __future__ import annotations
@@ -74,6 +77,8 @@ from controlled_islanding.sim.closed_loop import (
     GridRun,
     LoopConfig,
     Sample,
+    SwitchingEvent,
+    SwitchingEvents,
     apply_decision,
     out_of_step,
 )
@@ -198,6 +203,7 @@ class GridSimNode(Node):
         self.decisions: dict[str, IslandingDecision] = {}
         self.commands: list[tuple[float, float, BreakerCommand]] = []  # (wall s, sim s at receipt, msg)
         self.handled_commands: set[str] = set()
+        self.switching = SwitchingEvents(float(self.get_parameter('command_wait_s').value))
         self.newest_angle_s = -1.0
         self.newest_frame_s = -1.0
         self.queue: list[Frame] = []  # frames computed, not yet delivered
@@ -261,7 +267,7 @@ class GridSimNode(Node):
         self.queue = keep
 
     def _execute(self, run: GridRun, wall: float, sim_at: float, msg: BreakerCommand) -> None:
-        """Schedule a command's action: opening, and the shed of its decision's islands once per decision."""
+        """Take a command: its opening joins its decision's switching event (sim/closed_loop.SwitchingEvents)."""
         if msg.command_id in self.handled_commands:
             return
         self.handled_commands.add(msg.command_id)
@@ -276,19 +282,29 @@ class GridSimNode(Node):
         else:
             at = max(_sim_s(msg.header.stamp), sim_at) + cfg.breaker_operating_s
         at = max(at, self.t_now)
-        run.open_branches([msg.branch_id], at, why=f'open {msg.branch_id}')
         self.events.append({'what': 'command', 'command_id': msg.command_id, 'branch_id': msg.branch_id,
-                            'breaker_id': msg.breaker_id, 'command_stamp_s': _sim_s(msg.header.stamp),
-                            'received_sim_s': sim_at, 'opens_at_s': at,
-                            'wall_after_request_s': None if self.request_sent_wall is None
+                            'breaker_id': msg.breaker_id, 'decision_id': msg.decision_id,
+                            'command_stamp_s': _sim_s(msg.header.stamp), 'received_sim_s': sim_at,
+                            'ready_at_s': at, 'wall_after_request_s': None if self.request_sent_wall is None
                             else wall - self.request_sent_wall})
-        decision = next((d for d in self.decisions.values() if d.decision_id == msg.decision_id), None)
-        if decision is not None and not any(e.get('decision_id') == decision.decision_id for e in self.events):
+        late = self.switching.add(msg.decision_id, msg.branch_id, at, wall)
+        if late is not None:
+            self._switch(run, late)
+
+    def _switch(self, run: GridRun, event: SwitchingEvent) -> None:
+        """Open one switching event's branches together; then, once per decision, its islands' shed."""
+        at = max(event.at_s, self.t_now)
+        run.open_branches(list(event.branch_ids), at, why=f'open {", ".join(event.branch_ids)}')
+        self.events.append({'what': 'switching event', 'decision_id': event.decision_id,
+                            'branch_ids': list(event.branch_ids), 'at_s': at, 'missing': list(event.missing),
+                            'late': event.late})
+        decision = next((d for d in self.decisions.values() if d.decision_id == event.decision_id), None)
+        if decision is not None and not event.late:
             bus_island = dict(zip((int(b) for b in decision.bus_numbers), (int(k) for k in decision.bus_island),
                                   strict=True))
             shed = apply_decision(run, [], bus_island, list(decision.island_shed_mw), at)
             self.events.append({'what': 'shed scheduled', 'decision_id': decision.decision_id,
-                                'at_s': at + cfg.shed_delay_s, 'shed_mw_by_island': shed})
+                                'at_s': at + run.config.shed_delay_s, 'shed_mw_by_island': shed})
 
     # --- the run ---------------------------------------------------------------------------------------------
     def _hook(self, run: GridRun, sample: Sample) -> None:
@@ -331,6 +347,9 @@ class GridSimNode(Node):
         for wall, sim_at, msg in list(self.commands):
             self._execute(run, wall, sim_at, msg)
         self.commands.clear()
+        cuts = {d.decision_id: list(d.cut_branch_ids) for d in self.decisions.values() if d.split}
+        for event in self.switching.due(cuts, time.monotonic()):
+            self._switch(run, event)
         for action in run.actions:
             if action.what.startswith('open ') and action.applied_s is not None and not action.detail.get('said'):
                 action.detail['said'] = True
@@ -442,8 +461,10 @@ class GridSimNode(Node):
         array.header.stamp = _stamp(self.t_now)
         for isl in outcome.islands:
             status = DiagnosticStatus(name=f'grid_sim: island {isl.island}', hardware_id=self.scenario.name,
-                                      level=DiagnosticStatus.OK if isl.survived else DiagnosticStatus.ERROR,
-                                      message='survived' if isl.survived else '; '.join(isl.why_not))
+                                      level=DiagnosticStatus.OK if isl.survived else DiagnosticStatus.WARN
+                                      if isl.survived is None else DiagnosticStatus.ERROR,
+                                      message='survived' if isl.survived else outcome.simulation_failed
+                                      if isl.survived is None else '; '.join(isl.why_not))
             status.values = [KeyValue(key=k, value=str(v)) for k, v in (
                 ('coherent', isl.coherent), ('max_pair_swing_rad', f'{isl.max_pair_swing_rad:.4f}'),
                 ('f_nadir_hz', f'{isl.f_nadir_hz:.4f}'), ('f_peak_hz', f'{isl.f_peak_hz:.4f}'),
@@ -453,8 +474,9 @@ class GridSimNode(Node):
                 ('rejected', ','.join(isl.rejected)), ('rejected_mw', f'{isl.rejected_mw:.2f}'))]
             array.status.append(status)
         self.assessment_pub.publish(array)
-        self.get_logger().info(f'assessment: {"every island survived" if outcome.all_survived else "NOT every island"}'
-                               f' survived; cut {cut or "none"} at {opened_s}; wall {run.wall_s:.1f} s')
+        verdict = ('every island survived' if outcome.all_survived else outcome.simulation_failed
+                   if outcome.all_survived is None else 'NOT every island survived')
+        self.get_logger().info(f'assessment: {verdict}; cut {cut or "none"} at {opened_s}; wall {run.wall_s:.1f} s')
         if self.report_file:
             report = {'scenario': str(self.scenario.path), 'outcome': outcome.summary(), 'events': self.events,
                       'request_id': self.request_id, 'held_wall_s': self.held_wall_s,

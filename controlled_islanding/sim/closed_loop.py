@@ -14,6 +14,16 @@ then rebuilds connectivity and the Jacobian after the step). Pre-added disabled 
 action scheduled at time T is applied in the hook of the first integration step that starts at or after T, so
 it lands at most one step (`step_s`, 1/120 s in the bags) late; the time it really happened is reported.
 
+One decision, one switching event. The breakers one signed decision commands open together, in one integration
+step, once the last of their commands has arrived and the breaker operating time has passed (SwitchingEvents):
+a remedial action scheme trips its breakers within a cycle of each other, and opened one by one, as each
+command's own arrival would have it, the run passes through topologies no one chose. Measured on Nordic 44's
+4-branch cut of bus 6000 at 1.383 s, one step (8.3 ms) apart, with no shed or rejection: the bus-6000 island
+peaks at 60.9 Hz and its four machines trip on overspeed, against below 51 Hz and none as one event
+(test_testbed.py). Breakers of different decisions open separately, each decision's together. A decision whose
+commands do not all come within a wait (grid_sim's command_wait_s, wall) opens those that came, together, and
+says which were missing; a command for a decision already switched opens on its own, late.
+
 Load shedding (the decision's "load to shed"). `shed_delay_s` after the cut, every ANDES load (PQ) on the buses of
 an island the decision says is short of generation is scaled by (1 - shed / load), load = the island's
 load in the simulation, P and Q alike (each load keeps its power factor): proportional shedding at every bus
@@ -29,36 +39,56 @@ governor, exciter and stabiliser. The numbers are the simulation's at t = 0 (mac
 not the snapshot's: a case whose static generators feed several machines can list more generation than runs.
 A rejected machine is judged with its island until its trip and left out afterwards (its state is frozen).
 
-Post-islanding assessment, per island, over the window from the cut (for a run without a cut: from the time
-the cut would have been made) to the end of the run:
-- coherent: every pair of the island's machines stays within `coherence_bound_rad` (default pi rad) of where
-  they were relative to each other at the cut, |(d_p(t) - d_p(t0)) - (d_q(t) - d_q(t0))| <= pi. Pi is the
-  pole-slip scale, physics, not a tuned number: past it the pair's synchronising torque reverses.
-- frequency nadir and peak: the lowest and highest machine speed of the island times the nominal frequency
-  f0 (the case's own, ANDES `config.freq`: 50 Hz for Nordic 44, 60 Hz for the others), Hz, over the window.
-  Within [f_min_pu, f_max_pu] x f0 counts as held. The band is per unit of nominal so that it means the same
-  on a 50 Hz and a 60 Hz grid: the defaults 0.9633 .. 1.03 pu are NERC PRC-024's limits beyond which
-  generators' off-frequency protection may trip at once, 57.8 .. 61.8 Hz at 60 Hz (-3.67 %, +3 %); at 50 Hz
-  they are 48.17 .. 51.5 Hz, whose top is the 51.5 Hz up to which ENTSO-E's Requirements for Generators
-  (EU 2016/631) keep machines connected (its bottom, 47.5 Hz, is wider than ours).
-- voltage: the lowest and highest bus voltage magnitude of the island, pu; judged from `voltage_settle_s`
-  after the cut (the cut itself is a switching transient), within [v_min_pu, v_max_pu] (default 0.8 .. 1.2 pu).
-- machines tripped: synchronous machines switched off during the run other than by rejection, by a protection
-  model. The bundled ANDES cases have none, so the run adds one, turbine overspeed protection (GridRun.run): a
-  machine whose speed exceeds `overspeed_trip_pu` (1.10 pu) is recorded as tripped at that step (an action
-  'overspeed trip', with its speed). 110 % of rated speed is the usual emergency overspeed trip setting of steam
-  turbines (IEEE Std 122-1991, the recommended practice for their control systems, places it at about 110 %).
-  The trip is recorded, not switched in ANDES: switching the machine off as generation rejection does stopped
-  the solver within 10 ms on PJM 5-bus (machine 4 at 1.266 s) and Kundur (G3 and G4 at 3.10 s) with no action,
-  and a stopped run loses every island, the healthy ones too. The setting lies well above the frequency band
-  (1.03 pu), so the island of such a machine has already failed on frequency; the machine's trajectory after
-  its trip is the simulation's, not what a tripped machine would do.
-An island survives when all four hold. If ANDES stops converging after an action (it zeroes the voltage of a bus
-left with no in-service branch, so an island of one bus is numerically fragile), the run ends there and every
-island is reported as not survived, with the time: the simulation cannot say which one failed.
-Load lost = load shed + the whole load of every island that did not survive (it would be lost to protection);
-an island with no machine, or whose every machine was rejected (an island with no load left), is lost by
-definition.
+The judge: the grid's own protection, and each island at the end of the run. Every rule comes from a standard,
+scaled to the case's nominal frequency f0 (ANDES `config.freq`: 50 Hz for Nordic 44, 60 Hz for the others) by
+per unit of 60 Hz, so that it means the same on a 50 Hz and a 60 Hz grid:
+- Generator protection, NERC PRC-024 (Generator Frequency and Voltage Protective Relay Settings): a machine
+  whose frequency (its speed x f0) or terminal voltage stays outside the standard's no-trip zone longer than
+  the curve allows there trips (prc024_trips), judged over the whole run, fault included, as a relay would.
+  Voltage (PRC-024 Attachment 2): at or above 1.20 pu at once, 1.175 pu 0.2 s, 1.15 pu 0.5 s, 1.10 pu 1.0 s;
+  below 0.45 pu 0.15 s, 0.65 pu 0.3 s, 0.75 pu 2.0 s, 0.90 pu 3.0 s. Frequency (Attachment 1, Eastern
+  Interconnection curve): at or above 62.2 Hz at once, from 60.5 Hz (600 s) to 62.2 Hz (2 s) log-linear,
+  t = 10^(90.935 - 1.45713 f) s; at or below 57.8 Hz at once, from 59.5 Hz (about 1800 s) to 57.8 Hz (2 s),
+  t = 10^(1.7373 f - 100.116) s; between 59.5 and 60.5 Hz continuous. The breakpoints are those of the
+  PRC-024 curves as encoded in github.com/jonlesage/Grid-Codes, gridCodeDefinitions.m (PRC024.LVRT/HVRT and
+  PRC024.East); the log-linear form is the standard's own formula through them. Sampled on a 0.05 Hz grid.
+  The machines of the bundled ANDES cases carry no protection models, so a trip is recorded, not switched in
+  ANDES: switching a machine off stopped the solver within 10 ms on PJM 5-bus (machine 4 at 1.266 s) and Kundur
+  (G3 and G4 at 3.10 s). An island with a tripped machine therefore did not survive: its simulated end is that
+  of an island still holding the machine. Turbine overspeed protection at `overspeed_trip_pu` (1.10 pu, the
+  usual emergency setting of steam turbines, IEEE Std 122-1991) is recorded the same way; PRC-024's 62.2 Hz
+  (1.037 pu) comes first.
+- Under-frequency load shedding, the grid's own protection in the style of NERC PRC-006 (automatic UFLS
+  programmes in stages): in each island of the present topology, whose frequency is the mean speed of its
+  running machines, once it has stayed below 59.3, 59.0 or 58.7 Hz (x f0 / 60) for `ufls_delay_s` (0.3 s,
+  a relay's time delay; PRC-006 leaves settings to the regions), every load of the island still connected
+  sheds 10 % of its pre-fault value, once per stage (GridRun._ufls, in the simulation: it changes the run).
+  The levels are those of the issue's example; PRC-006's regional programmes shed 25 to 35 % in all.
+- An island survives when, at the end of the run (its last `end_window_s`, 0.2 s), its machines are in step
+  (every pair within `coherence_bound_rad`, pi rad, of where they were relative to each other at the cut:
+  |(d_p(t) - d_p(t0)) - (d_q(t) - d_q(t0))| <= pi over the window from the cut; past pi a pair's synchronising
+  torque reverses, a pole slip, which PRC-024 R1 lets out-of-step protection trip), no machine of it has
+  tripped, its frequency (the mean speed of its running machines) is back in PRC-024's continuous band
+  (59.5 .. 60.5 Hz at 60 Hz: [f_min_pu, f_max_pu] x f0) and every bus voltage in 0.90 .. 1.10 pu
+  (PRC-024's continuous zone). The case's own operating point is normal: a bus or machine whose pre-fault
+  voltage already lies beyond a level (EI 33 runs GENROU_72 at 1.11 pu) is judged against its own voltage.
+  An island with no machine, or whose every machine was rejected, is lost by definition. Excursions on the
+  way (frequency and voltage outside the continuous bands, the latter from `voltage_settle_s` after the cut)
+  are reported with their times, not judged.
+Load served = the load of every island that survived, net of the decision's shed and of UFLS, MW and % of the
+pre-fault load. Load lost = the load shed in surviving islands + the whole load of every island that did not
+survive.
+
+A simulator failure is its own outcome. If ANDES stops before the end (it does not converge, typically after a
+switching: it zeroes the voltage of a bus left with no in-service branch, so an island of one bus is numerically
+fragile) or raises, the run says "simulation failed at t s: reason" (Outcome.simulation_failed). Its islands are
+judged neither survived nor lost (survived None) and no load is counted lost or served: the simulation cannot
+say what happened, and a failed solver is not a blackout. Before that, run_offline tries the remedies in
+REMEDIES, each a whole new run of the same actions at the same times: the step divided by 4, then by 16 (ANDES
+shrinks a failing step itself, down to a floor; a smaller fixed step gives Newton a start nearer the solution
+across the switching). Every opening already re-initialises the new islands' voltages (_warm_start) and restarts
+buses left at the trivial root (_reseed_trivial_roots). The outcome names the remedy that worked
+(Outcome.remedy), or the failure with the remedies tried.
 """
 
 from __future__ import annotations
@@ -79,6 +109,7 @@ from controlled_islanding.sim.scenario import Scenario
 log = logging.getLogger(__name__)
 
 _LOAD_CONSTANTS = ('Ppf', 'Qpf', 'Req', 'Xeq', 'Ipeq', 'Iqeq')
+REMEDIES = (4, 16)  # the integration step is divided by each in turn when a run fails (see the module docstring)
 _PROGRESS_CHUNK_S = 1.0
 
 
@@ -95,10 +126,16 @@ class LoopConfig:
         shed_delay_s: From the opening to the load shed, s.
         run_after_s: The run lasts at least this long after the islanding request, s (and at least end_s).
         coherence_bound_rad: Largest change of a machine pair's angle difference within an island, rad.
-        f_min_pu, f_max_pu: Frequency band an island must stay in, pu of the case's nominal frequency
-            (frequency_band_hz).
-        v_min_pu, v_max_pu: Voltage band every bus must stay in once settled, pu.
-        voltage_settle_s: Voltage is judged from this long after the cut, s.
+        f_min_pu, f_max_pu: The continuous frequency band an island must be back in at the end of the run, pu
+            of the case's nominal frequency (frequency_band_hz): PRC-024's continuous zone, 59.5..60.5 Hz.
+        v_min_pu, v_max_pu: The continuous voltage band every bus must be back in at the end, pu (PRC-024's
+            0.90..1.10 pu).
+        voltage_settle_s: Voltage excursions are reported from this long after the cut, s (diagnostic only).
+        ride_through: Generator protection by the PRC-024 ride-through curves (prc024_trips).
+        ufls_stages: Under-frequency load shedding, the grid's own: (level, pu of nominal frequency; fraction of
+            each load's pre-fault value shed) per stage, in the style of PRC-006 (empty: none).
+        ufls_delay_s: How long an island's frequency must stay below a stage's level before it sheds, s.
+        end_window_s: "At the end of the run" is its last end_window_s, s.
         rejection_margin: Generation surplus an island keeps without tripping machines, as a fraction of its
             load after the shed (generation_to_reject).
         overspeed_trip_pu: Speed above which a machine's overspeed protection trips it, pu of rated speed (None:
@@ -110,13 +147,17 @@ class LoopConfig:
     shed_delay_s: float = 0.2
     run_after_s: float = 3.0
     coherence_bound_rad: float = math.pi
-    f_min_pu: float = 57.8 / 60.0
-    f_max_pu: float = 61.8 / 60.0
-    v_min_pu: float = 0.8
-    v_max_pu: float = 1.2
+    f_min_pu: float = 59.5 / 60.0
+    f_max_pu: float = 60.5 / 60.0
+    v_min_pu: float = 0.9
+    v_max_pu: float = 1.1
     voltage_settle_s: float = 0.5
     rejection_margin: float = 0.05
     overspeed_trip_pu: float | None = 1.10
+    ride_through: bool = True
+    ufls_stages: tuple[tuple[float, float], ...] = ((59.3 / 60.0, 0.1), (59.0 / 60.0, 0.1), (58.7 / 60.0, 0.1))
+    ufls_delay_s: float = 0.3
+    end_window_s: float = 0.2
 
     def frequency_band_hz(self, f0_hz: float) -> tuple[float, float]:
         """Return the frequency band, Hz, of a grid whose nominal frequency is f0_hz (Hz)."""
@@ -175,12 +216,15 @@ class IslandOutcome:
         v_outside_s: First and last time a bus voltage was outside its band once settled, s after the cut (None:
             never).
         v_worst_bus: The bus whose voltage went furthest outside its band (None: none did).
+        ufls_shed_mw: Load shed by the grid's under-frequency load shedding in the island, MW.
+        f_end_hz: The island's mean machine frequency at the last step, Hz.
+        v_end_pu: Lowest and highest bus voltage over the end window, pu.
         max_pair_swing_rad: Largest change of a machine pair's angle difference after the cut, rad.
         coherent: max_pair_swing_rad <= the bound.
         f_nadir_hz, f_peak_hz: Lowest and highest machine frequency after the cut, Hz.
         v_min_pu, v_max_pu: Lowest and highest bus voltage once settled, pu.
         machines_tripped: Machines switched off during the run, other than by generation rejection.
-        survived: All of the above within bounds.
+        survived: All of the above within bounds; None: undetermined, the simulation failed before the end.
         why_not: What failed, empty when it survived.
 
     """
@@ -197,7 +241,7 @@ class IslandOutcome:
     v_min_pu: float
     v_max_pu: float
     machines_tripped: tuple[str, ...]
-    survived: bool
+    survived: bool | None
     why_not: tuple[str, ...] = ()
     rejected: tuple[str, ...] = ()
     rejected_mw: float = 0.0
@@ -205,6 +249,14 @@ class IslandOutcome:
     f_outside_since_s: float | None = None
     v_outside_s: tuple[float, float] | None = None
     v_worst_bus: int | None = None
+    ufls_shed_mw: float = 0.0
+    f_end_hz: float = float('nan')
+    v_end_pu: tuple[float, float] = (float('nan'), float('nan'))
+
+
+def _load_lost_mw(islands: Iterable[IslandOutcome]) -> float:
+    """Return the load shed (by the decision and by UFLS) plus the rest of every island that did not survive, MW."""
+    return sum(i.load_mw if not i.survived else i.shed_mw + i.ufls_shed_mw for i in islands)
 
 
 def _outside_span(t_s: np.ndarray, outside: np.ndarray, from_s: float) -> tuple[float, float] | None:
@@ -224,13 +276,16 @@ class Outcome:
         opened_s: When the cut took effect, s (None: nothing opened).
         judged_from_s: Start of the assessment window, s.
         islands: Assessment per island.
-        load_lost_mw: Shed load plus the load of every island that did not survive, MW.
+        load_lost_mw: Shed load plus the load of every island that did not survive, MW (None: the simulation
+            failed).
         actions: Every action carried out.
         t_s, delta_rad, omega_pu, bus_v_pu: Trajectories at every step, shapes (nt,), (nt, n_gen) twice,
             (nt, n_bus).
         generator_names, generator_buses, bus_numbers: Their columns.
         wall_s: Wall time of the run, s.
         f0_hz: Nominal frequency, Hz.
+        simulation_failed: "simulation failed at t s: reason", or None when the run reached its end.
+        remedy: The remedy the run needed (REMEDIES), or None.
 
     """
 
@@ -240,7 +295,7 @@ class Outcome:
     opened_s: float | None
     judged_from_s: float
     islands: tuple[IslandOutcome, ...]
-    load_lost_mw: float
+    load_lost_mw: float | None
     actions: tuple[Applied, ...]
     t_s: np.ndarray
     delta_rad: np.ndarray
@@ -251,19 +306,44 @@ class Outcome:
     bus_numbers: tuple[int, ...]
     wall_s: float
     f0_hz: float = 60.0
+    simulation_failed: str | None = None
+    remedy: str | None = None
 
     def rejudged(self, from_s: float, config: LoopConfig) -> Outcome:
         """Return this run of the whole grid as one island judged over [from_s, end] instead."""
+        if self.simulation_failed is not None:
+            return replace(self, judged_from_s=from_s)
         islands = assess(self.t_s, self.delta_rad, self.omega_pu, self.bus_v_pu, self.generator_names,
                          self.generator_buses, self.bus_numbers, None, from_s, config, self.f0_hz,
-                         {0: sum(i.load_mw for i in self.islands)}, {})
-        lost = sum(i.shed_mw + (0.0 if i.survived else i.load_mw - i.shed_mw) for i in islands)
-        return replace(self, islands=tuple(islands), judged_from_s=from_s, load_lost_mw=lost)
+                         {0: sum(i.load_mw for i in self.islands)}, {},
+                         ufls_by_island={0: sum(i.ufls_shed_mw for i in self.islands)})
+        return replace(self, islands=tuple(islands), judged_from_s=from_s, load_lost_mw=_load_lost_mw(islands))
 
     @property
-    def all_survived(self) -> bool:
-        """Whether every island survived."""
-        return all(i.survived for i in self.islands)
+    def all_survived(self) -> bool | None:
+        """Whether every island survived (None: the simulation failed, undetermined)."""
+        return None if self.simulation_failed is not None else all(i.survived for i in self.islands)
+
+    @property
+    def pre_fault_load_mw(self) -> float:
+        """The load of every island before any shed, MW: the pre-fault load."""
+        return sum(i.load_mw for i in self.islands)
+
+    @property
+    def load_served_mw(self) -> float | None:
+        """Load still served at the end: the load of every island that survived, net of its shed, MW.
+
+        None when the simulation failed: what it would have served is unknown, not zero.
+        """
+        if self.simulation_failed is not None:
+            return None
+        return sum(i.load_mw - i.shed_mw - i.ufls_shed_mw for i in self.islands if i.survived)
+
+    @property
+    def load_served_pct(self) -> float | None:
+        """load_served_mw as a percentage of the pre-fault load (None: the simulation failed)."""
+        served, total = self.load_served_mw, self.pre_fault_load_mw
+        return None if served is None or total <= 0 else 100.0 * served / total
 
     @property
     def shed_mw(self) -> float:
@@ -281,12 +361,151 @@ class Outcome:
                 'opened_s': self.opened_s, 'judged_from_s': self.judged_from_s,
                 'request_to_opening_s': None if self.opened_s is None else self.opened_s - self.request_s,
                 'all_survived': self.all_survived, 'load_lost_mw': self.load_lost_mw, 'shed_mw': self.shed_mw,
-                'rejected_mw': self.rejected_mw,
+                'pre_fault_load_mw': self.pre_fault_load_mw, 'load_served_mw': self.load_served_mw,
+                'load_served_pct': self.load_served_pct,
+                'rejected_mw': self.rejected_mw, 'simulation_failed': self.simulation_failed, 'remedy': self.remedy,
                 'f_nadir_hz': min(i.f_nadir_hz for i in self.islands),
                 'f_peak_hz': max(i.f_peak_hz for i in self.islands),
                 'v_min_pu': min(i.v_min_pu for i in self.islands),
                 'islands': [asdict(i) for i in self.islands], 'actions': [asdict(a) for a in self.actions],
                 'wall_s': self.wall_s}
+
+
+@dataclass(frozen=True)
+class SwitchingEvent:
+    """The breakers of one decision, opened together in one step (see the module docstring).
+
+    Attributes:
+        decision_id: The decision whose commands these are.
+        branch_ids: Branches to open, in the order their commands came.
+        at_s: When they open, s of sim time: the latest of their commands' arrival + operating time.
+        missing: Branches of the decision's cut whose command had not come when it switched.
+        late: The decision had switched already; this command came after it.
+
+    """
+
+    decision_id: str
+    branch_ids: tuple[str, ...]
+    at_s: float
+    missing: tuple[str, ...] = ()
+    late: bool = False
+
+
+class SwitchingEvents:
+    """Gathers breaker commands by decision into switching events; pure, no simulation (see the module docstring)."""
+
+    def __init__(self, wait_s: float) -> None:
+        """Make an empty collector; a decision's commands are awaited at most wait_s (wall s) after its first."""
+        self.wait_s = wait_s
+        self._waiting: dict[str, dict[str, float]] = {}  # decision -> branch -> its opening time, s
+        self._first_wall: dict[str, float] = {}
+        self.switched: set[str] = set()
+
+    def add(self, decision_id: str, branch_id: str, opens_at_s: float, wall_s: float) -> SwitchingEvent | None:
+        """Take one command (branch_id to open no earlier than opens_at_s, s; it came at wall_s, wall s).
+
+        Returns:
+            The switching event of a command whose decision has switched already (it opens alone), else None.
+
+        """
+        if decision_id in self.switched:
+            return SwitchingEvent(decision_id, (branch_id,), opens_at_s, late=True)
+        self._first_wall.setdefault(decision_id, wall_s)
+        got = self._waiting.setdefault(decision_id, {})
+        got[branch_id] = max(opens_at_s, got.get(branch_id, opens_at_s))
+        return None
+
+    def due(self, cuts: Mapping[str, Sequence[str]], wall_s: float) -> list[SwitchingEvent]:
+        """Return the decisions ready to switch, and forget them.
+
+        Args:
+            cuts: Each known decision's cut (branch ids); a decision not in it waits for wait_s.
+            wall_s: Now, wall s.
+
+        """
+        out = []
+        for decision_id, got in list(self._waiting.items()):
+            cut = cuts.get(decision_id)
+            missing = tuple(b for b in cut if b not in got) if cut is not None else ()
+            complete = cut is not None and not missing
+            if not complete and wall_s - self._first_wall[decision_id] < self.wait_s:
+                continue
+            out.append(SwitchingEvent(decision_id, tuple(got), max(got.values()), missing=missing))
+            del self._waiting[decision_id]
+            self.switched.add(decision_id)
+        return out
+
+
+# PRC-024 no-trip zones (the module docstring gives the sources). Voltage: (level, pu; longest time beyond it, s),
+# beyond = at or above a high level, below a low one. Frequency: the Eastern Interconnection curve, per unit of
+# 60 Hz, as (level, pu; longest time, s) on a 0.05 Hz grid of its log-linear segments.
+PRC024_V_HIGH = ((1.20, 0.0), (1.175, 0.20), (1.15, 0.50), (1.10, 1.00))
+PRC024_V_LOW = ((0.45, 0.15), (0.65, 0.30), (0.75, 2.00), (0.90, 3.00))
+
+
+def _prc024_frequency_levels() -> tuple[tuple[tuple[float, float], ...], tuple[tuple[float, float], ...]]:
+    high = [(62.2, 0.0)] + [(f, 10.0 ** (90.935 - 1.45713 * f)) for f in np.arange(62.15, 60.5, -0.05)]
+    low = [(57.8, 0.0)] + [(f, 10.0 ** (1.7373 * f - 100.116)) for f in np.arange(57.85, 59.5, 0.05)]
+    return (tuple((float(f) / 60.0, float(d)) for f, d in high), tuple((float(f) / 60.0, float(d)) for f, d in low))
+
+
+PRC024_F_HIGH, PRC024_F_LOW = _prc024_frequency_levels()
+
+
+def _first_trip(t_s: np.ndarray, beyond: np.ndarray, allowed_s: float) -> np.ndarray:
+    """Return, per column, the first time a run of samples beyond a level has lasted longer than allowed_s (NaN).
+
+    A sample stands for its step: a run of n samples from index a lasts t[a + n - 1] - t[a] + step.
+    """
+    nt = t_s.size
+    step = np.diff(t_s, append=t_s[-1] + (t_s[-1] - t_s[-2] if nt > 1 else 0.0))
+    idx = np.where(beyond, -1, np.arange(nt)[:, None])
+    last_clear = np.maximum.accumulate(idx, axis=0)
+    start = np.clip(last_clear + 1, 0, nt - 1)
+    lasted = t_s[:, None] + step[:, None] - t_s[start]
+    trip = beyond & (lasted > allowed_s + 1e-9)
+    first = np.argmax(trip, axis=0)
+    return np.where(trip.any(axis=0), t_s[first], np.nan)
+
+
+def prc024_trips(t_s: np.ndarray, speed_pu: np.ndarray, terminal_v_pu: np.ndarray,
+                 names: Sequence[str]) -> dict[str, tuple[float, str]]:
+    """Return the machines PRC-024 lets their protection trip: name -> (when, s; which curve, how long).
+
+    A machine trips when its frequency (its speed times nominal) or its terminal voltage stays beyond a level
+    of the PRC-024 no-trip zone longer than the curve allows there (PRC024_*); the first such time counts.
+    The case's own operating point is normal: a voltage level its first sample (the pre-fault power flow)
+    already lies beyond is moved, for that machine, to that voltage (1 mV further out), so a machine the case
+    runs at 1.11 pu is not tripped for running there.
+
+    Args:
+        t_s: Step times, s, shape (nt,).
+        speed_pu: Machine speeds, pu of nominal, shape (nt, n) (NaN: not running, never beyond).
+        terminal_v_pu: Each machine's bus voltage, pu, shape (nt, n).
+        names: Machine names, the columns.
+
+    """
+    t_s = np.asarray(t_s, dtype=float)
+    out: dict[str, tuple[float, str]] = {}
+    if t_s.size == 0:
+        return out
+    with np.errstate(invalid='ignore'):
+        checks = [(speed_pu >= lvl, d, f'frequency at or above {lvl * 60:.2f} Hz (at 60 Hz) for more than {d:.2f} s')
+                  for lvl, d in PRC024_F_HIGH]
+        checks += [(speed_pu <= lvl, d, f'frequency at or below {lvl * 60:.2f} Hz (at 60 Hz) for more than '
+                    f'{d:.2f} s') for lvl, d in PRC024_F_LOW]
+        v0 = terminal_v_pu[0]
+        checks += [(terminal_v_pu >= np.maximum(lvl, v0 + 1e-3), d,
+                    f'voltage at or above {lvl:.3f} pu for more than {d:.2f} s') for lvl, d in PRC024_V_HIGH]
+        checks += [(terminal_v_pu < np.minimum(lvl, v0 - 1e-3), d,
+                    f'voltage below {lvl:.2f} pu for more than {d:.2f} s') for lvl, d in PRC024_V_LOW]
+    for beyond, allowed, what in checks:
+        when = _first_trip(t_s, beyond, allowed)
+        for j in np.flatnonzero(np.isfinite(when)):
+            name = names[j]
+            if name not in out or when[j] < out[name][0]:
+                out[name] = (float(when[j]), f'PRC-024 {what}')
+    return out
 
 
 def _var(dae: Any, var: Any) -> np.ndarray:
@@ -328,10 +547,16 @@ class GridRun:
         self.actions: list[Applied] = []
         self._pending: list[tuple[float, Applied, Callable[[], None]]] = []
         self.wall_s = 0.0
-        self.stopped_s: float | None = None  # where ANDES gave up after an action, if it did
+        self.stopped_s: float | None = None  # where ANDES gave up, if it did
+        self.failure = ''  # why
         self._flat: tuple[np.ndarray, np.ndarray, list[tuple[Any, int, int, float]]] | None = None
         self._reseeds: dict[int, int] = {}  # bus uid -> times restarted off the trivial root
         self.overspeed: dict[str, tuple[float, float]] = {}  # machine -> (when tripped, s; its speed then, pu)
+        self._load_left = np.ones(self.ss.PQ.n)  # each load's share of its pre-fault value still connected
+        self._load_p0_mw = np.asarray(self.ss.PQ.p0.v, dtype=float) * float(self.ss.config.mva)
+        self._ufls_below: dict[tuple[frozenset[int], int], float] = {}  # (island's loads, stage) -> below since, s
+        self._ufls_done: set[tuple[int, int]] = set()  # (load row, stage)
+        self._ufls_islands: tuple[int, list[tuple[list[int], list[int]]]] | None = None
 
     # --- actions ---------------------------------------------------------------------------------------------
     def open_branches(self, branch_ids: Sequence[str], at_s: float, why: str = 'open') -> Applied:
@@ -370,10 +595,7 @@ class GridRun:
                                  'fraction': fraction})
 
         def do() -> None:
-            for i in rows:
-                for name in _LOAD_CONSTANTS:
-                    values = getattr(ss.PQ, name).v
-                    ss.PQ.set(name, ss.PQ.idx.v[i], float(values[i]) * (1.0 - fraction))
+            self._scale_loads(rows, 1.0 - fraction)
 
         self._pending.append((float(at_s), action, do))
         return action
@@ -421,6 +643,72 @@ class GridRun:
 
         self._pending.append((float(at_s), action, do))
         return action
+
+    def _scale_loads(self, rows: Iterable[int], factor: float) -> None:
+        """Scale these ANDES loads (PQ rows) by factor, P and Q alike, now."""
+        ss = self.ss
+        for i in rows:
+            for name in _LOAD_CONSTANTS:
+                ss.PQ.set(name, ss.PQ.idx.v[i], float(getattr(ss.PQ, name).v[i]) * factor)
+            self._load_left[i] *= factor
+
+    def _ufls(self, sample: Sample) -> None:
+        """Under-frequency load shedding, the grid's own protection, in the style of PRC-006 (module docstring).
+
+        Per island of the present topology: its frequency is the mean speed of its running machines; once it has
+        stayed below a stage's level for ufls_delay_s, every load of the island still connected sheds that
+        stage's fraction of its pre-fault value, once per load and stage.
+        """
+        stages = self.config.ufls_stages
+        if not stages or self._flat is None:
+            return
+        ss = self.ss
+        if self._ufls_islands is None or self._ufls_islands[0] != len(self.actions):
+            uid_of_row = [int(ss.Bus.idx2uid(b)) for b in ss.PQ.bus.v]
+            machine_uids = [uid for _, _, uid, _ in self._flat[2]]
+            islands = []
+            for comp in self._components():
+                cols = [j for j, uid in enumerate(machine_uids) if uid in comp]
+                rows = [i for i, uid in enumerate(uid_of_row) if uid in comp and ss.PQ.u.v[i]]
+                if cols and rows:
+                    islands.append((cols, rows))
+            self._ufls_islands = (len(self.actions), islands)
+        gone = set(self.rejected()) | set(self.overspeed)
+        for cols, rows in self._ufls_islands[1]:
+            live = [j for j in cols if self.generator_names[j] not in gone]
+            if not live:
+                continue
+            speed = float(np.mean(sample.omega_pu[live]))
+            key_rows = frozenset(rows)
+            for k, (level_pu, fraction) in enumerate(stages):
+                key = (key_rows, k)
+                if speed >= level_pu:
+                    self._ufls_below.pop(key, None)
+                    continue
+                since = self._ufls_below.setdefault(key, sample.t_s)
+                todo = [i for i in rows if (i, k) not in self._ufls_done]
+                if not todo or sample.t_s - since < self.config.ufls_delay_s - 1e-9:
+                    continue
+                by_bus: dict[int, float] = {}
+                for i in todo:
+                    self._ufls_done.add((i, k))
+                    left = self._load_left[i]
+                    if left <= 1e-9:
+                        continue
+                    after = max(0.0, left - fraction)
+                    bus = int(ss.PQ.bus.v[i])
+                    by_bus[bus] = by_bus.get(bus, 0.0) + float((left - after) * self._load_p0_mw[i])
+                    self._scale_loads([i], after / left)
+                self.actions.append(Applied(
+                    what=f'UFLS stage {k + 1}', scheduled_s=since + self.config.ufls_delay_s, applied_s=sample.t_s,
+                    detail={'level_hz': level_pu * float(ss.config.freq), 'speed_hz': speed * float(ss.config.freq),
+                            'shed_mw': sum(by_bus.values()), 'shed_mw_by_bus': by_bus}))
+
+    def ufls_shed_mw(self, buses: Iterable[int]) -> float:
+        """Return the load UFLS shed on these buses so far, MW."""
+        bus_set = {int(b) for b in buses}
+        return float(sum(mw for a in self.actions if a.what.startswith('UFLS')
+                         for b, mw in a.detail['shed_mw_by_bus'].items() if b in bus_set))
 
     def rejected(self) -> dict[str, tuple[float, float]]:
         """Return each machine tripped by generation rejection so far: (when, s; its output, MW)."""
@@ -584,6 +872,7 @@ class GridRun:
             if self.actions:
                 self._reseed_trivial_roots(t_s)
             self._overspeed_trips(sample)
+            self._ufls(sample)
             due = [p for p in self._pending if p[0] <= t_s + 1e-9]
             for entry in due:
                 self._pending.remove(entry)
@@ -596,18 +885,23 @@ class GridRun:
                 next_report[0] += _PROGRESS_CHUNK_S
 
         tds.callpert = pert
+        raised = ''
         try:
             tds.run()
+        except Exception as exc:  # noqa: BLE001 - ANDES' own failure is an outcome (module docstring), not a crash
+            raised = f'ANDES raised {type(exc).__name__}: {exc}'
+            log.warning('%s: %s', self.scenario.name, raised)
         finally:
             tds.callpert = None
             self.wall_s = time.monotonic() - start
-        reached = float(ss.dae.t)
-        if reached < self.run_until_s - 1e-6 or tds.busted:
-            if not self.actions:
-                raise ClosedLoopError(f'{self.scenario.path}: ANDES stopped at t = {reached:.3f} s before '
-                                      f'{self.run_until_s} s (the solver did not converge)')
-            # After a cut the solver can fail (an island of one bus is one ANDES zeroes): an outcome, not a crash.
+        reached = float(self.samples[-1].t_s) if self.samples else 0.0
+        if raised or float(ss.dae.t) < self.run_until_s - 1e-6 or tds.busted:
+            if not self.samples or reached <= 0.0:
+                raise ClosedLoopError(f'{self.scenario.path}: ANDES stopped at its start'
+                                      f'{": " + raised if raised else " (the solver did not converge)"}')
             self.stopped_s = reached
+            self.failure = raised or 'ANDES did not converge (its step reduced to its floor)'
+
 
     def machines_tripped(self) -> tuple[str, ...]:
         """Return machines in service at the start that protection tripped, but not rejected.
@@ -660,11 +954,13 @@ class GridRun:
         islands = assess(t, delta, omega, volts, self.generator_names, self.generator_buses, self.bus_numbers,
                          bus_island, judged_from_s, self.config, float(self.ss.config.freq),
                          {k: self.island_load_mw(b) for k, b in _island_buses(self.bus_numbers, bus_island).items()},
-                         shed_by_island or {}, self.machines_tripped(), self.rejected())
+                         shed_by_island or {}, self.machines_tripped(), self.rejected(),
+                         {k: self.ufls_shed_mw(b) for k, b in _island_buses(self.bus_numbers, bus_island).items()})
+        failed = None
         if self.stopped_s is not None:
-            why = f'simulation stopped at {self.stopped_s:.3f} s (ANDES did not converge)'
-            islands = [replace(i, survived=False, why_not=(*i.why_not, why)) for i in islands]
-        lost = sum(i.shed_mw + (0.0 if i.survived else i.load_mw - i.shed_mw) for i in islands)
+            failed = f'simulation failed at {self.stopped_s:.3f} s: {self.failure}'
+            islands = [replace(i, survived=None) for i in islands]  # undetermined: neither lost nor served
+        lost = None if failed else _load_lost_mw(islands)
         return Outcome(label=label, cut_branch_ids=tuple(cut_branch_ids), request_s=self.scenario.request_s,
                        opened_s=opened_s, judged_from_s=judged_from_s, islands=tuple(islands), load_lost_mw=lost,
                        actions=tuple(self.actions) + tuple(  # recorded only: they changed nothing in the run
@@ -673,7 +969,8 @@ class GridRun:
                            for name, (at, speed) in self.overspeed.items()),
                        t_s=t, delta_rad=delta, omega_pu=omega, bus_v_pu=volts,
                        generator_names=self.generator_names, generator_buses=self.generator_buses,
-                       bus_numbers=self.bus_numbers, wall_s=self.wall_s, f0_hz=float(self.ss.config.freq))
+                       bus_numbers=self.bus_numbers, wall_s=self.wall_s, f0_hz=float(self.ss.config.freq),
+                       simulation_failed=failed)
 
 
 def _island_buses(bus_numbers: Sequence[int], bus_island: Mapping[int, int] | None) -> dict[int, list[int]]:
@@ -688,7 +985,7 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
            bus_island: Mapping[int, int] | None, from_s: float, config: LoopConfig, f0_hz: float,
            island_load_mw: Mapping[int, float], shed_by_island: Mapping[int, float],
            tripped: Sequence[str] = (), rejected: Mapping[str, tuple[float, float]] | None = None,
-           ) -> list[IslandOutcome]:
+           ufls_by_island: Mapping[int, float] | None = None) -> list[IslandOutcome]:
     """Judge every island over [from_s, end] (see the module docstring); pure numpy.
 
     Args:
@@ -707,6 +1004,7 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
         tripped: Machines switched off during the run (by protection).
         rejected: Machines tripped by generation rejection: (when, s; output, MW). Each is judged with its
             island only until then.
+        ufls_by_island: Load shed by under-frequency load shedding per island, MW.
 
     Returns:
         One outcome per island, in island order.
@@ -728,6 +1026,11 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
             gone_from = t_s > rejected[name][0] + 1e-9
             delta_rad[gone_from, j] = np.nan
             omega_pu[gone_from, j] = np.nan
+    bus_col = {int(b): j for j, b in enumerate(bus_numbers)}
+    protection = {} if not config.ride_through else prc024_trips(
+        t_s, omega_pu, bus_v_pu[:, [bus_col[int(b)] for b in generator_buses]], generator_names)
+    end = t_s >= t_s[-1] - config.end_window_s - 1e-9
+    ufls_by_island = ufls_by_island or {}
     out = []
     for island, buses in _island_buses(bus_numbers, bus_island).items():
         bset = set(buses)
@@ -765,21 +1068,38 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
         worst = None if v_span is None else int(bus_numbers[vcols[int(np.argmax(beyond.max(axis=0)))]])
         coherent = swing <= config.coherence_bound_rad
         if not coherent:
-            why.append(f'machines {swing:.2f} rad apart (> {config.coherence_bound_rad:.2f})')
-        if cols and not (band_lo <= f_lo and f_hi <= band_hi):
-            why.append(f'frequency {f_lo:.2f}..{f_hi:.2f} Hz outside {band_lo:.2f}..{band_hi:.2f}')
-        if not (config.v_min_pu <= v_lo and v_hi <= config.v_max_pu):
-            why.append(f'voltage {v_lo:.3f}..{v_hi:.3f} pu outside {config.v_min_pu}..{config.v_max_pu}')
+            why.append(f'machines {swing:.2f} rad apart (> {config.coherence_bound_rad:.2f}): out of step')
         gone = tuple(n for n in tripped if n in names)
-        if gone:
-            why.append(f'machines tripped: {", ".join(gone)}')
+        trips = sorted((protection[n][0], n) for n in names if n in protection and n not in gone)
+        gone += tuple(n for _, n in trips)
+        if gone:  # recorded, not switched in ANDES: the island's simulated end is not what it would be
+            why.append('machines tripped: ' + ', '.join(
+                f'{n} at {protection[n][0]:.3f} s ({protection[n][1]})' if n in protection and n not in tripped
+                else n for n in gone))
+        f_end = float('nan')
+        if kept:
+            with np.errstate(invalid='ignore'):
+                mean_hz = np.nanmean(omega_pu[end][:, kept], axis=1) * f0_hz
+            mean_hz = mean_hz[np.isfinite(mean_hz)]
+            if mean_hz.size:
+                f_end = float(mean_hz[-1])
+                if not (band_lo <= mean_hz.min() and mean_hz.max() <= band_hi):
+                    why.append(f'frequency {mean_hz.min():.2f}..{mean_hz.max():.2f} Hz at the end, outside the '
+                               f'continuous {band_lo:.2f}..{band_hi:.2f}')
+        v_end = bus_v_pu[end][:, vcols]
+        v_end_lo, v_end_hi = float(v_end.min()), float(v_end.max())
+        v0 = bus_v_pu[0, vcols]  # a bus the case itself runs outside the band is judged against its own voltage
+        if ((v_end < np.minimum(config.v_min_pu, v0 - 1e-3)) | (v_end > np.maximum(config.v_max_pu, v0 + 1e-3))).any():
+            why.append(f'voltage {v_end_lo:.3f}..{v_end_hi:.3f} pu at the end, outside the continuous '
+                       f'{config.v_min_pu}..{config.v_max_pu}')
         out.append(IslandOutcome(
             island=island, buses=len(buses), generators=names, load_mw=float(island_load_mw.get(island, 0.0)),
             shed_mw=float(shed_by_island.get(island, 0.0)), max_pair_swing_rad=swing, coherent=coherent,
             f_nadir_hz=f_lo, f_peak_hz=f_hi, v_min_pu=v_lo, v_max_pu=v_hi, machines_tripped=gone,
             survived=not why, why_not=tuple(why), rejected=tuple(n for n in names if n in rejected),
             rejected_mw=float(sum(rejected[n][1] for n in names if n in rejected)), f_outside_s=f_span,
-            f_outside_since_s=f_since, v_outside_s=v_span, v_worst_bus=worst))
+            f_outside_since_s=f_since, v_outside_s=v_span, v_worst_bus=worst,
+            ufls_shed_mw=float(ufls_by_island.get(island, 0.0)), f_end_hz=f_end, v_end_pu=(v_end_lo, v_end_hi)))
     return out
 
 
@@ -872,7 +1192,7 @@ def apply_decision(run: GridRun, cut_branch_ids: Sequence[str], bus_island: Mapp
 def run_offline(scenario: Scenario, label: str, *, cut_branch_ids: Sequence[str] = (),
                 bus_island: Mapping[int, int] | None = None, island_shed_mw: Sequence[float] = (),
                 opened_s: float | None = None, judged_from_s: float | None = None,
-                config: LoopConfig = LoopConfig(), progress: bool = False) -> Outcome:
+                config: LoopConfig = LoopConfig(), progress: bool = False, remedies: bool = True) -> Outcome:
     """Run a scenario with a given cut (or none) applied at opened_s, with no graph; return its outcome.
 
     Args:
@@ -885,15 +1205,24 @@ def run_offline(scenario: Scenario, label: str, *, cut_branch_ids: Sequence[str]
         judged_from_s: Start of the assessment window, s (default opened_s, else the request time).
         config: Loop settings.
         progress: Report progress on stderr.
+        remedies: If the run fails, try REMEDIES (see the module docstring).
 
     """
-    run = GridRun(scenario, config, progress=progress)
-    shed: dict[int, float] = {}
-    if cut_branch_ids:
-        if bus_island is None or opened_s is None:
-            raise ClosedLoopError('a cut needs its islands and its time')
-        shed = apply_decision(run, cut_branch_ids, bus_island, island_shed_mw, opened_s)
-    run.run()
-    opened = next((a.applied_s for a in run.actions if a.what == 'open cut'), None)
-    start = judged_from_s if judged_from_s is not None else (opened if opened is not None else scenario.request_s)
-    return run.outcome(label, cut_branch_ids, bus_island if cut_branch_ids else None, opened, start, shed)
+    if cut_branch_ids and (bus_island is None or opened_s is None):
+        raise ClosedLoopError('a cut needs its islands and its time')
+    failures = []
+    for divisor in (1, *(REMEDIES if remedies else ())):
+        run = GridRun(replace(scenario, step_s=scenario.step_s / divisor), config, progress=progress)
+        shed = apply_decision(run, cut_branch_ids, bus_island, island_shed_mw, opened_s) if cut_branch_ids else {}
+        run.run()
+        opened = next((a.applied_s for a in run.actions if a.what == 'open cut'), None)
+        start = judged_from_s if judged_from_s is not None else (opened if opened is not None else scenario.request_s)
+        out = run.outcome(label, cut_branch_ids, bus_island if cut_branch_ids else None, opened, start, shed)
+        if out.simulation_failed is None:
+            return replace(out, remedy=None if divisor == 1 else
+                           f"step {scenario.step_s / divisor:.6g} s (1/{divisor} of the scenario's, after: "
+                           + '; '.join(failures) + ')')
+        failures.append(f'step 1/{divisor}: {out.simulation_failed}')
+        log.warning('%s %s: %s', scenario.name, label, failures[-1])
+    return replace(out, simulation_failed=out.simulation_failed + (
+        f' (remedies tried: {", ".join(f"step 1/{d}" for d in REMEDIES)}, each failed)' if remedies else ''))
