@@ -29,7 +29,7 @@ def without_pmu(source: Path, out: Path, generator: str, bus: int) -> None:
     store = typestore()
     with AnyReader([source], default_typestore=store) as reader, \
             Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store,
+        conns = {c.id: writer.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data, rihs01=c.digest,
                                              offered_qos_profiles=[qos_profile(qos_for(c.topic))])
                  for c in reader.connections}
         for conn, stamp, raw in reader.messages():

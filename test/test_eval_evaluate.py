@@ -89,7 +89,8 @@ def test_bag_without_pmu_frames_is_an_error(tmp_path, capsys):
         out = {}
         for conn in reader.connections:
             if conn.topic != topics.PMU_FRAMES:
-                out[conn.id] = writer.add_connection(conn.topic, conn.msgtype, typestore=store)
+                out[conn.id] = writer.add_connection(conn.topic, conn.msgtype, msgdef=conn.msgdef.data,
+                                                     rihs01=conn.digest)
         for conn, stamp, raw in reader.messages(connections=[c for c in reader.connections if c.id in out]):
             writer.write(out[conn.id], stamp, raw)
     assert main(['evaluate', str(stripped), '--out', str(tmp_path / 'o')]) == 2
@@ -113,7 +114,9 @@ def test_a_generator_without_a_pmu_is_an_error_naming_the_bag_in_every_study(tmp
     dropped = set()
     with AnyReader([source], default_typestore=store) as reader, \
             Writer(blind, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        out = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store) for c in reader.connections}
+        # Each topic keeps the definition its bag was recorded with: raw messages are copied as they are.
+        out = {c.id: writer.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data, rihs01=c.digest)
+               for c in reader.connections}
         for conn, stamp, raw in reader.messages():
             if conn.topic == topics.PMU_FRAMES:
                 msg = store.deserialize_cdr(raw, conn.msgtype)

@@ -195,14 +195,15 @@ def run_scenario(scenario: Scenario, out: Path, *, force: bool = False, progress
         records.append((stamp, 4, topics.TRUTH_ROTOR_ANGLES,
                         m.new('RotorAngles', header=m.header(stamp, 'andes'), generator_names=names,
                               generator_buses=gen_buses, angle_rad=pmu.truth_delta_rad[k].astype(np.float64),
-                              valid=np.ones(len(names), dtype=bool))))
+                              valid=np.ones(len(names), dtype=bool), suspect_reason=[])))
     last_tag = int(np.flatnonzero(pmu.tag_s <= scenario.request_s + 1e-9)[-1])
     sep = final_separation(pmu.tag_s, pmu.truth_delta_rad)
     records.append((_ns(scenario.request_s), 5, topics.TRUTH_COHERENT_GROUPS,
                     m.new('CoherentGroups', header=m.header(_tag_ns(last_tag, scenario.rate_fps), 'andes'),
                           generator_names=names, generator_buses=gen_buses, group=groups.astype(np.uint32),
                           k=int(groups.max()) + 1, method='truth', distance=sep.ravel().astype(np.float64),
-                          window_s=float(pmu.tag_s[-1]), unobserved_generator_names=[], request_id='')))
+                          window_s=float(pmu.tag_s[-1]), unobserved_generator_names=[], request_id='',
+                          suspect_generator_names=[], suspect_reasons=[])))
     records.sort(key=lambda r: (r[0], r[1]))
 
     # rosbags names the .mcap after the bag directory, so the partial bag gets the final name in a scratch dir.
