@@ -107,3 +107,29 @@ def test_a_network_at_rest_is_not_frozen():
 def test_an_attack_needs_a_known_station():
     with pytest.raises(AttackError):
         attack(_bag('kundur_bus9_unstable'), 'ramp', ['PMU_999'], 1.0)
+
+
+@pytest.mark.parametrize('name', ['ieee39_case2_g3_unstable', 'pjm5bus_three_groups'])
+@pytest.mark.parametrize('integer', [False, True], ids=['float', 'int16'])
+def test_a_clean_bag_over_c37118_flags_no_station(name, integer):
+    """A clean bag as a PDC receives it flags nothing.
+
+    Over C37.118 angles are wrapped and magnitudes never negative, so a pole slip's voltage passing through zero
+    turns the phasor by pi between two frames (PMU_32 at 6.717 s and PMU_4 at 1.117 s, before angle_floor_pu).
+    """
+    from controlled_islanding.pmu import c37118
+    from controlled_islanding.pmu.pdc_assembly import PdcAssembler
+    from controlled_islanding.pmu.stream import load_bag_stream
+
+    served = load_bag_stream(BAGS / name, integer=integer)
+    cfg = c37118.decode_config(served.config_bytes)
+    pdc = PdcAssembler(served.channel_map, 1.0)
+    pdc.configure('pmu', cfg)
+    det, flagged = BadDataDetector(), {}
+    for _, raw in served.frames:
+        t_ns, ms = pdc.measurements('pmu', c37118.decode_data(raw, cfg))
+        ms = [m for m in ms if m.stat & c37118.STAT_DATA_ERROR_MASK == 0]
+        flagged.update(det.judge(t_ns * 1e-9, [m.station_id for m in ms], *(
+            [getattr(m, f) for m in ms] for f in ('voltage_magnitude_pu', 'voltage_angle_rad', 'current_magnitude_pu',
+                                                   'current_angle_rad', 'frequency_hz', 'rocof_hz_per_s'))))
+    assert flagged == {}

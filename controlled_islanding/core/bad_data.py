@@ -22,7 +22,11 @@ The tests, each judged on one station's own channel, frame by frame:
   year of 30 frames/s per station). f0 is the standard nominal frequency (50 or 60 Hz) nearest the station's first
   reported frequency: no grid at rest strays 5 Hz from its nominal. The angle is unwrapped along the reported
   frequency (a machine slipping poles moves more than pi between frames), so the test sees a lie of up to pi per
-  frame.
+  frame. A frame whose voltage is below ``angle_floor_pu`` breaks the chain as a lost frame does: near the
+  electrical centre of a pole slip the terminal voltage passes through zero, its phasor turns by pi between two
+  frames and no frequency estimate follows it. A PMU reports that turn (a magnitude is never negative); the
+  simulator's unwrapped angle with a negative magnitude hides it, so without the floor the same honest swing was
+  flagged over C37.118 and not from the bag (the default bag's PMU_32 at 6.63 s).
 - ``frozen``: the station's six values (phasors, frequency, ROCOF) repeat exactly for ``frozen_frames``
   frames while another station's values changed. Float phasors carrying TVE noise, or a grid in motion,
   never repeat bit for bit; a network at rest repeats everywhere at once, which is not a frozen station.
@@ -85,20 +89,24 @@ class BadDataDetector:
         history_s: How far back replayed content is looked for, s.
         clean_s: Clean data a suspect station needs before it returns, s: twice the frequency window, so that
             the evidence that flagged it has left every window.
+        angle_floor_pu: Voltage magnitude below which a frame's angle is not compared with its frequency, pu. A
+            pass through zero between two frames leaves both at most the magnitude's one-frame change apart from
+            zero: 0.2 pu covers a change of 0.4 pu per frame, where the simulated pole slips change 0.1-0.2.
 
     """
 
     def __init__(self, noise_tve: float = 0.01, frequency_error_hz: float = 0.005, window_s: float = 0.5,
                  false_alarm: float = 1e-9, frozen_frames: int = 3, history_s: float = 2.0,
-                 clean_s: float = 1.0) -> None:
+                 clean_s: float = 1.0, angle_floor_pu: float = 0.2) -> None:
         if not (0 < noise_tve < 1 and frequency_error_hz >= 0 and window_s > 0 and 0 < false_alarm < 0.5
-                and frozen_frames >= 1 and history_s >= 0 and clean_s >= 0):
+                and frozen_frames >= 1 and history_s >= 0 and clean_s >= 0 and 0 <= angle_floor_pu < 1):
             raise BadDataError(f'bad settings: noise_tve={noise_tve}, frequency_error_hz={frequency_error_hz}, '
                                f'window_s={window_s}, false_alarm={false_alarm}, frozen_frames={frozen_frames}, '
-                               f'history_s={history_s}, clean_s={clean_s}')
+                               f'history_s={history_s}, clean_s={clean_s}, angle_floor_pu={angle_floor_pu}')
         self.noise_tve, self.frequency_error_hz, self.window_s = noise_tve, frequency_error_hz, window_s
         self.z = float(norm.isf(false_alarm / 2))
         self.frozen_frames, self.history_s, self.clean_s = frozen_frames, history_s, clean_s
+        self.angle_floor_pu = angle_floor_pu
         self.period_s = math.inf  # the smallest spacing of one station's time tags seen, s
         self.flags = 0  # suspicions raised
         self.row: dict[str, int] = {}
@@ -225,7 +233,7 @@ class BadDataDetector:
 
     def _frequency_test(self, t: float, rows: np.ndarray, values: np.ndarray, gaps: np.ndarray) -> np.ndarray:
         angle, freq = values[:, 1], values[:, 4]
-        ok = np.isfinite(angle) & np.isfinite(freq)
+        ok = np.isfinite(angle) & np.isfinite(freq) & (np.abs(values[:, 0]) >= self.angle_floor_pu)
         f0 = self.f0[rows]
         f0 = np.where(np.isnan(f0), np.where(np.abs(freq - 50.0) < np.abs(freq - 60.0), 50.0, 60.0), f0)
         self.f0[rows] = np.where(ok, f0, self.f0[rows])
