@@ -1,6 +1,7 @@
 """Failed runs never block their retry, and unreadable bags are named with their fault (issue 31).
 
-No node starts here: every failure is met before the graph would be started, or in graph/results.py alone.
+No node process starts here: every failure is met before the graph would be started, in graph/results.py alone,
+or in a bag_player made in this process, which refuses before it plays.
 """
 
 from __future__ import annotations
@@ -125,3 +126,56 @@ def test_claim_never_removes_a_folder_that_is_not_a_runs(tmp_path):
     (tmp_path / 'a_file').write_text('x')
     with pytest.raises(GraphError, match='not a folder'):
         claim(tmp_path / 'a_file', force=True)
+
+
+def _with_older_rotor_angles(tmp_path: Path, good: Path) -> Path:
+    """Copy a bag, /truth/rotor_angles recorded as RotorAngles was before it gained suspect_reason."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import get_types_from_msg, get_typestore
+    from rosbags.typesys.stores import Stores
+
+    from controlled_islanding.wire import topics
+    from controlled_islanding.wire.interfaces import msg_type_name, typestore
+
+    name = msg_type_name('RotorAngles')
+    old_text = '\n'.join(line for line in (REPO / 'msg_schemas/msg/RotorAngles.msg').read_text().splitlines()
+                         if line.split('#')[0].strip() and 'suspect_reason' not in line)
+    old = get_typestore(Stores.ROS2_JAZZY)
+    old.register(get_types_from_msg(old_text, name))
+    store, out = typestore(), tmp_path / 'older'
+    with AnyReader([good], default_typestore=store) as reader, \
+            Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = {}
+        for c in reader.connections:
+            older = c.topic == topics.TRUTH_ROTOR_ANGLES
+            conns[c.id] = (writer.add_connection(c.topic, c.msgtype, typestore=old) if older
+                           else writer.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data, rihs01=c.digest))
+        for c, stamp, raw in reader.messages():
+            if c.topic == topics.TRUTH_ROTOR_ANGLES:
+                msg = reader.deserialize(raw, c.msgtype)
+                raw = old.serialize_cdr(old.types[name](**{f: getattr(msg, f) for f, _ in old.fielddefs[name][1]}),
+                                        name)
+            writer.write(conns[c.id], stamp, raw)
+    return out
+
+
+def test_bag_player_refuses_a_bag_recorded_with_another_definition_naming_the_topic(tmp_path, good_bag,
+                                                                                    rclpy_context):
+    """Published raw, such messages fail to decode in every subscriber: the player refuses before it plays."""
+    from rclpy.parameter import Parameter
+
+    from controlled_islanding.nodes.bag_player import BagPlayerNode
+    from controlled_islanding.ros.params import NodeSetupError
+    from controlled_islanding.wire.bagmeta import other_definitions
+
+    bag = _with_older_rotor_angles(tmp_path, good_bag)
+    with pytest.raises(NodeSetupError, match=r'/truth/rotor_angles \(controlled_islanding_msgs/msg/RotorAngles\) '
+                                             'recorded with another definition'):
+        BagPlayerNode(context=rclpy_context, parameter_overrides=[Parameter('bag', value=str(bag)),
+                                                                  Parameter('publish_truth', value=True)])
+    from rosbags.highlevel import AnyReader
+
+    from controlled_islanding.wire.interfaces import typestore
+    with AnyReader([good_bag], default_typestore=typestore()) as reader:
+        assert other_definitions(reader.connections, typestore()) == []

@@ -57,7 +57,7 @@ from controlled_islanding.ros.endpoints import qos_for
 from controlled_islanding.ros.params import NodeSetupError, message_class
 from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.wire import topics
-from controlled_islanding.wire.bagmeta import unreadable
+from controlled_islanding.wire.bagmeta import other_definitions, unreadable
 from controlled_islanding.wire.interfaces import typestore
 
 _STAMP_ROUNDING_NS = 1_000
@@ -117,6 +117,11 @@ class BagPlayerNode(Node):
                 withheld = set(self.get_parameter('withhold_topics').value)
                 chosen = [c for c in reader.connections if (publish_truth or c.topic not in topics.TRUTH_TOPICS)
                           and c.topic not in withheld]
+                stale = other_definitions(chosen, typestore())
+                if stale:
+                    raise NodeSetupError(
+                        f'bag {bag}: {", ".join(stale)} recorded with another definition than msg_schemas/ holds; '
+                        'its messages would not decode in any subscriber: record or simulate the bag again')
                 for conn in chosen:
                     if conn.topic not in self.pubs:
                         self.pubs[conn.topic] = self.create_publisher(

@@ -63,6 +63,26 @@ def qos_profile(qos: Any) -> Qos:
                avoid_ros_namespace_conventions=bool(qos.avoid_ros_namespace_conventions))
 
 
+def other_definitions(connections: Any, store: Any) -> list[str]:
+    """Name the connections recorded with a definition of their type other than `store`'s, by type hash.
+
+    Their CDR bytes do not decode as this package's type: published raw they fail in every subscriber
+    (a bag recorded before a message gained a field). A connection with no RIHS01 hash, or of a type the
+    store does not know, is not judged.
+
+    Returns:
+        '<topic> (<type>)' for each such connection.
+
+    """
+    out = []
+    for c in connections:
+        digest = getattr(c, 'digest', '') or ''
+        if digest.startswith('RIHS01_') and c.msgtype in store.fielddefs \
+                and store.hash_rihs01(c.msgtype) != digest:
+            out.append(f'{c.topic} ({c.msgtype})')
+    return out
+
+
 def unreadable(bag: str | Path, exc: BaseException) -> str:
     """Say why rosbags could not read `bag`, naming the file at fault: rosbags' own messages name neither.
 
