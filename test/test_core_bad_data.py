@@ -133,3 +133,37 @@ def test_a_clean_bag_over_c37118_flags_no_station(name, integer):
             [getattr(m, f) for m in ms] for f in ('voltage_magnitude_pu', 'voltage_angle_rad', 'current_magnitude_pu',
                                                    'current_angle_rad', 'frequency_hz', 'rocof_hz_per_s'))))
     assert flagged == {}
+
+
+@pytest.mark.parametrize('name', ['ieee39_case2_g3_unstable', 'ieee14_g1_unstable'])
+def test_stray_frames_before_a_bag_neither_flag_it_nor_switch_the_frequency_test_off(name):
+    """Frames of the bag's own content at random fresh tags (as the fuzz soak sends them) before the bag itself.
+
+    Learnt as the smallest spacing, the period was a wire value: the clean bag after them had seven stations
+    flagged, or the frequency test off for good; a ramp on the clean bag is still flagged after them.
+    """
+    import random
+
+    data = _bag(name)
+    fields = ('v_mag_pu', 'v_angle_rad', 'i_mag_pu', 'i_angle_rad', 'frequency_hz', 'rocof_hz_per_s')
+
+    def feed(det, t_s, k):
+        idx = np.flatnonzero(np.isfinite(data.v_mag_pu[k]) & np.isfinite(data.i_mag_pu[k]))
+        return det.judge(t_s, [data.station_ids[j] for j in idx], *[getattr(data, f)[k, idx] for f in fields])
+
+    def stray_frames(det, seed):
+        rng, now_s = random.Random(seed), data.tag_s[0] - 60.0
+        for n in range(rng.choice([30, 60, 120])):
+            feed(det, now_s - rng.uniform(0.0, 0.5), rng.randrange(len(data.tag_s)))
+            now_s += rng.choice([0.0, 0.1, 1.0]) if n % 10 == 0 else 0.0
+        return det
+
+    for seed in range(12):
+        det, late = stray_frames(BadDataDetector(), seed), {}
+        for k in range(len(data.tag_s)):
+            # Suspicions raised by the stray frames themselves last until clean_s of clean data.
+            late.update({s: r for s, r in feed(det, data.tag_s[k], k).items() if data.tag_s[k] > 1.5})
+        assert late == {}, (seed, late)
+        ramped = attack(data, 'ramp', [data.station_ids[0]], float(data.tag_s[len(data.tag_s) // 3]))
+        assert data.station_ids[0] in first_flags(ramped, stray_frames(BadDataDetector(), seed)), \
+            f'seed {seed}: the frequency test is off after the stray frames'

@@ -50,6 +50,9 @@ from scipy.stats import norm
 
 __all__ = ['BadDataDetector', 'BadDataError', 'REASONS', 'StationVerdict']
 
+_MAX_PERIOD_S = 1.0  # C37.118.2's slowest reporting rate is one frame a second
+_PERIOD_SAMPLES = 512  # spacings the period is judged on: a few frames of a few hundred stations
+
 REASONS = ('frequency_mismatch', 'frozen', 'replayed')
 _NOMINALS_HZ = (50.0, 60.0)
 
@@ -107,7 +110,9 @@ class BadDataDetector:
         self.z = float(norm.isf(false_alarm / 2))
         self.frozen_frames, self.history_s, self.clean_s = frozen_frames, history_s, clean_s
         self.angle_floor_pu = angle_floor_pu
-        self.period_s = math.inf  # the smallest spacing of one station's time tags seen, s
+        self.period_s = math.inf  # the commonest spacing of the stations' recent time tags, s
+        self._gaps: deque[int] = deque(maxlen=_PERIOD_SAMPLES)  # recent spacings, us
+        self._gap_counts: dict[int, int] = {}
         self.flags = 0  # suspicions raised
         self.row: dict[str, int] = {}
         self.ids: list[str] = []
@@ -190,17 +195,40 @@ class BadDataDetector:
         if not len(rows):
             return self.suspects()
         gaps = t - self.last_t[rows]
-        if np.isfinite(gaps).any():
-            self.period_s = min(self.period_s, float(np.min(gaps[np.isfinite(gaps)])))
-            if not self._m and math.isfinite(self.period_s) and self.period_s > 0:
-                self._m = max(2, int(round(self.window_s / self.period_s)))
-                self._alloc_rings()
+        self._learn_period(gaps)
         reason = self._content_test(t, rows, values)
         freq_bad = self._frequency_test(t, rows, values, gaps)
         reason = np.where((reason == '') & freq_bad, 'frequency_mismatch', reason)
         self._settle(t, rows, reason)
         self.last_t[rows] = t
         return self.suspects()
+
+    def _learn_period(self, gaps: np.ndarray) -> None:
+        """Take the frame period as the commonest spacing of the recent time tags, never the smallest.
+
+        A stream tags its frames at multiples of its period (C37.118.2 FRACSEC), so honest spacings repeat
+        exactly; forged or stray tags, at any spacing, do not. The smallest spacing ever seen was a wire value
+        any two frames could set: a fuzz's frames 1 ms apart switched the frequency test off for good, and
+        ones that set a two-frame window made the honest replay after them flag seven stations.
+        """
+        for gap in gaps[np.isfinite(gaps) & (gaps > 0) & (gaps <= _MAX_PERIOD_S)]:
+            key = int(round(float(gap) * 1e6))
+            if len(self._gaps) == self._gaps.maxlen:
+                old = self._gaps[0]
+                self._gap_counts[old] -= 1
+                if not self._gap_counts[old]:
+                    del self._gap_counts[old]
+            self._gaps.append(key)
+            self._gap_counts[key] = self._gap_counts.get(key, 0) + 1
+        if not self._gap_counts:
+            return
+        period_s = min(self._gap_counts, key=lambda k: (-self._gap_counts[k], k)) * 1e-6
+        if period_s != self.period_s:
+            self.period_s = period_s
+            m = max(2, int(round(self.window_s / period_s)))
+            if m != self._m:
+                self._m = m
+                self._alloc_rings()
 
     def _alloc_rings(self) -> None:
         n = len(self.ids)
