@@ -78,15 +78,20 @@ def attack(channels, name: str, stations: Sequence[str], start_s: float):
     return dataclasses.replace(channels, **out)
 
 
-def with_tve_noise(channels, noise_tve: float, seed: int = 0):
-    """Return a copy of `channels` with the scenario format's TVE noise (sim/pmu.py) added to every phasor.
+def with_tve_noise(channels, noise_tve: float, seed: int = 0, present_tve: float = 0.0):
+    """Return a copy of `channels` whose phasors carry the scenario format's TVE noise (sim/pmu.py) of noise_tve.
 
-    Each phasor is multiplied by (1 + e), e complex Gaussian of sigma noise_tve / 3 per part, |e| clipped to
-    noise_tve; frequency and ROCOF are left as they are (they are derived from the noise-free angle there too).
+    Each phasor is multiplied by (1 + e), e complex Gaussian, |e| clipped, as sim/pmu.py draws it; frequency and
+    ROCOF are left as they are (they are derived from the noise-free angle there too). Phasors that already carry
+    noise of present_tve (a bag's own scenario noise) get the independent part that brings the total standard
+    deviation to noise_tve's: sqrt(noise_tve^2 - present_tve^2).
     """
     from controlled_islanding.sim.pmu import _noisy
 
+    if not 0 <= present_tve <= noise_tve:
+        raise AttackError(f'TVE noise of {noise_tve} cannot be reached from phasors that carry {present_tve} already')
+    added = float(np.sqrt(noise_tve ** 2 - present_tve ** 2))
     rng = np.random.default_rng(seed)
-    v_mag, v_ang = _noisy(rng, np.asarray(channels.v_mag_pu), np.asarray(channels.v_angle_rad), noise_tve)
-    i_mag, i_ang = _noisy(rng, np.asarray(channels.i_mag_pu), np.asarray(channels.i_angle_rad), noise_tve)
+    v_mag, v_ang = _noisy(rng, np.asarray(channels.v_mag_pu), np.asarray(channels.v_angle_rad), added)
+    i_mag, i_ang = _noisy(rng, np.asarray(channels.i_mag_pu), np.asarray(channels.i_angle_rad), added)
     return dataclasses.replace(channels, v_mag_pu=v_mag, v_angle_rad=v_ang, i_mag_pu=i_mag, i_angle_rad=i_ang)
