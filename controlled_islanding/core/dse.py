@@ -334,9 +334,9 @@ class RotorAngleDSE:
         torque_walk_per_sqrt_s: Random-walk intensity of the mechanical torque, in units of the machine's output
             at initialisation (its apparent power, at least 0.1 pu) per square root of a second.
         field_walk_per_sqrt_s: The same for the field voltage, in units of its value at initialisation (at least 1):
-            a high initial response exciter (IEEE 421.2) forces the field to a ceiling of two to three times its
-            rated value within 0.1 s, and 10 per square root of a second moves it by 3 in 0.1 s at one sigma. At
-            1, the filter lagged IEEE 14's field forcing through its fault by innovations of up to 7.4 sigma.
+            a high initial response exciter (IEEE 421.2) forces the field to its ceiling, about twice its rated
+            value, within 0.1 s: 2 / sqrt(0.1 s) moves it by 2 in 0.1 s at one sigma. At 1, the filter lagged
+            IEEE 14's field forcing through its fault by innovations of up to 7.4 sigma.
         flux_noise_per_sqrt_s: Model-error noise of the flux states, in units of the internal voltage.
         init_delta_std_rad: Standard deviation of the initial angle: the steady-state relations the filter starts
             from are exact at rest but not during a swing (after a gap).
@@ -370,7 +370,7 @@ class RotorAngleDSE:
 
     def __init__(self, model: str = 'auto', freq_hz: float = 60.0, max_gap_s: float = 0.5,
                  measurement_tve: float = 0.01, max_step_s: float | None = None, torque_walk_per_sqrt_s: float = 0.3,
-                 field_walk_per_sqrt_s: float = 10.0, flux_noise_per_sqrt_s: float = 0.01,
+                 field_walk_per_sqrt_s: float = 2.0 / math.sqrt(0.1), flux_noise_per_sqrt_s: float = 0.01,
                  init_delta_std_rad: float = 0.1, blind_speed_walk_pu_per_sqrt_s: float = 0.005,
                  innovation_gate: float = math.inf, judge_after_s: float = 0.5) -> None:
         self.model = model
