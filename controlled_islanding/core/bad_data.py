@@ -46,9 +46,9 @@ The tests, each judged on one station's own channel, frame by frame:
   ratio that moves x_s I, stand out at once; a bolted fault or a line trip moves V and I, not z. The filter's
   model is approximate (its exciter and governor are random walks; inputs are taken linear between frames): over
   the 17 manifest bags (about 100 000 judged frames) the largest honest NIS is 31, 33 with 1 % TVE noise, at
-  fault inceptions, under the bound of 55.3. Judged only where the frame is within that noise model (core.dse's nis_: voltage at least
-  0.1 pu, the current not slipping against the voltage faster than the frame rate follows); a station whose
-  machine has no dynamic data is not judged.
+  fault inceptions, under the bound of 55.3. Judged only where the frame is within that noise model (core.dse's
+  nis_: voltage at least 0.1 pu, the current not slipping against the voltage faster than the frame rate follows,
+  not just after the filter's (re)initialisation); a station whose machine has no dynamic data is not judged.
 
 The tests see only frames the caller found usable (pmu_ingestion drops data whose STAT says "do not use" or "PMU
 error" (bits 15-14), "not synchronised" (bit 13), "sorted by arrival" (bit 12: the tag is not the data's own) or
