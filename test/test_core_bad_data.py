@@ -1,7 +1,7 @@
-"""core/bad_data on manifest bags of three ANDES systems.
+"""core/bad_data on manifest bags of four ANDES systems, alone and through the filter as the graph runs it.
 
-Clean and noisy bags flag nothing; each attack of sim/attacks (but the CT ratio error, which these tests do not
-catch) is flagged before the request.
+Clean and noisy bags flag nothing; each attack of sim/attacks is flagged before the request, by the test that can
+see it; the blind spot (a ramp through a bolted fault on the station's own bus) is an xfail naming it.
 """
 
 from __future__ import annotations
@@ -56,7 +56,8 @@ def test_clean_bags_flag_no_station_with_and_without_noise(name, noise_tve):
 
 @pytest.mark.parametrize('name', ['ieee39_g6g7_unstable', 'ieee14_g1_unstable'])
 @pytest.mark.parametrize('kind,expected', [('ramp', 'frequency_mismatch'), ('replay', 'replayed'),
-                                           ('frozen', 'frozen'), ('step', 'frequency_mismatch')])
+                                           ('frozen', 'frozen'), ('step', 'frequency_mismatch'),
+                                           ('ramp_back', 'frequency_mismatch')])
 def test_each_attack_is_flagged_before_the_request_naming_the_station(name, kind, expected):
     bag = _bag(name)
     start_s, stations = CASES[name]
@@ -238,3 +239,19 @@ def test_a_station_joining_a_running_stream_is_suspect_until_clean_s_of_clean_da
     assert flags == {'PMU_4': ('new_station', pytest.approx(1.2, abs=1e-6))}
     col = [g.bus for g in kundur.grid.generators].index(4)
     assert not suspect[tags >= 1.2 + 1.0 + 1e-6, col].any()
+
+
+@pytest.mark.xfail(strict=True, reason="open (issue 29): a ramp on the faulted bus's own station from the fault on "
+                   'passes through frames below 0.1 pu, which carry no usable angle (C37.118.1 sets no accuracy '
+                   'there) and which no test judges, and the request comes at the clearing: nothing is flagged, and '
+                   "Nordic 44's cut grows from 4 branches to 7 (docs/attacks.md, ramp_back)")
+def test_a_ramp_through_the_fault_on_the_faulted_bus_station_cannot_steer():
+    from controlled_islanding.evaluation.attack_sweep import attack_start_s, run_pipeline
+    from controlled_islanding.evaluation.cases import coherency_node_parameters
+
+    bag = _bag('nordic44_bus6000_three_groups')
+    params = coherency_node_parameters()
+    clean = run_pipeline(bag, bag, params=params)
+    attacked = run_pipeline(bag, attack(bag, 'ramp_back', ['PMU_6000/GENROU_34'], attack_start_s(bag)),
+                            params=params)
+    assert attacked.refused or attacked.key() == clean.key()

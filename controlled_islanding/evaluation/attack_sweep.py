@@ -293,9 +293,10 @@ def table(rows: Sequence[AttackRow]) -> list[str]:
 
 def report(rows: Sequence[AttackRow], alarms: Sequence[tuple[str, int, int]]) -> list[str]:
     """Return the figures, the table and the false alarms, as Markdown lines."""
-    single = [r for r in rows if r.attack not in ('ramp2', 'current+1')]
+    single = [r for r in rows if r.attack not in ('ramp2', 'current+1', 'ramp_back')]
     pair = [r for r in rows if r.attack == 'ramp2']
     late = [r for r in rows if r.attack == 'current+1']
+    back = [r for r in rows if r.attack == 'ramp_back']
     refused = sum(r.outcome.refused and not r.outcome.error for r in rows)
     lines = [f'- single-station attacks: {len(single)}; steered {sum(r.steered for r in single)}; every attacked '
              f'station flagged before the request in {sum(r.flagged_in_time for r in single)}',
@@ -303,14 +304,19 @@ def report(rows: Sequence[AttackRow], alarms: Sequence[tuple[str, int, int]]) ->
              f'request in {sum(r.flagged_in_time for r in pair)}',
              f"- current x1.5 from the event's first frame (current+1): {len(late)}; steered "
              f'{sum(r.steered for r in late)}; flagged before the request in {sum(r.flagged_in_time for r in late)}',
+             f"- ramp_back (-2 rad/s, against a faulted machine's own acceleration): {len(back)}; steered "
+             f'{sum(r.steered for r in back)}'
+             + (f' ({", ".join(f"{r.bag} {r.stations[0]}" for r in back if r.steered)})' if any(
+                 r.steered for r in back) else '')
+             + f'; flagged before the request in {sum(r.flagged_in_time for r in back)}',
              f'- refused for suspect data: {refused} of {len(rows)}; refused because the split failed: '
              f'{sum(bool(r.outcome.error) for r in rows)}',
              f'- false alarms: stations flagged on clean bags {sum(a[1] for a in alarms)}, with TVE noise brought to '
              f'1 % {sum(a[2] for a in alarms)} (over {len(alarms)} bags)']
-    missed = [r for r in rows if not r.flagged_in_time]
+    missed = [r for r in single if not r.flagged_in_time]
     if missed:
         worst = max(missed, key=lambda r: -1.0 if math.isnan(r.angle_moved_deg) else r.angle_moved_deg)
-        lines.append(f'- not flagged before the request: {len(missed)}, of which steered '
+        lines.append(f'- single-station attacks not flagged before the request: {len(missed)}, of which steered '
                      f"{sum(r.steered for r in missed)}; the largest move of an attacked machine's estimated angle "
                      'among them: '
                      f'{worst.angle_moved_deg:.1f} deg ({worst.bag}, {worst.attack} on {", ".join(worst.stations)})')

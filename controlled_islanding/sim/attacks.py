@@ -10,6 +10,7 @@ leave it. Rows are time tags (BagData's uniform grid), columns channels.
 - ``current``: current magnitude x1.5 (a CT ratio error).
 - ``step``: +20 degrees on both angles (a GPS time shift of about 0.9 ms at 60 Hz).
 - ``ramp2``: the ramp on two stations at once (the coordinated case; give two stations).
+- ``ramp_back``: -2 rad/s on both angles: a spoofed speed against the way a machine at the fault accelerates.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 
 __all__ = ['ATTACKS', 'AttackError', 'attack', 'with_tve_noise']
 
-ATTACKS = ('ramp', 'replay', 'frozen', 'current', 'step', 'ramp2')
+ATTACKS = ('ramp', 'replay', 'frozen', 'current', 'step', 'ramp2', 'ramp_back')
 RAMP_RAD_PER_S = 2.0
 REPLAY_LAG_S = 1.0
 CURRENT_FACTOR = 1.5
@@ -55,9 +56,10 @@ def attack(channels, name: str, stations: Sequence[str], start_s: float):
     out = {f: np.array(getattr(channels, f), copy=True) for f in _FIELDS}
     elapsed = (tags[rows] - start_s)[:, None]
     idx = np.ix_(rows, cols)
-    if name in ('ramp', 'ramp2'):
-        out['v_angle_rad'][idx] += RAMP_RAD_PER_S * elapsed
-        out['i_angle_rad'][idx] += RAMP_RAD_PER_S * elapsed
+    if name in ('ramp', 'ramp2', 'ramp_back'):
+        rate = -RAMP_RAD_PER_S if name == 'ramp_back' else RAMP_RAD_PER_S
+        out['v_angle_rad'][idx] += rate * elapsed
+        out['i_angle_rad'][idx] += rate * elapsed
     elif name == 'step':
         out['v_angle_rad'][idx] += STEP_RAD
         out['i_angle_rad'][idx] += STEP_RAD
