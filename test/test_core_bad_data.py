@@ -1,11 +1,12 @@
-"""core/bad_data on manifest bags of three ANDES systems.
+"""core/bad_data on manifest bags of four ANDES systems, alone and through the filter as the graph runs it.
 
-Clean and noisy bags flag nothing; each attack of sim/attacks (but the CT ratio error, which these tests do not
-catch) is flagged before the request.
+Clean and noisy bags flag nothing; each attack of sim/attacks is flagged before the request, by the test that can
+see it; the blind spot (a ramp through a bolted fault on the station's own bus) is an xfail naming it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -55,7 +56,8 @@ def test_clean_bags_flag_no_station_with_and_without_noise(name, noise_tve):
 
 @pytest.mark.parametrize('name', ['ieee39_g6g7_unstable', 'ieee14_g1_unstable'])
 @pytest.mark.parametrize('kind,expected', [('ramp', 'frequency_mismatch'), ('replay', 'replayed'),
-                                           ('frozen', 'frozen'), ('step', 'frequency_mismatch')])
+                                           ('frozen', 'frozen'), ('step', 'frequency_mismatch'),
+                                           ('ramp_back', 'frequency_mismatch')])
 def test_each_attack_is_flagged_before_the_request_naming_the_station(name, kind, expected):
     bag = _bag(name)
     start_s, stations = CASES[name]
@@ -167,3 +169,89 @@ def test_stray_frames_before_a_bag_neither_flag_it_nor_switch_the_frequency_test
         ramped = attack(data, 'ramp', [data.station_ids[0]], float(data.tag_s[len(data.tag_s) // 3]))
         assert data.station_ids[0] in first_flags(ramped, stray_frames(BadDataDetector(), seed)), \
             f'seed {seed}: the frequency test is off after the stray frames'
+
+
+# ---------------------------------------------------------------------------------- the filter's innovation test
+def _screened_flags(name: str, kind: str, station: str, start_s: float):
+    """Station -> (reason, first flag s) over the bag up to its request, through the graph's screening."""
+    from controlled_islanding.evaluation.attack_sweep import screen
+    from controlled_islanding.evaluation.cases import coherency_node_parameters
+
+    bag = _bag(name)
+    channels = attack(bag, kind, [station], start_s) if kind else bag
+    return screen(bag, channels, params=coherency_node_parameters(), until_s=float(bag.request_t_s[0]))[3]
+
+
+@pytest.mark.parametrize('name,kind,station,start_s', [
+    # the faulted area's machine: its voltage below the frequency test's floor from the fault on
+    ('ieee39_g6g7_unstable', 'step', 'PMU_35', 5.0), ('kundur_bus9_unstable', 'step', 'PMU_4', 1.0),
+    # a CT ratio error from the fault's first frame on (the frame at its time tag is still at rest, where the
+    # dispatch test sees it): x_s I moves the machine's internal voltage
+    ('ieee39_g6g7_unstable', 'current', 'PMU_35', 5.0 + 1 / 60),
+    ('ieee14_g1_unstable', 'current', 'PMU_1', 1.0 + 1 / 60)])
+def test_the_innovation_test_flags_what_the_frequency_test_cannot_see_before_the_request(name, kind, station,
+                                                                                          start_s):
+    assert station not in first_flags(attack(_bag(name), kind, [station], start_s))  # the frequency test's blind spot
+    flags = _screened_flags(name, kind, station, start_s)
+    assert set(flags) == {station}
+    why, at_s = flags[station]
+    assert why == 'innovation' and start_s - 1e-9 <= at_s < float(_bag(name).request_t_s[0])
+
+
+@pytest.mark.parametrize('name', sorted(CASES))
+@pytest.mark.parametrize('noise_tve', [0.0, 0.01])
+def test_clean_bags_flag_no_station_with_the_filter_with_and_without_noise(name, noise_tve):
+    """The innovation, schedule and new-station tests too, over the whole bag; noise brought up to C37.118.1's 1 %."""
+    from controlled_islanding.evaluation.attack_sweep import screen
+    from controlled_islanding.evaluation.cases import coherency_node_parameters
+
+    bag = _bag(name)
+    channels = with_tve_noise(bag, noise_tve, seed=3, present_tve=0.005) if noise_tve else bag
+    assert screen(bag, channels, params=coherency_node_parameters())[3] == {}
+
+
+@pytest.mark.parametrize('name,station', [('ieee14_g1_unstable', 'PMU_1'), ('kundur_bus9_unstable', 'PMU_2')])
+def test_a_ct_ratio_error_present_at_rest_is_flagged_at_the_first_frame_against_the_dispatch(name, station):
+    flags = _screened_flags(name, 'current', station, 0.0)
+    assert flags == {station: ('schedule_mismatch', float(_bag(name).tag_s[0]))}
+
+
+def test_the_schedule_test_ends_at_the_first_event():
+    """A CT ratio error from the fault's first frame on is not the dispatch test's to see: the grid is not at rest."""
+    flags = _screened_flags('kundur_bus9_unstable', 'current', 'PMU_2', 1.0 + 1 / 30)
+    assert all(why != 'schedule_mismatch' for why, _ in flags.values())
+
+
+def test_a_station_joining_a_running_stream_is_suspect_until_clean_s_of_clean_data():
+    """The 1 s replay on a station that sent nothing for that second: its own tests cannot see a recording."""
+    name = 'ieee39_g6g7_initial_gap'
+    flags = _screened_flags(name, 'replay', 'PMU_35', 5.0)
+    assert flags == {'PMU_35': ('new_station', 6.0)}
+    from controlled_islanding.evaluation.attack_sweep import screen
+    from controlled_islanding.evaluation.cases import coherency_node_parameters
+
+    # An honest station heard for the first time 1.2 s into the stream: suspect for clean_s, then used.
+    kundur = _bag('kundur_bus9_unstable')
+    j = kundur.station_ids.index('PMU_4')
+    silent = (kundur.tag_s[:, None] < 1.2) & (np.arange(len(kundur.station_ids)) == j)
+    joined = dataclasses.replace(kundur, v_mag_pu=np.where(silent, np.nan, kundur.v_mag_pu))
+    tags, _, suspect, flags = screen(kundur, joined, params=coherency_node_parameters())
+    assert flags == {'PMU_4': ('new_station', pytest.approx(1.2, abs=1e-6))}
+    col = [g.bus for g in kundur.grid.generators].index(4)
+    assert not suspect[tags >= 1.2 + 1.0 + 1e-6, col].any()
+
+
+@pytest.mark.xfail(strict=True, reason="open (issue 29): a ramp on the faulted bus's own station from the fault on "
+                   'passes through frames below 0.1 pu, which carry no usable angle (C37.118.1 sets no accuracy '
+                   'there) and which no test judges, and the request comes at the clearing: nothing is flagged, and '
+                   "Nordic 44's cut grows from 4 branches to 7 (docs/attacks.md, ramp_back)")
+def test_a_ramp_through_the_fault_on_the_faulted_bus_station_cannot_steer():
+    from controlled_islanding.evaluation.attack_sweep import attack_start_s, run_pipeline
+    from controlled_islanding.evaluation.cases import coherency_node_parameters
+
+    bag = _bag('nordic44_bus6000_three_groups')
+    params = coherency_node_parameters()
+    clean = run_pipeline(bag, bag, params=params)
+    attacked = run_pipeline(bag, attack(bag, 'ramp_back', ['PMU_6000/GENROU_34'], attack_start_s(bag)),
+                            params=params)
+    assert attacked.refused or attacked.key() == clean.key()

@@ -147,6 +147,28 @@ def test_a_stat_flagged_frame_counts_as_lost(ieee14: Run) -> None:
     assert np.abs(unflagged[k] - flagged[k]).max() > 1e-3  # the garbage would have mattered
 
 
+@pytest.mark.parametrize('run_name', ['ieee14', 'pjm5'])
+def test_the_innovation_of_a_time_shift_is_far_beyond_the_gate_and_the_gate_keeps_it_out(run_name, request) -> None:
+    """A +20 degree step on both phasors of one machine (a GPS time shift): its NIS, and the gate's effect."""
+    run: Run = request.getfixturevalue(run_name)
+    k = int(np.searchsorted(run.t_s, 0.8))
+    t = run.t_s[:k + 1]
+    honest = RotorAngleDSE(innovation_gate=55.0).fit(run.machines)
+    honest.track(t, *(x[:k + 1] for x in run.phasors))
+    assert np.nanmax(honest.nis_) < 55.0 and np.isfinite(honest.nis_).all()
+    shifted = [x[:k + 1].copy() for x in run.phasors]
+    for x in (shifted[1], shifted[3]):
+        x[k, 0] += np.deg2rad(20.0)
+    gated = RotorAngleDSE(innovation_gate=55.0).fit(run.machines)
+    angles = gated.track(t, *shifted)
+    assert gated.nis_[0] > 10 * 55.0 and np.nanmax(gated.nis_[1:]) < 55.0
+    ungated = RotorAngleDSE().fit(run.machines)
+    taken = ungated.track(t, *shifted)
+    assert ungated.nis_[0] == pytest.approx(gated.nis_[0])
+    # Gated, the machine's angle is the filter's prediction; taken, the step pulls it.
+    assert abs(angles[k, 0] - run.truth_rad[k, 0]) < 0.01 < abs(taken[k, 0] - run.truth_rad[k, 0])
+
+
 def test_model_cap_and_fallbacks(ieee14: Run) -> None:
     m = ieee14.machines
     assert RotorAngleDSE(model='two_axis').fit(m).models_ == ('two_axis',) * len(m.names)

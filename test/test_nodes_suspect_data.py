@@ -132,3 +132,58 @@ def partitioning_snapshot(node, snapshot) -> tuple:
     grid = node.intake.grid(snapshot)
     assert grid is not None
     return grid, stamp_s(snapshot.header.stamp)
+
+
+def test_pmu_ingestion_flags_a_ct_ratio_error_by_the_filters_innovation_and_marks_the_frames_after(bag):
+    """Current x1.5 on G6's station from the fault's first frame of the default bag: only the filter can see it."""
+    from controlled_islanding.nodes.pmu_ingestion import PmuIngestionNode
+    from controlled_islanding.wire.messages import stamp_s
+
+    snapshot, _ = bag
+    frames = []
+    with AnyReader([REPO / 'bags' / default_bag()['bag']], default_typestore=typestore()) as reader:
+        for conn, _, raw in reader.messages():
+            if conn.topic == topics.PMU_FRAMES:
+                frames.append(deserialize_message(bytes(raw), PmuFrame))
+    t0 = stamp_s(snapshot.header.stamp)
+    frames = [f for f in frames if stamp_s(f.header.stamp) - t0 <= 5.3]
+    node = PmuIngestionNode()
+    angles = caught(node, 'pub')
+    node._take_snapshot(snapshot)
+    for frame in frames:
+        msg = copy.deepcopy(frame)
+        if stamp_s(msg.header.stamp) - t0 > 5.01:
+            m = next(m for m in msg.measurements if m.station_id == 'PMU_35')
+            m.current_magnitude_pu *= 1.5
+        node._take_frame(msg)
+    j = list(angles[-1].generator_names).index(next(
+        g for g, b in zip(snapshot.generator_names, snapshot.generator_bus, strict=True) if b == 35))
+    marked = [stamp_s(a.header.stamp) - t0 for a in angles if a.suspect_reason and a.suspect_reason[j]]
+    assert marked and 5.01 < marked[0] < 5.2 and marked[-1] == pytest.approx(5.3, abs=0.02)
+    assert all(a.suspect_reason[j] == 'innovation: PMU_35' and not a.valid[j]
+               for a in angles if a.suspect_reason and a.suspect_reason[j])
+    assert not any(r for a in angles if a.suspect_reason for i, r in enumerate(a.suspect_reason) if i != j)
+    assert 'PMU_35 (innovation)' in node.diag.values['suspect_stations']
+    node.destroy_node()
+
+
+@pytest.mark.parametrize('stat,usable', [
+    (0, True),
+    (0x4000, False),                        # bits 15-14 = 01: PMU error, no information about the data
+    (0x1000, False),                        # bit 12: sorted by arrival, the tag is not the data's own
+    (4 << 6, True), (5 << 6, False),        # PMU time quality within 1e-4 s, within 1e-3 s
+    (7 << 6, False),                        # time error unknown or over 10 ms
+    (1 << 4, False),                        # lock lost 10 s or more before
+    (0x2000, False)])                       # bit 13: not synchronised
+def test_pmu_ingestion_uses_data_only_with_a_good_stat_and_a_time_it_can_trust(bag, stat, usable):
+    from controlled_islanding.nodes.pmu_ingestion import PmuIngestionNode
+
+    snapshot, frames = bag
+    node = PmuIngestionNode()
+    node._take_snapshot(snapshot)
+    m = copy.deepcopy(frames[0].measurements[0])
+    m.stat = stat
+    assert node._judge(m, set()) == ('use' if usable else 'unusable')
+    synced = stat & 0xC000 or usable
+    assert node.diag.values.get('unsynced_measurements', '0') == ('0' if synced else '1')
+    node.destroy_node()

@@ -63,6 +63,7 @@ import numpy as np
 __all__ = ['DSEError', 'MODELS', 'MachineData', 'RotorAngleDSE', 'StreamingDSE', 'saturation_coefficients']
 
 MODELS = ('steady_state', 'classical', 'two_axis', 'genrou')
+_JUDGE_MIN_VOLTAGE_PU = 0.1  # C37.118.1 (class M) specifies accuracy from 10 % of rated voltage up
 _HALF_PI = 0.5 * np.pi
 
 
@@ -314,6 +315,8 @@ class _Bank:
         self.last_t = np.full(g, -np.inf)                # time of the last valid frame, s
         self.v_last = np.zeros(g, dtype=complex)
         self.i_last = np.zeros(g, dtype=complex)
+        self.nis = np.full(g, np.nan)                    # normalised innovation squared of the last frame
+        self.init_t = np.full(g, -np.inf)                # time of the last (re)initialisation, s
 
 
 class RotorAngleDSE:
@@ -330,25 +333,46 @@ class RotorAngleDSE:
             capped at 1/60 s, and one step per frame for the classical model (see _step_seconds).
         torque_walk_per_sqrt_s: Random-walk intensity of the mechanical torque, in units of the machine's output
             at initialisation (its apparent power, at least 0.1 pu) per square root of a second.
-        field_walk_per_sqrt_s: The same for the field voltage, in units of its value at initialisation (at least 1).
+        field_walk_per_sqrt_s: The same for the field voltage, in units of its value at initialisation (at least 1):
+            a high initial response exciter (IEEE 421.2) forces the field to its ceiling, about twice its rated
+            value, within 0.1 s: 2 / sqrt(0.1 s) moves it by 2 in 0.1 s at one sigma. At 1, the filter lagged
+            IEEE 14's field forcing through its fault by innovations of up to 7.4 sigma.
         flux_noise_per_sqrt_s: Model-error noise of the flux states, in units of the internal voltage.
         init_delta_std_rad: Standard deviation of the initial angle: the steady-state relations the filter starts
             from are exact at rest but not during a swing (after a gap).
         blind_speed_walk_pu_per_sqrt_s: Random walk of the speed while a machine's data are lost (its electrical
             torque is then unknown): after a fault speeds stay within about 1 % of nominal, so 0.005 pu over 1 s.
+        innovation_gate: A judged frame (see nis_) whose normalised innovation squared exceeds it does not correct
+            its machine's filter: data that contradict the model this far are not let in (core/bad_data.py
+            excludes the station from then on). inf: no gate.
+        judge_after_s: A machine's innovations are judged only this long after its (re)initialisation, s: the
+            steady-state relations the filter starts from hold at rest, and a machine that joins during a swing
+            takes a few tenths of a second to be learnt (a Kundur machine at 10 % overspeed: 0.35 s above the
+            bound of core/bad_data.py).
 
     Attributes (after fit):
         models_: Model used for each machine (a name in MODELS, or '' when the machine has no usable data: NaN).
         delta_rad_: Latest rotor angle per machine, rad, NaN where none (after update).
         omega_pu_: Latest rotor speed per machine, pu (NaN for steady_state machines).
+        nis_: Normalised innovation squared of the latest frame per machine: the measured z = V + (ra + j x_s) I
+            against the filter's prediction, weighed by their covariance (chi-square with 2 degrees of freedom
+            where the model and the noise hold). Judged also where ``valid`` is False but the data are present
+            (a suspect station: compared, never corrected), and only where the frame is within the noise model:
+            the voltage at least 0.1 pu (below 10 % of rated C37.118.1 sets no accuracy at all), and the current
+            turned against the voltage since the last frame by at most 2 acos(1 - measurement_tve) rad (half-way
+            along the chord the filter takes between frames, a phasor turning by phi falls short by
+            1 - cos(phi / 2): within the TVE only up to that turn; a machine slipping poles turns further), and
+            not within judge_after_s of the machine's (re)initialisation. NaN elsewhere, and for steady_state
+            machines.
         n_initialisations_: Times each machine was (re-)initialised.
 
     """
 
     def __init__(self, model: str = 'auto', freq_hz: float = 60.0, max_gap_s: float = 0.5,
                  measurement_tve: float = 0.01, max_step_s: float | None = None, torque_walk_per_sqrt_s: float = 0.3,
-                 field_walk_per_sqrt_s: float = 1.0, flux_noise_per_sqrt_s: float = 0.01,
-                 init_delta_std_rad: float = 0.1, blind_speed_walk_pu_per_sqrt_s: float = 0.005) -> None:
+                 field_walk_per_sqrt_s: float = 2.0 / math.sqrt(0.1), flux_noise_per_sqrt_s: float = 0.01,
+                 init_delta_std_rad: float = 0.1, blind_speed_walk_pu_per_sqrt_s: float = 0.005,
+                 innovation_gate: float = math.inf, judge_after_s: float = 0.5) -> None:
         self.model = model
         self.freq_hz = freq_hz
         self.max_gap_s = max_gap_s
@@ -359,6 +383,8 @@ class RotorAngleDSE:
         self.flux_noise_per_sqrt_s = flux_noise_per_sqrt_s
         self.init_delta_std_rad = init_delta_std_rad
         self.blind_speed_walk_pu_per_sqrt_s = blind_speed_walk_pu_per_sqrt_s
+        self.innovation_gate = innovation_gate
+        self.judge_after_s = judge_after_s
 
     # ----------------------------------------------------------------------------------------------------- set-up
     def fit(self, machines: MachineData) -> RotorAngleDSE:
@@ -406,9 +432,9 @@ class RotorAngleDSE:
         twin = copy.copy(self)
         twin._banks = [copy.copy(bank) for bank in self._banks]
         for bank in twin._banks:
-            for name in ('x', 'cov', 'aux', 'q_rate', 'live', 'last_t', 'v_last', 'i_last'):
+            for name in ('x', 'cov', 'aux', 'q_rate', 'live', 'last_t', 'v_last', 'i_last', 'nis', 'init_t'):
                 setattr(bank, name, getattr(bank, name).copy())
-        for name in ('delta_rad_', 'omega_pu_', '_steady_last_t', 'n_initialisations_'):
+        for name in ('delta_rad_', 'omega_pu_', 'nis_', '_steady_last_t', 'n_initialisations_'):
             setattr(twin, name, getattr(self, name).copy())
         return twin
 
@@ -418,10 +444,12 @@ class RotorAngleDSE:
         for bank in self._banks:
             bank.live[:] = False
             bank.last_t[:] = -np.inf
+            bank.init_t[:] = -np.inf
             bank.x[:] = np.nan
         self._t_s: float | None = None
         self.delta_rad_ = np.full(n, np.nan)
         self.omega_pu_ = np.full(n, np.nan)
+        self.nis_ = np.full(n, np.nan)
         self._steady_last_t = np.full(n, -np.inf)
         self.n_initialisations_ = np.zeros(n, dtype=int)
         return self
@@ -453,16 +481,18 @@ class RotorAngleDSE:
             raise DSEError(f'one value per machine ({n}) needed, got shapes {[a.shape for a in arrays]}')
         v = arrays[0] * np.exp(1j * arrays[1])
         i = arrays[2] * np.exp(1j * arrays[3])
-        ok = np.isfinite(v) & np.isfinite(i)
+        seen = np.isfinite(v) & np.isfinite(i)
+        ok = seen.copy()
         if valid is not None:
             ok &= np.asarray(valid, dtype=bool).reshape(-1)
+        self.nis_ = np.full(n, np.nan)
         t = float(t_s)
         if self._t_s is not None and not t > self._t_s:
             raise DSEError(f'frame at {t} s is not after the previous one at {self._t_s} s')
         dt = None if self._t_s is None else t - self._t_s
         self._t_s = t
         for bank in self._banks:
-            self._step_bank(bank, t, dt, v[bank.rows], i[bank.rows], ok[bank.rows])
+            self._step_bank(bank, t, dt, v[bank.rows], i[bank.rows], ok[bank.rows], seen[bank.rows])
         self._steady_state(t, v, i, ok)
         return self.delta_rad_.copy()
 
@@ -514,12 +544,16 @@ class RotorAngleDSE:
         return min([1.0 / 60.0] + [0.6 * c for c in constants])
 
     def _step_bank(self, bank: _Bank, t: float, dt: float | None, v: np.ndarray, i: np.ndarray,
-                   ok: np.ndarray) -> None:
+                   ok: np.ndarray, seen: np.ndarray) -> None:
         gap = t - bank.last_t
         stale = bank.live & ~ok & (gap > self.max_gap_s)
         bank.live &= ~stale
         start = ok & (~bank.live | (gap > self.max_gap_s))
         run = bank.live & ~start
+        with np.errstate(invalid='ignore'):
+            turn = np.abs(np.angle(v * np.conj(i) * np.conj(bank.v_last * np.conj(bank.i_last))))
+            judged = ((np.abs(v) >= _JUDGE_MIN_VOLTAGE_PU) & (turn <= 2 * np.arccos(1 - self.measurement_tve))
+                      & (t - bank.init_t >= self.judge_after_s - 1e-9))
         if dt is not None and run.any():
             # Lost data: the last inputs are held; valid data: inputs go linearly from the last to this frame's,
             # except on the first frame after lost ones, where the held inputs are stale: this frame's stand.
@@ -532,9 +566,12 @@ class RotorAngleDSE:
             bank.filter_frame(bank.kind, bank.x, bank.cov, bank.aux, bank.q_rate, bank.par, run, run & ok,
                               ~ok | resumed, bank.v_last, v_end, bank.i_last, i_end, v, i, dt, steps,
                               2 * np.pi * self.freq_hz, self.measurement_tve / 3.0,
-                              self.blind_speed_walk_pu_per_sqrt_s)
+                              self.blind_speed_walk_pu_per_sqrt_s, run & seen & judged, self.innovation_gate,
+                              bank.nis)
+            self.nis_[bank.rows] = bank.nis
         if start.any():
             self._initialise(bank, start, v, i)
+            bank.init_t[start] = t
         bank.v_last = np.where(ok, v, bank.v_last)
         bank.i_last = np.where(ok, i, bank.i_last)
         bank.last_t = np.where(ok, t, bank.last_t)
@@ -644,6 +681,9 @@ class StreamingDSE:
         lost_frames: Time tags the filter stepped as lost.
         late_frames: Frames that arrived after their tag was passed.
         ahead_frames: Frames answered by a copy of the filter, ahead of a missing tag.
+        innovations: (time tag, RotorAngleDSE.nis_) of each frame the filter took, in order, until the caller
+            takes them (at most the frames of ``history_s``): a frame's innovation is known only once the filter
+            takes it, which is up to ``reorder_s`` after it came.
 
     """
 
@@ -661,6 +701,7 @@ class StreamingDSE:
         self.lost_frames = 0
         self.late_frames = 0
         self.ahead_frames = 0
+        self.innovations: deque[tuple[float, np.ndarray]] = deque()
 
     def fallback_names(self) -> tuple[str, ...]:
         """Machines estimated by the steady-state relation (no usable dynamic data), or not at all ('')."""
@@ -734,6 +775,10 @@ class StreamingDSE:
 
     def _take(self, t: float, v_mag, v_ang, i_mag, i_ang, valid) -> np.ndarray:
         angles = self.dse.update(t, v_mag, v_ang, i_mag, i_ang, valid)
+        if np.isfinite(self.dse.nis_).any():
+            self.innovations.append((t, self.dse.nis_.copy()))
+            while self.innovations[0][0] < t - self.history_s:
+                self.innovations.popleft()
         self._history.append((t, angles))
         while self._history and self._history[0][0] < t - self.history_s:
             self._history.popleft()

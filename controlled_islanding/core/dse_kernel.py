@@ -255,7 +255,7 @@ def _sigma_points(x, cov, root, pts):
 
 @numba.njit(cache=True)
 def filter_frame(kind, x, cov, aux, q_rate, par, run, correct, blind, v0, v_end, i0, i_end, v, i, dt, steps,
-                  omega_base, sigma_tve, blind_walk):
+                  omega_base, sigma_tve, blind_walk, judge, gate, nis):
     """One frame of the filter for the machines in run: predict over dt, then correct where correct.
 
     Args:
@@ -269,6 +269,10 @@ def filter_frame(kind, x, cov, aux, q_rate, par, run, correct, blind, v0, v_end,
         omega_base: 2 pi f, rad/s.
         sigma_tve: Standard deviation of the phasors' relative error.
         blind_walk: Random walk of the speed while blind, pu / sqrt(s).
+        judge: Machines whose measurement (v, i) is compared with the prediction, corrected or not (g,).
+        gate: A judged machine whose normalised innovation squared exceeds it is not corrected.
+        nis: Out (g,): the normalised innovation squared of the machines in judge (chi-square with 2 degrees of
+            freedom when the filter's model and noise hold), NaN elsewhere.
 
     """
     g, n = x.shape
@@ -286,6 +290,7 @@ def filter_frame(kind, x, cov, aux, q_rate, par, run, correct, blind, v0, v_end,
     h = dt / steps
     w_pt = 1.0 / npts  # the cubature weight; divisions are the slowest arithmetic here, so one, then products
     for m in range(g):
+        nis[m] = np.nan
         if not run[m]:
             continue
         p = par[m]
@@ -336,7 +341,7 @@ def filter_frame(kind, x, cov, aux, q_rate, par, run, correct, blind, v0, v_end,
             cm[1, 1] += blind_walk ** 2 * dt
         for a in range(n):
             xm[a] = mean[a]
-        if not correct[m]:
+        if not (correct[m] or judge[m]):
             continue
         # ---- correct with z = V + (ra + j x_s) I
         _sigma_points(xm, cm, root, pts)
@@ -365,6 +370,12 @@ def filter_frame(kind, x, cov, aux, q_rate, par, run, correct, blind, v0, v_end,
         inv_det = 1.0 / det
         inv00, inv01, inv11 = s11 * inv_det, -s01 * inv_det, s00 * inv_det
         in0, in1 = meas_r - zm_r, meas_i - zm_i
+        if judge[m]:
+            nis[m] = in0 * (inv00 * in0 + inv01 * in1) + in1 * (inv01 * in0 + inv11 * in1)
+            if nis[m] > gate:
+                continue
+        if not correct[m]:
+            continue
         for a in range(n):  # gain row a = cxz[a] S^-1, kept in k3 (column 0) and k4 (column 1)
             c0, c1 = 0.0, 0.0
             for k in range(npts):
@@ -400,7 +411,7 @@ def warm_up() -> None:
         i = np.full(g, 0.8 - 0.1j)
         on = np.ones(g, dtype=bool)
         filter_frame(kind, x, cov, np.ones(g), np.full((g, n), 1e-6), par, on, on, ~on, v, v, i, i, v, i,
-                      1.0 / 60.0, 1, 2 * np.pi * 60.0, 0.01 / 3, 0.005)
+                      1.0 / 60.0, 1, 2 * np.pi * 60.0, 0.01 / 3, 0.005, on, np.inf, np.empty(g))
 
 
 warm_up()

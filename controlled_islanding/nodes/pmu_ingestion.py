@@ -3,13 +3,15 @@
 Frames are published as soon as they arrive, stamped with their time tag, so a frame never waits for a late
 one; the coherency node orders its window by time tag. A frame repeating a time tag already seen is a
 duplicate; one older than the newest by more than `max_delay_s` is too late. A PMU whose STAT says "do not
-use" (bit 15) or "not synchronised to UTC" (bit 13, whose angles then have no common reference: pdc_client
-also sets it where the message or PMU time quality claims more than its `max_time_error_s`, or lock was lost
-10 s or more before), or that is absent from the frame, gives `valid = false` for its generator; bit 13 is
-counted in `unsynced_measurements`. Rotor angles come from the core estimator with the generator reactances of
-the latest /network/snapshot. A generator's PMU is the channel
-whose station id ends in '/<generator name>' (where machines share a bus, each has its own current), else the
-one at its bus.
+use" or "PMU error, no information about data" (bits 15-14 other than 00), or whose time cannot be trusted, or
+that is absent from the frame, gives `valid = false` for its generator. Time untrusted, counted in
+`unsynced_measurements` (the angles then have no common reference): "not synchronised to UTC" (bit 13;
+pdc_client also sets it where the frame's FRACSEC time quality claims more than its `max_time_error_s`), "sorted
+by arrival" (bit 12: a PDC put the data under a time tag that is not its own), or the PMU's own time quality
+(bits 8-6) or time since it lost lock (bits 5-4, 10 s or more) worse than `max_time_error_s` (read here too, so
+that a stream from any PDC, not only pdc_client, is held to it). Rotor angles come from the core estimator
+with the generator reactances of the latest /network/snapshot. A generator's PMU is the channel whose station id
+ends in '/<generator name>' (where machines share a bus, each has its own current), else the one at its bus.
 
 `estimator` chooses how: 'dse' (default), core.dse's Kalman filter on each machine's model from the snapshot's
 machine data (core.dse.StreamingDSE: each frame answered on arrival, a frame ahead of a missing tag from a copy
@@ -20,9 +22,12 @@ steady-state estimate; /diagnostics names them (`dse_fallback`). With 'dse', `va
 had usable data for the generator": where it is false the angle is the filter's prediction.
 
 Bad data (core/bad_data.py): every station's usable data are judged frame by frame (reported frequency against
-its angles' own rate, frozen and replayed content). A suspect station is excluded: its generator gets
-`valid = false` with the test in `suspect_reason`, the filter steps it as lost, /diagnostics warns naming it
-(`suspect_stations`, counted in `suspect_flags`), and it returns after `bad_data_clean_s` of clean data.
+its angles' own rate, frozen and replayed content, and, with 'dse', the filter's innovation: the phasors against
+the machine model's prediction). A suspect station is excluded: its generator gets `valid = false` with the test
+in `suspect_reason`, the filter steps it as lost (its data still compared with the prediction, never taken),
+/diagnostics warns naming it (`suspect_stations`, counted in `suspect_flags`), and it returns after
+`bad_data_clean_s` of clean data. The filter takes a frame up to `dse_reorder_s` after it came, so a station
+flagged by its innovation is marked from the frame in which the filter took the offending one.
 
 Time tags are bounded by the node's own clock (sim time in replay): a frame or snapshot stamped more than
 `future_tolerance_s` ahead of it is refused, so it never becomes "the newest" that every honest frame would
@@ -56,7 +61,12 @@ from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.messages import stamp_s
 
-_UNUSABLE = 0x8000  # STAT bit 15: 10 = data invalid, 11 = PMU error
+_UNUSABLE = 0xC000  # STAT bits 15-14: 01 = PMU error, no information about data; 10 = data invalid; 11 = PMU error
+_SORT_BY_ARRIVAL = PmuMeasurement.STAT_SORT_BY_ARRIVAL  # bit 12
+_TIME_QUALITY_SHIFT, _UNLOCKED_SHIFT = 6, 4  # STAT bits 8-6 and 5-4 (C37.118.2-2011, table 7)
+# Worst time error, s, of each PMU time quality code (bits 8-6): 0 = not used (a 2005 device: no information),
+# 1 = < 100 ns ... 6 = < 10 ms, 7 = > 10 ms or unknown.
+_PMU_TIME_ERROR_S = (None, 1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2, math.inf)
 _FIELDS = ('voltage_magnitude_pu', 'voltage_angle_rad', 'current_magnitude_pu', 'current_angle_rad')
 _MAX_STATION_ID_CHARS = 256  # a remembered key longer than any real PMU name only costs memory
 _MAX_STALE_NAMED = 50  # stale station ids listed in /diagnostics
@@ -108,6 +118,7 @@ class PmuIngestionNode(Node):
             'how long, s, the filter waits for a missing time tag once a newer frame has come (frames are still '
             'answered at once; a longer wait uses more late frames, at the cost of more work while it waits)'))
         self.stream: StreamingDSE | None = None
+        self.frame_stations: OrderedDict[int, list[str]] = OrderedDict()  # time-tag key -> station per generator
         self.declare_parameter('bad_data', True)
         noise_tve = float(declare_bounded(
             self, 'bad_data_noise_tve', 0.01, 1e-6, 0.5,
@@ -115,6 +126,11 @@ class PmuIngestionNode(Node):
         clean_s = float(declare_bounded(
             self, 'bad_data_clean_s', 1.0, 0.0, 3600.0,
             'clean data, s of time tags, a suspect PMU station needs before it is used again'))
+        self.max_time_error_s = float(declare_bounded(
+            self, 'max_time_error_s', 1e-4, 0.0, 10.0,
+            'a PMU whose STAT time quality (bits 8-6) claims a worse time error, s, or that lost lock 10 s or more '
+            'before (bits 5-4), is not synchronised; 1e-4 s is 2.2 degrees at 60 Hz (pdc_client holds FRACSEC to '
+            'its own)'))
         try:
             self.detector = (BadDataDetector(noise_tve=noise_tve, clean_s=clean_s)
                              if self.get_parameter('bad_data').value else None)
@@ -190,7 +206,8 @@ class PmuIngestionNode(Node):
             return True
         try:
             self.stream = StreamingDSE(machines, self.rate_fps, self.dse_reorder_s, history_s=self.max_delay_s,
-                                       model=self.dse_model, max_gap_s=self.dse_max_gap_s)
+                                       model=self.dse_model, max_gap_s=self.dse_max_gap_s,
+                                       innovation_gate=self.detector.nis_bound if self.detector else math.inf)
         except DSEError as exc:
             self.diag.reject('bad_value', f'network snapshot: no rotor angle filter from its machine data: {exc}')
             return False
@@ -220,7 +237,7 @@ class PmuIngestionNode(Node):
             return 'rejected'
         if m.stat & _UNUSABLE:
             return 'unusable'
-        if m.stat & PmuMeasurement.STAT_SYNC_ERROR:
+        if not self._synchronised(m.stat):
             self.unsynced += 1
             self.diag.values['unsynced_measurements'] = str(self.unsynced)
             return 'unusable'
@@ -228,6 +245,13 @@ class PmuIngestionNode(Node):
             self.diag.reject('nan_value', f'PMU {m.station_id}: NaN or inf phasor with a good STAT')
             return 'unusable'
         return 'use'
+
+    def _synchronised(self, stat: int) -> bool:
+        """Whether a STAT word lets the data's angles be trusted against its time tag."""
+        if stat & (PmuMeasurement.STAT_SYNC_ERROR | _SORT_BY_ARRIVAL) or (stat >> _UNLOCKED_SHIFT) & 0x3:
+            return False
+        error_s = _PMU_TIME_ERROR_S[(stat >> _TIME_QUALITY_SHIFT) & 0x7]
+        return error_s is None or error_s <= self.max_time_error_s
 
     def _remember(self, station: str, bus: int, usable_at_s: float) -> None:
         bus_was, last_s = self.stations.pop(station, (bus, -math.inf))
@@ -281,10 +305,14 @@ class PmuIngestionNode(Node):
                 by_generator[m.station_id.rpartition('/')[2]] = m
             if verdict != 'rejected':
                 self._remember(m.station_id, int(m.bus), t if verdict == 'use' else -math.inf)
+        sources = self._sources(by_bus, by_generator)
         suspect = self._screen(t, by_bus, by_generator)
         try:
-            angles = (self._dse_angles(frame, t, by_bus, by_generator) if self.stream is not None
-                      else self._angles(frame, by_bus, by_generator))
+            if self.stream is not None:
+                angles = self._dse_angles(frame, t, sources, suspect)
+                suspect = self._innovations(key, sources, suspect)
+            else:
+                angles = self._angles(frame, by_bus, by_generator)
             self._mark_suspect(angles, suspect)
         except (RotorAngleError, DSEError) as exc:  # the snapshot validator should make this impossible
             self.diag.reject('compute_failed', f'rotor angles of the frame at {t:.3f} s: {exc}')
@@ -306,8 +334,14 @@ class PmuIngestionNode(Node):
             return {}
         used = {m.station_id: m for m in [*by_bus.values(), *by_generator.values()]}
         ms = list(used.values())
+        scheduled: dict[str, float] = {}
+        for g in self.grid.generators:
+            m = by_generator.get(g.name) or by_bus.get(g.bus)
+            if m is not None:
+                scheduled[m.station_id] = scheduled.get(m.station_id, 0.0) + g.p_mw / self.grid.base_mva
         suspects = self.detector.judge(t, [m.station_id for m in ms], *(
-            [getattr(m, f) for m in ms] for f in (*_FIELDS, 'frequency_hz', 'rocof_hz_per_s')))
+            [getattr(m, f) for m in ms] for f in (*_FIELDS, 'frequency_hz', 'rocof_hz_per_s')),
+            [scheduled.get(m.station_id, math.nan) for m in ms])
         out = {}
         for g in self.grid.generators:
             m = by_generator.get(g.name) or by_bus.get(g.bus)
@@ -316,6 +350,11 @@ class PmuIngestionNode(Node):
         for table in (by_bus, by_generator):
             for key in [k for k, m in table.items() if m.station_id in suspects]:
                 del table[key]
+        self._name_suspects(suspects)
+        return out
+
+    def _name_suspects(self, suspects: dict[str, str]) -> None:
+        assert self.detector is not None
         named = ','.join(f'{sid} ({why})' for sid, why in sorted(suspects.items())[:_MAX_STALE_NAMED])
         if named != self.suspect_named:
             self.suspect_named = named
@@ -323,11 +362,40 @@ class PmuIngestionNode(Node):
             self.diag.values['suspect_flags'] = str(self.detector.flags)
             self.diag.warn('suspect_data', f'{len(suspects)} PMU station(s) excluded as suspect data: {named}'
                            if suspects else None)
+
+    def _sources(self, by_bus: dict[int, PmuMeasurement],
+                 by_generator: dict[str, PmuMeasurement]) -> list[PmuMeasurement | None]:
+        """Each generator's channel in this frame (its own, else its bus's), before any is found suspect."""
+        assert self.grid is not None
+        return [by_generator.get(g.name) or by_bus.get(g.bus) for g in self.grid.generators]
+
+    def _innovations(self, key: int, sources: list[PmuMeasurement | None],
+                     suspect: dict[str, str]) -> dict[str, str]:
+        """Judge the innovations of the frames the filter took; return generator name -> reason for this frame."""
+        assert self.grid is not None and self.stream is not None
+        self.frame_stations[key] = [m.station_id if m is not None else '' for m in sources]
+        while len(self.frame_stations) > self.max_early:
+            self.frame_stations.popitem(last=False)
+        if self.detector is None:
+            self.stream.innovations.clear()
+            return suspect
+        suspects = self.detector.suspects()
+        while self.stream.innovations:
+            t_taken, nis = self.stream.innovations.popleft()
+            ids = self.frame_stations.get(int(round(t_taken * self.rate_fps)))
+            if ids is not None:
+                suspects = self.detector.innovations(t_taken, ids, np.where([bool(x) for x in ids], nis, np.nan))
+        out = dict(suspect)
+        for g, m in zip(self.grid.generators, sources, strict=True):
+            if m is not None and m.station_id in suspects and g.name not in out:
+                out[g.name] = f'{suspects[m.station_id]}: {m.station_id}'
+        self._name_suspects(suspects)
         return out
 
     def _mark_suspect(self, angles: RotorAngles, suspect: dict[str, str]) -> None:
         if suspect:
             angles.suspect_reason = [suspect.get(n, '') for n in angles.generator_names]
+            angles.valid = [v and n not in suspect for v, n in zip(angles.valid, angles.generator_names, strict=True)]
 
     def _angles(self, frame: PmuFrame, by_bus: dict[int, PmuMeasurement],
                 by_generator: dict[str, PmuMeasurement]) -> RotorAngles:
@@ -356,15 +424,16 @@ class PmuIngestionNode(Node):
                            generator_buses=[g.bus for g in gens], angle_rad=np.where(valid, angles, 0.0).tolist(),
                            valid=valid.tolist())
 
-    def _dse_angles(self, frame: PmuFrame, t: float, by_bus: dict[int, PmuMeasurement],
-                    by_generator: dict[str, PmuMeasurement]) -> RotorAngles:
+    def _dse_angles(self, frame: PmuFrame, t: float, source: list[PmuMeasurement | None],
+                    suspect: dict[str, str]) -> RotorAngles:
         assert self.grid is not None and self.stream is not None
         gens = self.grid.generators
-        source = [by_generator.get(g.name) or by_bus.get(g.bus) for g in gens]
-        valid = np.array([m is not None for m in source])
+        seen = np.array([m is not None for m in source])
         cols = np.full((len(gens), len(_FIELDS)), np.nan)
-        for i in np.flatnonzero(valid):
+        for i in np.flatnonzero(seen):
             cols[i] = [getattr(source[i], f) for f in _FIELDS]
+        # A suspect station's data go in as not valid: compared with the filter's prediction, never taken.
+        valid = seen & np.array([g.name not in suspect for g in gens])
         angles = self.stream.offer(t, *cols.T, valid)
         for key in ('lost_frames', 'late_frames', 'ahead_frames'):
             self.diag.values[f'dse_{key}'] = str(getattr(self.stream, key))

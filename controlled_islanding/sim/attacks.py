@@ -10,6 +10,7 @@ leave it. Rows are time tags (BagData's uniform grid), columns channels.
 - ``current``: current magnitude x1.5 (a CT ratio error).
 - ``step``: +20 degrees on both angles (a GPS time shift of about 0.9 ms at 60 Hz).
 - ``ramp2``: the ramp on two stations at once (the coordinated case; give two stations).
+- ``ramp_back``: -2 rad/s on both angles: a spoofed speed against the way a machine at the fault accelerates.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 
 __all__ = ['ATTACKS', 'AttackError', 'attack', 'with_tve_noise']
 
-ATTACKS = ('ramp', 'replay', 'frozen', 'current', 'step', 'ramp2')
+ATTACKS = ('ramp', 'replay', 'frozen', 'current', 'step', 'ramp2', 'ramp_back')
 RAMP_RAD_PER_S = 2.0
 REPLAY_LAG_S = 1.0
 CURRENT_FACTOR = 1.5
@@ -55,9 +56,10 @@ def attack(channels, name: str, stations: Sequence[str], start_s: float):
     out = {f: np.array(getattr(channels, f), copy=True) for f in _FIELDS}
     elapsed = (tags[rows] - start_s)[:, None]
     idx = np.ix_(rows, cols)
-    if name in ('ramp', 'ramp2'):
-        out['v_angle_rad'][idx] += RAMP_RAD_PER_S * elapsed
-        out['i_angle_rad'][idx] += RAMP_RAD_PER_S * elapsed
+    if name in ('ramp', 'ramp2', 'ramp_back'):
+        rate = -RAMP_RAD_PER_S if name == 'ramp_back' else RAMP_RAD_PER_S
+        out['v_angle_rad'][idx] += rate * elapsed
+        out['i_angle_rad'][idx] += rate * elapsed
     elif name == 'step':
         out['v_angle_rad'][idx] += STEP_RAD
         out['i_angle_rad'][idx] += STEP_RAD
@@ -78,15 +80,20 @@ def attack(channels, name: str, stations: Sequence[str], start_s: float):
     return dataclasses.replace(channels, **out)
 
 
-def with_tve_noise(channels, noise_tve: float, seed: int = 0):
-    """Return a copy of `channels` with the scenario format's TVE noise (sim/pmu.py) added to every phasor.
+def with_tve_noise(channels, noise_tve: float, seed: int = 0, present_tve: float = 0.0):
+    """Return a copy of `channels` whose phasors carry the scenario format's TVE noise (sim/pmu.py) of noise_tve.
 
-    Each phasor is multiplied by (1 + e), e complex Gaussian of sigma noise_tve / 3 per part, |e| clipped to
-    noise_tve; frequency and ROCOF are left as they are (they are derived from the noise-free angle there too).
+    Each phasor is multiplied by (1 + e), e complex Gaussian, |e| clipped, as sim/pmu.py draws it; frequency and
+    ROCOF are left as they are (they are derived from the noise-free angle there too). Phasors that already carry
+    noise of present_tve (a bag's own scenario noise) get the independent part that brings the total standard
+    deviation to noise_tve's: sqrt(noise_tve^2 - present_tve^2).
     """
     from controlled_islanding.sim.pmu import _noisy
 
+    if not 0 <= present_tve <= noise_tve:
+        raise AttackError(f'TVE noise of {noise_tve} cannot be reached from phasors that carry {present_tve} already')
+    added = float(np.sqrt(noise_tve ** 2 - present_tve ** 2))
     rng = np.random.default_rng(seed)
-    v_mag, v_ang = _noisy(rng, np.asarray(channels.v_mag_pu), np.asarray(channels.v_angle_rad), noise_tve)
-    i_mag, i_ang = _noisy(rng, np.asarray(channels.i_mag_pu), np.asarray(channels.i_angle_rad), noise_tve)
+    v_mag, v_ang = _noisy(rng, np.asarray(channels.v_mag_pu), np.asarray(channels.v_angle_rad), added)
+    i_mag, i_ang = _noisy(rng, np.asarray(channels.i_mag_pu), np.asarray(channels.i_angle_rad), added)
     return dataclasses.replace(channels, v_mag_pu=v_mag, v_angle_rad=v_ang, i_mag_pu=i_mag, i_angle_rad=i_ang)
