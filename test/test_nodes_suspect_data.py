@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import rclpy
+from breaker_cases import made_test_keys
 from controlled_islanding_msgs.msg import IslandingDecision, IslandingRequest, NetworkSnapshot, PmuFrame, RotorAngles
 from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
@@ -111,6 +112,7 @@ def test_coherency_lists_the_suspect_apart_and_partitioning_refuses_naming_it(ba
     assert gen in msg.unobserved_generator_names and gen not in msg.generator_names
     coherency.destroy_node()
 
+    made_test_keys()  # the node signs with CONTROLLED_ISLANDING_KEYS (conftest), which no other test need have made
     partitioning = PartitioningNode()
     decisions = caught(partitioning, 'decision_pub')
     partitioning._apply_input(('snapshot', *partitioning_snapshot(partitioning, snapshot)))
