@@ -63,10 +63,12 @@ def boundary(grid: Grid, island: dict[int, int]) -> list[Branch]:
 
 
 def decision_msg(island: dict[int, int], cut: list, request_stamp_ns: int, *, key: object, status: int | None = None,
-                 decision_id: str | None = None, sign: bool = True) -> object:
-    """Return an (optionally signed) IslandingDecision (rclpy) for an island map and a cut.
+                 decision_id: str | None = None, sign: bool = True, shed: dict[int, float] | None = None,
+                 trips: list[str] | tuple[str, ...] = ()) -> object:
+    """Return an (optionally signed) IslandingDecision (rclpy) for an island map, a cut and remedial actions.
 
-    `cut` holds Branch objects or (id, from bus, to bus) tuples.
+    `cut` holds Branch objects or (id, from bus, to bus) tuples; `shed` is the load to shed per bus, MW, `trips` the
+    machines to trip.
     """
     from controlled_islanding_msgs.msg import IslandingDecision
 
@@ -78,7 +80,8 @@ def decision_msg(island: dict[int, int], cut: list, request_stamp_ns: int, *, ke
         status=status, split=status == IslandingDecision.STATUS_SPLIT,
         bus_numbers=buses, bus_island=[island[b] for b in buses],
         cut_branch_ids=[e[0] for e in entries], cut_from_bus=[int(e[1]) for e in entries],
-        cut_to_bus=[int(e[2]) for e in entries])
+        cut_to_bus=[int(e[2]) for e in entries], shed_bus=[int(b) for b in (shed or {})],
+        shed_mw=[float(mw) for mw in (shed or {}).values()], trip_generator_names=list(trips))
     msg.request_stamp.sec, msg.request_stamp.nanosec = divmod(int(request_stamp_ns), 1_000_000_000)
     msg.header.stamp = msg.request_stamp
     if sign:
