@@ -345,19 +345,35 @@ def test_randomized_adversary_never_breaks_a_rule(tmp_path):
 
 
 def test_the_rule_checker_catches_each_broken_rule():
+    Expected = breaker_soak.Expected
     cmd = {'event': 'command', 'decision_id': 'd1', 'commands': [{'breaker_id': 'CB-1', 'command_id': 'd1/CB-1'}]}
     armed = {'event': 'armed'}
-    valid = {'d1': {'CB-1'}}
+    valid = {'d1': Expected(frozenset({'CB-1'}))}
     assert breaker_soak.check_audit([armed, cmd], valid, ['d1/CB-1'])[0] == []
     assert breaker_soak.check_audit([cmd], valid, [])[0], 'a command while disarmed passed'
     assert breaker_soak.check_audit([armed, cmd], {}, [])[0], 'a command for an invalid decision passed'
-    assert breaker_soak.check_audit([armed, cmd], {'d1': {'CB-2'}}, [])[0], 'a wrong cut passed'
+    assert breaker_soak.check_audit([armed, cmd], {'d1': Expected(frozenset({'CB-2'}))}, [])[0], 'a wrong cut passed'
     assert breaker_soak.check_audit([armed, cmd, cmd], valid, [])[0], 'a repeated command passed'
     assert breaker_soak.check_audit([armed, cmd, {'event': 'start'}, cmd], valid, [])[0]
     reclosed = {'event': 'reclosed', 'breaker_id': 'CB-1'}
     again = {**cmd, 'decision_id': 'd2'}
-    assert breaker_soak.check_audit([armed, cmd, reclosed, again], {**valid, 'd2': {'CB-1'}}, [])[0] == []
+    assert breaker_soak.check_audit([armed, cmd, reclosed, again], {**valid, 'd2': valid['d1']}, [])[0] == []
     assert breaker_soak.check_audit([armed, cmd], valid, ['ghost/CB-9'])[0], 'an unlogged command passed'
+    # Remedial actions: only the decision's own, no machine twice, never more shed at a bus than its load.
+    shed = {'breaker_id': 'LS-4', 'command_id': 'd3/LS-4', 'action': 'shed', 'bus': 4, 'amount_mw': 30.0}
+    trip = {'breaker_id': 'GCB-G2', 'command_id': 'd3/GCB-G2', 'action': 'trip', 'bus': 2, 'generator': 'G2'}
+    acts = {'event': 'command', 'decision_id': 'd3', 'commands': [cmd['commands'][0], shed, trip]}
+    own = Expected(frozenset({'CB-1'}), frozenset({('shed', 4, 30.0), ('trip', 'G2')}))
+    load = {4: 50.0}
+    assert breaker_soak.check_audit([armed, acts], {'d3': own}, ['d3/LS-4'], bus_load=load)[0] == []
+    assert breaker_soak.check_audit([acts], {'d3': own}, [], bus_load=load)[0], 'an action while disarmed passed'
+    assert breaker_soak.check_audit([armed, acts], {'d3': Expected(frozenset({'CB-1'}))}, [], bus_load=load)[0], \
+        'an action the decision does not carry passed'
+    later = {'event': 'command', 'decision_id': 'd4', 'commands': [trip, {**shed, 'amount_mw': 25.0}]}
+    later_own = Expected(frozenset(), frozenset({('shed', 4, 25.0), ('trip', 'G2')}))
+    broken = breaker_soak.check_audit([armed, acts, later], {'d3': own, 'd4': later_own}, [], bus_load=load)[0]
+    assert any('tripped twice' in b for b in broken) and any('bus 4' in b for b in broken), broken
+    assert breaker_soak.check_audit([armed, acts], {'d3': own}, [], max_actions=1, bus_load=load)[0]
 
 
 def test_a_disk_that_fills_up_mid_run_refuses_and_the_node_lives():
