@@ -193,9 +193,13 @@ def render(summary: dict) -> str:
     lines.append(f'cut lines: {", ".join(summary["cut_branch_ids"]) or "none"}')
     lines.append(f'disrupted power flow: {summary["disrupted_mw"]:.2f} MW')
     cmds = summary['breaker_commands']
-    lines.append('breaker commands: ' + (', '.join(
-        f'{c["action"]} {c["breaker_id"]}' + (f' {c["amount_mw"]:.1f} MW' if 'amount_mw' in c else '')
-        for c in cmds) or 'none'))
+    opens = [c for c in cmds if c['action'] not in ('shed', 'trip')]
+    lines.append('breaker commands: ' + (', '.join(f'{c["action"]} {c["breaker_id"]}' for c in opens) or 'none'))
+    sheds = [c for c in cmds if c['action'] == 'shed']
+    trips = [c['generator'] for c in cmds if c['action'] == 'trip']
+    if sheds or trips:
+        lines.append(f'remedial actions commanded: shed {sum(c["amount_mw"] for c in sheds):.1f} MW at {len(sheds)} '
+                     f'load buses; ' + (f'tripped {", ".join(trips)}' if trips else 'no machine tripped'))
     if summary['latency_request_to_command_ms'] is not None:
         lines.append(f'latency request -> breaker command: {summary["latency_request_to_command_ms"]:.1f} ms')
     else:

@@ -26,18 +26,18 @@ commands do not all come within a wait (grid_sim's command_wait_s, wall) opens t
 says which were missing; a command for a decision already switched opens on its own, late.
 
 Remedial actions (the decision's load shedding and generator tripping). The simulation decides none: what to
-shed where, and which machines to trip, is core/remedial.py's rule, carried by the signed decision and commanded by
-breaker_command; grid_sim applies the commanded actions, and run_offline the same rule's actions. Both are applied
-`shed_delay_s` after the cut. A shed of S MW at a bus whose load is L MW scales every ANDES load (PQ) on that bus by
-(1 - S / L), P and Q alike (each load keeps its power factor). ANDES converts PQ loads to constant impedance for the
-time-domain run, so all six of its equivalent constants (Ppf, Qpf, Req, Xeq, Ipeq, Iqeq) are scaled together. A
-machine trip is `set_status(idx, 0)` on the SynGen, which ANDES propagates to its governor, exciter and stabiliser;
-a tripped machine is judged with its island until its trip and left out afterwards (its state is frozen), and the
-output it is reported with is the simulation's at t = 0. A machine on a bus ANDES has left with no in-service
-branch is already off the network: its trip (the turbine's) is recorded but not switched in ANDES, whose solver does
-not converge when a machine on such a bus is switched off. An island of the present topology whose every machine
-is tripped is de-energised: its lines are opened (ANDES cannot solve an island with lines but no source: measured,
-IEEE 39 G3 multitrip stopped at the trip).
+shed where, and which machines to trip, is core/remedial.py's rule, carried by the signed decision and commanded
+by breaker_command; grid_sim applies the commanded actions, and run_offline the same rule's actions. Both are
+applied `shed_delay_s` after the cut. A shed of S MW at a bus whose pre-fault load is L MW scales every ANDES load
+(PQ) on that bus by (1 - S / L), P and Q alike (each load keeps its power factor; GridRun.shed_loads). ANDES
+converts PQ loads to constant impedance for the time-domain run, so all six of its equivalent constants (Ppf, Qpf,
+Req, Xeq, Ipeq, Iqeq) are scaled together. A machine trip is `set_status(idx, 0)` on the SynGen, which ANDES
+propagates to its governor, exciter and stabiliser; a tripped machine is judged with its island until its trip
+and left out afterwards (its state is frozen), and the output it is reported with is the simulation's at t = 0.
+A machine on a bus ANDES has left with no in-service branch is already off the network: its trip (the turbine's)
+is recorded but not switched in ANDES, whose solver does not converge when a machine on such a bus is switched
+off. An island of the present topology whose every machine is tripped is de-energised: its lines are opened
+(ANDES cannot solve an island with lines but no source: measured, IEEE 39 G3 multitrip stopped at the trip).
 
 The judge: the grid's own protection, and each island at the end of the run. Every rule comes from a standard,
 scaled to the case's nominal frequency f0 (ANDES `config.freq`: 50 Hz for Nordic 44, 60 Hz for the others) by
@@ -585,9 +585,10 @@ class GridRun:
     def shed_loads(self, shed_mw_by_bus: Mapping[int, float], at_s: float, why: str = 'shed') -> Applied:
         """Schedule a load shed at at_s (s): at each bus, shed_mw_by_bus[bus] MW of its pre-fault load.
 
-        A shed of S MW at a bus whose pre-fault load is L MW disconnects the share S / L of each of its loads (its
-        feeders): every PQ row of the bus is scaled by (1 - S / L), so what the grid's UFLS disconnected before
-        is not shed twice. The MW it removed, by bus, are in the action's detail once applied.
+        A shed of S MW at a bus whose pre-fault load is L MW disconnects the share S / L of what is still connected
+        of each of its loads (its feeders): every PQ row of the bus is scaled by (1 - S / L). After the grid's UFLS
+        has disconnected part of a load, the shed takes that share of the rest, so no MW is shed twice, and it
+        removes less than S. The MW it removed, by bus, are in the action's detail once applied.
 
         Raises:
             ClosedLoopError: A bus carries no load in the case, or the amount is not in (0, its load].
