@@ -514,7 +514,7 @@ def test_ufls_sheds_in_stages_as_the_grid_own_protection_and_load_served_is_net_
     """Kundur cut at 1.65 s with no shed by the decision: area 2 sinks; UFLS stages 1 and 2 shed 10 % each."""
     import networkx as nx
 
-    from controlled_islanding.core.remedial import RemedialActions
+    from controlled_islanding.core.remedial import RemedialActions, remedial_actions
     from controlled_islanding.sim.closed_loop import GridRun, run_offline
     from controlled_islanding.sim.scenario import load_scenario
 
@@ -537,6 +537,14 @@ def test_ufls_sheds_in_stages_as_the_grid_own_protection_and_load_served_is_net_
                        opened_s=1.65, config=LoopConfig(ufls_stages=()))
     assert not [a for a in none.actions if a.what.startswith('UFLS')]
     assert none.islands[1].f_end_hz < area2.f_end_hz  # the shed held area 2's frequency up
+    # By default an offline cut gets the remedial actions partitioning would put in its decision (core/remedial.py):
+    # area 2's 175 MW deficit shed at its load bus, shed_delay_s after the opening; judged net of it.
+    ruled = run_offline(scenario, 'cut', cut_branch_ids=cut, bus_island=bus_island, opened_s=1.65)
+    rule = remedial_actions(grid, bus_island)
+    (shed,) = [a for a in ruled.actions if a.what == 'shed']
+    assert rule.shed_mw and shed.detail['planned_mw_by_bus'] == rule.shed_by_bus
+    assert shed.applied_s == pytest.approx(1.65 + LoopConfig().shed_delay_s, abs=scenario.step_s)
+    assert ruled.islands[1].shed_mw == pytest.approx(sum(rule.shed_mw))
 
 
 def test_a_page_holds_notes_about_its_own_scenarios_only():
