@@ -1,11 +1,12 @@
-"""The breaker rules of controlled_islanding.safety.actuation, on six ANDES systems (no rclpy, no processes)."""
+"""The breaker rules of controlled_islanding.safety.actuation (cut and remedial actions) on six ANDES systems."""
 
 from __future__ import annotations
 
 import pytest
 from breaker_cases import ANDES_CASES, andes_grid, boundary, two_islands
 
-from controlled_islanding.safety.actuation import Refusal, plan_commands
+from controlled_islanding.core.remedial import bus_load_mw, remedial_actions
+from controlled_islanding.safety.actuation import Refusal, plan_actions, plan_commands
 
 pytestmark = pytest.mark.slow  # loading the six ANDES cases and their power flows takes ~12 s once
 
@@ -113,3 +114,84 @@ def test_mapping_file_overrides_the_snapshot(case):
     override = {cut[0].branch_id: 'FIELD-BREAKER-7'}
     result = plan(grid, island, entries(cut), breaker_override=override)
     assert 'FIELD-BREAKER-7' in {c.breaker_id for c in result.commands}
+
+
+# --- remedial actions (plan_actions) -------------------------------------------------------------------------------
+def actions_of(grid, island, sheds=None, trips=None, **kwargs):
+    kwargs.setdefault('max_actions', 10_000)
+    buses = sorted(island)
+    rule = remedial_actions(grid, island)
+    shed = rule.shed_by_bus if sheds is None else sheds
+    return plan_actions(grid, buses, [island[b] for b in buses], list(shed), list(shed.values()),
+                        list(rule.trip_generators if trips is None else trips), **kwargs)
+
+
+def refused_actions(reason, *args, **kwargs):
+    with pytest.raises(Refusal) as info:
+        actions_of(*args, **kwargs)
+    assert info.value.reason == reason, str(info.value)
+    return str(info.value)
+
+
+def test_the_rule_actions_pass_each_once_with_their_devices(case):
+    grid, island, _ = case
+    rule = remedial_actions(grid, island)
+    actions = actions_of(grid, island)
+    assert [(a.bus, a.amount_mw) for a in actions if a.kind == 'shed'] == list(rule.shed_by_bus.items())
+    assert [a.generator for a in actions if a.kind == 'trip'] == list(rule.trip_generators)
+    assert all(a.device_id == (f'LS-{a.bus}' if a.kind == 'shed' else f'GCB-{a.generator}') for a in actions)
+    # After they were carried out, only what is left of each bus's load can still be shed, and no machine tripped
+    # again: no action runs twice.
+    done = {a.bus: a.amount_mw for a in actions if a.kind == 'shed'}
+    if done:
+        left = {b: bus_load_mw(grid)[b] - mw for b, mw in done.items()}
+        actions_of(grid, island, shed_before_mw=done, sheds={b: mw for b, mw in left.items() if mw > 1e-6}, trips=[])
+        refused_actions('shed_beyond_load', grid, island, shed_before_mw=done, trips=[],
+                        sheds={b: mw + 1e-3 for b, mw in left.items()})
+    if rule.trip_generators:
+        refused_actions('generator_already_tripped', grid, island, tripped_before={rule.trip_generators[0]: 'd0'})
+
+
+def test_each_action_names_a_load_or_machine_of_the_snapshot_within_its_load(case):
+    grid, island, _ = case
+    loads = bus_load_mw(grid)
+    bus, load = max(loads.items(), key=lambda item: item[1])
+    assert actions_of(grid, island, sheds={bus: load}, trips=[])[0].amount_mw == load  # all of it is allowed
+    refused_actions('shed_beyond_load', grid, island, sheds={bus: load + 0.01}, trips=[])
+    refused_actions('shed_beyond_load', grid, island, sheds={bus: load / 2 + 0.01}, trips=[],
+                    shed_before_mw={bus: load / 2})
+    no_load = next(b for b in grid.buses if loads.get(b, 0.0) <= 0)
+    refused_actions('unknown_load_bus', grid, island, sheds={no_load: 1.0}, trips=[])
+    refused_actions('unknown_load_bus', grid, island, sheds={max(grid.buses) + 1: 1.0}, trips=[])
+    for bad in (0.0, -5.0, float('nan'), float('inf')):
+        refused_actions('bad_value', grid, island, sheds={bus: bad}, trips=[])
+    refused_actions('unknown_generator', grid, island, sheds={}, trips=['GENROU_999'])
+    name = grid.generators[0].name
+    refused_actions('duplicate_action', grid, island, sheds={}, trips=[name, name])
+    buses = sorted(island)
+    with pytest.raises(Refusal) as info:
+        plan_actions(grid, buses, [island[b] for b in buses], [bus, bus], [1.0, 1.0], [], max_actions=10)
+    assert info.value.reason == 'duplicate_action'
+    with pytest.raises(Refusal) as info:
+        plan_actions(grid, buses, [island[b] for b in buses], [bus], [1.0, 2.0], [], max_actions=10)
+    assert info.value.reason == 'array_length'
+    refused_actions('too_many_actions', grid, island, sheds={bus: 1.0}, trips=[name], max_actions=1)
+
+
+def test_no_island_is_left_with_load_and_no_running_machine(case):
+    grid, island, _ = case
+    loads = bus_load_mw(grid)
+    for k in sorted(set(island.values())):
+        machines = [g.name for g in grid.generators if island[g.bus] == k and g.p_max_mw > 0]
+        load = sum(mw for b, mw in loads.items() if island[b] == k)
+        if load <= 1e-6:
+            continue
+        refused_actions('island_without_generation', grid, island, sheds={}, trips=machines)
+        # The last machine tripped by an earlier decision counts as well.
+        if len(machines) > 1:
+            refused_actions('island_without_generation', grid, island, sheds={}, trips=machines[1:],
+                            tripped_before={machines[0]: 'd0'})
+        # With all of the island's load shed, tripping its machines de-energises nothing that is served.
+        everything = {b: mw for b, mw in loads.items() if island[b] == k and mw > 0}
+        if sum(everything.values()) >= load - 1e-6:
+            actions_of(grid, island, sheds=everything, trips=machines)

@@ -108,7 +108,13 @@ def check_breaker_rules(summary: dict, armed: bool) -> None:
         if summary['split']:
             assert any(r['event'] == 'refusal' and r['reason'] == 'not_armed' for r in records)
     elif summary['split']:
-        assert {c['branch_id'] for c in summary['breaker_commands']} == set(summary['cut_branch_ids'])
+        opened = {c['branch_id'] for c in summary['breaker_commands'] if c['action'] == 'open'}
+        assert opened == set(summary['cut_branch_ids'])
+        remedial = summary['remedial_actions']
+        assert {(c['bus'], c['amount_mw']) for c in summary['breaker_commands'] if c['action'] == 'shed'} == {
+            (int(b), mw) for b, mw in remedial['shed_mw_by_bus'].items()}
+        assert [c['generator'] for c in summary['breaker_commands'] if c['action'] == 'trip'] == \
+            remedial['trip_generators']
 
 
 # Bags the graph does not yet decide as the manifest says (issue 11 is open), each with what was found. Strict: a

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 from breaker_cases import boundary, decision_msg, made_test_keys, private_key, snapshot_msg, two_islands
-from controlled_islanding_msgs.msg import BreakerCommand, IslandingDecision, NetworkSnapshot
+from controlled_islanding_msgs.msg import BranchStatus, BreakerCommand, IslandingDecision, NetworkSnapshot
 from controlled_islanding_msgs.srv import SetArmed
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from nodes_harness import graph
@@ -23,6 +23,7 @@ from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import GetParameters, SetParameters
 
 from controlled_islanding.core.grid import Grid
+from controlled_islanding.core.remedial import bus_load_mw, remedial_actions
 from controlled_islanding.graph.supervisor import GRAPH
 from controlled_islanding.harness import breaker_soak
 from controlled_islanding.safety import signing
@@ -62,13 +63,14 @@ def get_armed(probe) -> bool:
 
 
 def start(name: str, audit: Path | str, **overrides):
-    params = {'audit_log': audit, 'max_decision_age_s': 30.0, 'max_breakers': 8, **overrides}
+    params = {'audit_log': audit, 'max_decision_age_s': 30.0, 'max_breakers': 8, 'max_actions': 8, **overrides}
     return graph(name, [(BREAKER, params)])
 
 
 def wire(probe):
     probe.publisher(IslandingDecision, topics.ISLANDING_DECISION)
     probe.publisher(NetworkSnapshot, topics.NETWORK_SNAPSHOT)
+    probe.publisher(BranchStatus, topics.BRANCH_STATUS)
     commands = probe.collect(BreakerCommand, topics.BREAKER_COMMANDS)
     probe.wait_matched(topics.ISLANDING_DECISION)
     probe.wait_matched(topics.NETWORK_SNAPSHOT)
@@ -83,6 +85,24 @@ def send(probe, msg) -> None:
 
 def handled(probe, n: int) -> bool:
     return probe.wait_counter(NODE, 'received', n, timeout_s=15.0) >= n
+
+
+def reclosed(audit: Path) -> int:
+    return sum(1 for r in audit_lines(audit) if r['event'] == 'reclosed')
+
+
+def reclose(probe, cut) -> None:
+    """Report the cut's branches back in service, stamped now: their breakers may be commanded again."""
+    for b in cut:
+        msg = BranchStatus(branch_id=b.branch_id, from_bus=b.from_bus, to_bus=b.to_bus, in_service=True)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(now_ns(probe), 1_000_000_000)
+        probe.pubs[topics.BRANCH_STATUS].publish(msg)
+
+
+def rule_actions(island: dict[int, int]) -> tuple[dict[int, float], list[str]]:
+    """Return the load to shed per bus and the machines to trip that partitioning would put in the decision."""
+    actions = remedial_actions(GRID, island)
+    return actions.shed_by_bus, list(actions.trip_generators)
 
 
 def test_arming_is_signed_audited_and_visible(tmp_path):
@@ -125,28 +145,75 @@ def test_breaker_rules_on_a_real_process(tmp_path):
         commands = wire(probe)
         base = probe.counter(NODE, 'received')
 
-        first = decision_msg(island, cut, now_ns(probe))
+        shed, trips = rule_actions(island)
+        assert shed and trips, 'the split must shed and trip for this test to prove anything'
+        first = decision_msg(island, cut, now_ns(probe), shed=shed, trips=trips)
         send(probe, first)
         assert probe.wait_counter(NODE, 'rejected.not_armed', 1) == 1
         assert arm(probe, True).armed
         send(probe, first)  # handled once already (refused while disarmed): never executed later
         assert probe.wait_counter(NODE, 'rejected.duplicate', 1) == 1
 
-        # Each cut entry five times and in the other spelling: one command per breaker, named by the data.
+        # Remedial actions the snapshot does not allow, each refusing the whole decision (its cut included).
+        loads = bus_load_mw(GRID)
+        bus = next(iter(shed))
+        island_of_trips = {island[g.bus] for g in GRID.generators if g.name in trips}
+        powered = [g.name for g in GRID.generators if g.p_max_mw > 0 and island[g.bus] not in island_of_trips]
+        no_load = next(b for b in GRID.buses if loads.get(b, 0.0) <= 0)
+        bad_actions = {
+            'unknown_load_bus': ({**shed, no_load: 1.0}, trips),
+            'shed_beyond_load': ({**shed, bus: loads[bus] + 0.5}, trips),
+            'bad_value': ({**shed, bus: float('nan')}, trips),
+            'unknown_generator': (shed, [*trips, 'GENROU_999']),
+            'duplicate_action': (shed, trips * 2),
+            'island_without_generation': ({}, powered),
+            'too_many_actions': ({b: 0.1 for b in sorted(loads)[:9]}, []),
+        }
+        for reason, (sheds, machines) in bad_actions.items():
+            send(probe, decision_msg(island, cut, now_ns(probe), shed=sheds, trips=machines))
+            assert probe.wait_counter(NODE, f'rejected.{reason}', 1) >= 1, reason
+        forged = decision_msg(island, cut, now_ns(probe), shed=shed, trips=trips)
+        forged.shed_mw = [mw * 2 for mw in forged.shed_mw]
+        send(probe, forged)  # the amounts are signed like the cut
+        assert probe.wait_counter(NODE, 'rejected.bad_signature', 1) == 1
+        no_split = decision_msg(island, [], now_ns(probe), status=IslandingDecision.STATUS_NO_SPLIT, shed=shed)
+        send(probe, no_split)
+        assert probe.wait_counter(NODE, 'rejected.inconsistent_status', 1) == 1
+        probe.spin_for(0.3)
+        assert commands == [], 'a decision with a refused action commanded something'
+
+        # Each cut entry five times and in the other spelling: one command per breaker, named by the data; then
+        # one command per remedial action, with its amount.
         aliases = [(f'{b.to_bus}-{b.from_bus}', b.to_bus, b.from_bus) for b in cut]
-        good = decision_msg(island, cut * 5 + aliases, now_ns(probe))
+        good = decision_msg(island, cut * 5 + aliases, now_ns(probe), shed=shed, trips=trips)
         send(probe, good)
-        assert probe.spin_until(lambda: len(commands) >= len(cut))
+        n_commands = len(cut) + len(shed) + len(trips)
+        assert probe.spin_until(lambda: len(commands) >= n_commands)
         probe.spin_for(0.3)
         want = {FIELD_NAMES.get(b.branch_id, f'CB-{b.branch_id}') for b in cut}
-        assert sorted(c.breaker_id for c in commands) == sorted(want)
-        assert all(c.action == BreakerCommand.ACTION_OPEN and c.decision_id == good.decision_id for c in commands)
+        opens = [c for c in commands if c.action == BreakerCommand.ACTION_OPEN]
+        assert sorted(c.breaker_id for c in opens) == sorted(want)
+        assert {(c.bus, c.amount_mw, c.breaker_id) for c in commands if c.action == BreakerCommand.ACTION_SHED_LOAD} \
+            == {(b, mw, f'LS-{b}') for b, mw in shed.items()}
+        assert [c.generator_name for c in commands if c.action == BreakerCommand.ACTION_TRIP_GENERATOR] == trips
+        assert len(commands) == n_commands and all(c.decision_id == good.decision_id for c in commands)
+        assert len({c.command_id for c in commands}) == n_commands
 
         # Nothing twice: the same decision, and a new decision on breakers already opened.
         send(probe, good)
         assert probe.wait_counter(NODE, 'rejected.duplicate', 2) == 2
         send(probe, decision_msg(island, cut, now_ns(probe)))
         assert probe.wait_counter(NODE, 'rejected.branch_out_of_service', 1) == 1
+        # The breakers closed again: the cut may open again, but no machine trips twice and no bus sheds more
+        # than its load in all.
+        reclose(probe, cut)
+        assert probe.spin_until(lambda: reclosed(audit) == len(want), 10.0), audit_lines(audit)
+        send(probe, decision_msg(island, cut, now_ns(probe), trips=trips))
+        assert probe.wait_counter(NODE, 'rejected.generator_already_tripped', 1) == 1
+        send(probe, decision_msg(island, cut, now_ns(probe), shed={bus: loads[bus] - shed[bus] + 0.5}))
+        assert probe.wait_counter(NODE, 'rejected.shed_beyond_load', 2) == 2
+        probe.spin_for(0.3)
+        assert len(commands) == n_commands
 
         other = two_islands(GRID, seed_index=2)
         other_cut = boundary(GRID, other)
@@ -179,40 +246,49 @@ def test_breaker_rules_on_a_real_process(tmp_path):
         send(probe, no_split)
         send(probe, stale_groups)
         send(probe, suspect)
-        assert handled(probe, base + 5 + len(bad) + 3)
+        # Decisions: 5 above, the refused actions, the forged one and the NO_SPLIT with actions, 2 after the
+        # reclosure; branch statuses: one per cut branch; then the bad ones and the 3 not to act on.
+        assert handled(probe, base + 5 + len(bad_actions) + 2 + 2 + len(cut) + len(bad) + 3)
         probe.spin_for(0.3)
-        assert len(commands) == len(cut), 'a refused decision produced a command'
+        assert len(commands) == n_commands, 'a refused decision produced a command'
 
-        # Disarm wins: once the disarm is acknowledged, nothing more is commanded.
+        # Disarm wins: once the disarm is acknowledged, nothing more is commanded, cut or action.
         assert arm(probe, False).armed is False
-        send(probe, decision_msg(other, other_cut, now_ns(probe)))
+        other_shed, other_trips = rule_actions(other)
+        send(probe, decision_msg(other, other_cut, now_ns(probe), shed=other_shed, trips=other_trips))
         assert probe.wait_counter(NODE, 'rejected.not_armed', 2) == 2
         probe.spin_for(0.2)
-        assert len(commands) == len(cut)
+        assert len(commands) == n_commands
         # A burst of snapshots into its keep-last-1 reader: each one taken or counted as lost, never silently.
         lost = probe.burst((NODE,), topics.NETWORK_SNAPSHOT, snapshot_msg(GRID, now_ns(probe), FIELD_NAMES), 100)
         assert lost[NODE] > 0, probe.diagnostics
         sup.check_alive()
     records = audit_lines(audit)
-    assert [r['event'] for r in records].count('command') == 1
+    (command,) = [r for r in records if r['event'] == 'command']
+    # The audit record of the decision lists its actions with what they name, before any was published.
+    assert {(c['bus'], c['amount_mw']) for c in command['commands'] if c['action'] == 'shed'} == set(shed.items())
+    assert [c['generator'] for c in command['commands'] if c['action'] == 'trip'] == trips
     assert {r['event'] for r in records} >= {'no_split', 'not_decided', 'armed', 'disarmed', 'start'}
     refusals = {r['reason'] for r in records if r['event'] == 'refusal'}
-    assert set(bad) | {'not_armed', 'duplicate', 'branch_out_of_service'} <= refusals
+    assert set(bad) | set(bad_actions) | {'not_armed', 'duplicate', 'branch_out_of_service',
+                                          'generator_already_tripped', 'inconsistent_status'} <= refusals
 
 
 def test_restart_never_repeats_a_command(tmp_path):
     audit = tmp_path / 'audit.jsonl'
     island = two_islands(GRID)
     cut = boundary(GRID, island)
+    shed, trips = rule_actions(island)
+    n_commands = len(cut) + len(shed) + len(trips)
     with start('breaker_restart', audit) as (sup, probe):
         commands = wire(probe)
         assert arm(probe, True).armed
-        decision = decision_msg(island, cut, now_ns(probe))
+        decision = decision_msg(island, cut, now_ns(probe), shed=shed, trips=trips)
         send(probe, decision)
-        assert probe.spin_until(lambda: len(commands) == len(cut))
+        assert probe.spin_until(lambda: len(commands) == n_commands)
         os.kill(sup.children[NODE].pid, signal.SIGKILL)
         sup.children[NODE].wait()
-        sup.start(BREAKER, {'audit_log': audit, 'max_decision_age_s': 30.0, 'max_breakers': 8})
+        sup.start(BREAKER, {'audit_log': audit, 'max_decision_age_s': 30.0, 'max_breakers': 8, 'max_actions': 8})
         probe.diagnostics.pop(NODE, None)
         probe.wait_matched(topics.ISLANDING_DECISION)
         assert probe.spin_until(lambda: probe.diagnostics.get(NODE, {}).get('armed') == 'false', 15.0), \
@@ -222,13 +298,22 @@ def test_restart_never_repeats_a_command(tmp_path):
         assert arm(probe, True).armed
         decision.request_stamp.sec, decision.request_stamp.nanosec = divmod(now_ns(probe), 1_000_000_000)
         send(probe, decision)  # same id, fresh stamp: the signature no longer verifies, and the id is known
-        again = decision_msg(island, cut, now_ns(probe), decision_id=decision.decision_id)
+        again = decision_msg(island, cut, now_ns(probe), decision_id=decision.decision_id, shed=shed, trips=trips)
         send(probe, again)  # re-signed under the same id: refused as a duplicate
         send(probe, decision_msg(island, cut, now_ns(probe)))  # new id, same breakers: already open
         assert probe.wait_counter(NODE, 'rejected.duplicate', 1) == 1
         assert probe.wait_counter(NODE, 'rejected.branch_out_of_service', 1) == 1
+        # Breakers closed again since; the restarted node still knows the machines tripped and the load shed.
+        reclose(probe, cut)
+        assert probe.spin_until(lambda: reclosed(audit) == len({c.breaker_id for c in commands
+                                                                 if c.action == BreakerCommand.ACTION_OPEN}), 10.0)
+        send(probe, decision_msg(island, cut, now_ns(probe), trips=trips))
+        assert probe.wait_counter(NODE, 'rejected.generator_already_tripped', 1) == 1
+        bus, mw = next(iter(shed.items()))
+        send(probe, decision_msg(island, cut, now_ns(probe), shed={bus: bus_load_mw(GRID)[bus] - mw + 0.5}))
+        assert probe.wait_counter(NODE, 'rejected.shed_beyond_load', 1) == 1
         probe.spin_for(0.3)
-        assert len(commands) == len(cut)
+        assert len(commands) == n_commands
         sup.check_alive()
     assert sum(1 for r in audit_lines(audit) if r['event'] == 'command') == 1
 
@@ -260,19 +345,35 @@ def test_randomized_adversary_never_breaks_a_rule(tmp_path):
 
 
 def test_the_rule_checker_catches_each_broken_rule():
+    Expected = breaker_soak.Expected
     cmd = {'event': 'command', 'decision_id': 'd1', 'commands': [{'breaker_id': 'CB-1', 'command_id': 'd1/CB-1'}]}
     armed = {'event': 'armed'}
-    valid = {'d1': {'CB-1'}}
+    valid = {'d1': Expected(frozenset({'CB-1'}))}
     assert breaker_soak.check_audit([armed, cmd], valid, ['d1/CB-1'])[0] == []
     assert breaker_soak.check_audit([cmd], valid, [])[0], 'a command while disarmed passed'
     assert breaker_soak.check_audit([armed, cmd], {}, [])[0], 'a command for an invalid decision passed'
-    assert breaker_soak.check_audit([armed, cmd], {'d1': {'CB-2'}}, [])[0], 'a wrong cut passed'
+    assert breaker_soak.check_audit([armed, cmd], {'d1': Expected(frozenset({'CB-2'}))}, [])[0], 'a wrong cut passed'
     assert breaker_soak.check_audit([armed, cmd, cmd], valid, [])[0], 'a repeated command passed'
     assert breaker_soak.check_audit([armed, cmd, {'event': 'start'}, cmd], valid, [])[0]
     reclosed = {'event': 'reclosed', 'breaker_id': 'CB-1'}
     again = {**cmd, 'decision_id': 'd2'}
-    assert breaker_soak.check_audit([armed, cmd, reclosed, again], {**valid, 'd2': {'CB-1'}}, [])[0] == []
+    assert breaker_soak.check_audit([armed, cmd, reclosed, again], {**valid, 'd2': valid['d1']}, [])[0] == []
     assert breaker_soak.check_audit([armed, cmd], valid, ['ghost/CB-9'])[0], 'an unlogged command passed'
+    # Remedial actions: only the decision's own, no machine twice, never more shed at a bus than its load.
+    shed = {'breaker_id': 'LS-4', 'command_id': 'd3/LS-4', 'action': 'shed', 'bus': 4, 'amount_mw': 30.0}
+    trip = {'breaker_id': 'GCB-G2', 'command_id': 'd3/GCB-G2', 'action': 'trip', 'bus': 2, 'generator': 'G2'}
+    acts = {'event': 'command', 'decision_id': 'd3', 'commands': [cmd['commands'][0], shed, trip]}
+    own = Expected(frozenset({'CB-1'}), frozenset({('shed', 4, 30.0), ('trip', 'G2')}))
+    load = {4: 50.0}
+    assert breaker_soak.check_audit([armed, acts], {'d3': own}, ['d3/LS-4'], bus_load=load)[0] == []
+    assert breaker_soak.check_audit([acts], {'d3': own}, [], bus_load=load)[0], 'an action while disarmed passed'
+    assert breaker_soak.check_audit([armed, acts], {'d3': Expected(frozenset({'CB-1'}))}, [], bus_load=load)[0], \
+        'an action the decision does not carry passed'
+    later = {'event': 'command', 'decision_id': 'd4', 'commands': [trip, {**shed, 'amount_mw': 25.0}]}
+    later_own = Expected(frozenset(), frozenset({('shed', 4, 25.0), ('trip', 'G2')}))
+    broken = breaker_soak.check_audit([armed, acts, later], {'d3': own, 'd4': later_own}, [], bus_load=load)[0]
+    assert any('tripped twice' in b for b in broken) and any('bus 4' in b for b in broken), broken
+    assert breaker_soak.check_audit([armed, acts], {'d3': own}, [], max_actions=1, bus_load=load)[0]
 
 
 def test_a_disk_that_fills_up_mid_run_refuses_and_the_node_lives():

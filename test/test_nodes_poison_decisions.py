@@ -204,8 +204,9 @@ class Decisions:
         return self.probe.counter(node, key)
 
     def commanded(self) -> list[str]:
+        """Return the breakers commanded open (the remedial actions' commands are not breakers of the cut)."""
         self.probe.spin_for(0.2)
-        return sorted(c.breaker_id for c in self.commands)
+        return sorted(c.breaker_id for c in self.commands if c.action == BreakerCommand.ACTION_OPEN)
 
     def assert_baseline(self, decision: IslandingDecision, record: dict, what: str) -> None:
         """Check the decision is the baseline's split, and the breaker node refused it as a repeat."""
@@ -282,6 +283,10 @@ def test_baseline_the_bags_request_cuts_6_11_and_the_breaker_opens_it(graph_unde
     g.baseline = decision
     assert g.breaker_record(decision)['event'] == 'command'
     assert g.commanded() == ['CB-6-11']
+    # Its remedial actions (island 0 short of 567.9 MW) were commanded with it, each once.
+    sheds = {c.bus: c.amount_mw for c in g.commands if c.action == BreakerCommand.ACTION_SHED_LOAD}
+    assert sheds == dict(zip(decision.shed_bus, decision.shed_mw, strict=True))
+    assert sum(sheds.values()) == pytest.approx(want['island_shed_mw'][0], abs=1e-2)
     # The same split again, from an honest request: the breaker node refuses to open the breaker twice.
     decision, record = g.ask()
     g.assert_baseline(decision, record, 'a second honest request')

@@ -29,11 +29,21 @@ def test_state_survives_a_restart(tmp_path):
         log.append({'event': 'command', 'decision_id': 'd2', 'authenticated': True, 'request_stamp_s': 10.0,
                     'ros_time_s': 10.5, 'commands': [{'breaker_id': 'CB-2', 'branch_id': '2-3'}]})
         log.append({'event': 'reclosed', 'breaker_id': 'CB-2', 'branch_id': '2-3', 'stamp_s': 11.0})
+        log.append({'event': 'command', 'decision_id': 'd3', 'authenticated': True, 'request_stamp_s': 12.0,
+                    'ros_time_s': 12.5, 'commands': [
+                        {'breaker_id': 'LS-4', 'branch_id': '', 'action': 'shed', 'bus': 4, 'amount_mw': 30.0},
+                        {'breaker_id': 'GCB-G2', 'branch_id': '', 'action': 'trip', 'bus': 2, 'generator': 'G2'}]})
+        log.append({'event': 'command', 'decision_id': 'd4', 'authenticated': True, 'request_stamp_s': 13.0,
+                    'ros_time_s': 13.5, 'commands': [
+                        {'breaker_id': 'LS-4', 'branch_id': '', 'action': 'shed', 'bus': 4, 'amount_mw': 12.5}]})
     assert oct(path.stat().st_mode & 0o777) == '0o600'
     state = AuditLog(path).state
-    assert state.decisions == {'d1': 9.0, 'd2': 10.0}, 'an unauthenticated id must not block the real decision'
+    assert state.decisions == {'d1': 9.0, 'd2': 10.0, 'd3': 12.0, 'd4': 13.0}, \
+        'an unauthenticated id must not block the real decision'
     assert state.commanded == {'CB-1': ('d1', 9.5)}, 'a reclosed breaker must be closable again after a restart'
     assert state.nonces == {'n1': 5.0}
+    # The remedial actions are remembered too: what was shed at each bus, in all, and which machines were tripped.
+    assert state.shed_mw == {4: 42.5} and state.tripped == {'G2': 'd3'}
 
 
 def test_a_torn_last_record_is_cut_off_and_nothing_else(tmp_path):
@@ -64,7 +74,7 @@ def test_a_log_that_is_not_a_file_refuses(tmp_path):
 def _decision(**fields):
     base = dict(decision_id='d', request_id='r', request_stamp=SimpleNamespace(sec=5, nanosec=7), status=1,
                 split=True, bus_numbers=[1, 2], bus_island=[0, 1], cut_branch_ids=['1-2'], cut_from_bus=[1],
-                cut_to_bus=[2], key_id='k')
+                cut_to_bus=[2], shed_bus=[2], shed_mw=[15.5], trip_generator_names=['G1'], key_id='k')
     base.update(fields)
     return SimpleNamespace(**base)
 
@@ -78,7 +88,8 @@ def test_signature_covers_every_field_the_breaker_acts_on(tmp_path):
     signing.verify(public, signing.decision_payload(msg), sig)
     changes = {'decision_id': 'e', 'request_id': 's', 'request_stamp': SimpleNamespace(sec=6, nanosec=7),
                'status': 2, 'split': False, 'bus_numbers': [1, 3], 'bus_island': [0, 0], 'cut_branch_ids': ['2-1'],
-               'cut_from_bus': [2], 'cut_to_bus': [1], 'key_id': 'x'}
+               'cut_from_bus': [2], 'cut_to_bus': [1], 'key_id': 'x', 'shed_bus': [1], 'shed_mw': [15.50001],
+               'trip_generator_names': ['G2']}
     for name, value in changes.items():
         with pytest.raises(signing.SigningError) as info:
             signing.verify(public, signing.decision_payload(_decision(**{name: value})), sig)

@@ -50,8 +50,8 @@ the end of the bag; the earliest request time whose groups are the final (true) 
 first pole slip: lead = slip - found, >= 0 means found before the slip.
 
 --closed-loop adds a column: each row's cut opened in ANDES on the scenario the bag was simulated from
-(bags/index.yaml names it), breaker_operating_s (0.05 s) after the request, with the row's load to shed and
-generation rejection 0.2 s later, judged per island as the testbed judges it (sim/closed_loop.py: machines
+(bags/index.yaml names it), breaker_operating_s (0.05 s) after the request, with the row's remedial actions (load
+sheds, generator trips) 0.2 s later, judged per island as the testbed judges it (sim/closed_loop.py: machines
 within pi rad, frequency within 0.9633..1.03 pu of nominal, voltage 0.8..1.2 pu, no machine tripped); it shows
 islands survived / formed, and the first reason an island was lost. Every row's cut opens at the same time (its
 compute time is in its own column; the testbed charges the graph's latency), rows with the same cut share one

@@ -20,8 +20,8 @@ DESCRIPTION = """\
 Start pmu_ingestion, coherency, partitioning and breaker_command (armed with a signed operator request, as
 replay does) and grid_sim, which runs the scenario's ANDES simulation as the grid: it publishes the snapshot,
 PMU frames, trips and the scenario's islanding request, executes the breaker commands in the running
-simulation (breaker operating time, then the decision's load shed in islands short of generation and
-generation rejection in islands with a surplus), keeps
+simulation (breaker operating time, then the decision's load sheds and generator trips as breaker_command
+commanded them; grid_sim decides none of its own), keeps
 simulating, and judges every island (docs/testbed.md and controlled_islanding/sim/closed_loop.py give the
 rules and their sources: machines trip by the NERC PRC-024 ride-through curves, with their durations; the
 grid's own under-frequency load shedding acts in stages in the style of PRC-006; an island survives when at
@@ -31,12 +31,12 @@ is its own outcome ("simulation failed at t s: reason"), never load lost; the ru
 at a smaller step. The scenario is checked against its case, as simulate checks it, before any node starts.
 
 Then the same scenario runs twice more in-process, with no graph: with no action, and with the exact MILP cut
-(core/milp.py, the same generator groups as the decision) opened at the same time as the graph's cut, with its
-own load shed. One table compares the three: load served at the end (MW and % of the pre-fault load, in the
-islands that survived, net of every shed), islands that survived, load lost, frequency nadir and peak, lowest
-voltage, request-to-opening time. --json prints per scenario the coherent groups, the decision, the commanded
-actions and every run (load_served_mw, load_served_pct, all_survived, simulation_failed, islands with their
-reasons in full); progress goes to stderr.
+(core/milp.py, the same generator groups as the decision) opened at the same time as the graph's cut, with the
+remedial actions of the same rule (core/remedial.py). One table compares the three: load served at the end (MW
+and % of the pre-fault load, in the islands that survived, net of every shed), islands that survived, load lost,
+frequency nadir and peak, lowest voltage, request-to-opening time. --json prints per scenario the coherent groups,
+the decision, the commanded actions and every run (load_served_mw, load_served_pct, all_survived,
+simulation_failed, islands with their reasons in full); progress goes to stderr.
 A figure per scenario shows the rotor angles coloured by the decision's islands and the bus voltages, for no
 action and for the closed loop (as the paper's Figs. 6 and 11).
 

@@ -3,7 +3,8 @@
 Generation in an island is the scheduled dispatch of its generators (`Generator.p_mw`), not their
 capacity: the paper's Table II (island 1 of case 1: 16.20 pu against 16.13 pu of load) and Table VI
 (23.50 pu against 21.59 pu) are exactly MATPOWER case39's dispatch. Imbalance = generation - load;
-load to shed = max(0, load - generation).
+load to shed = max(0, load - generation). Where it is shed, and which machines an island with a surplus trips, is
+core/remedial.py's rule; every decision carries those actions.
 
 Partial observability (the paper's abstract): a generator with no PMU has no coherent group. The caller names
 it as unobserved; it carries no must-link or cannot-link constraint, its bus is placed by the flow-weighted
@@ -19,6 +20,7 @@ from typing import Protocol
 import numpy as np
 
 from controlled_islanding.core.grid import Branch, Grid
+from controlled_islanding.core.remedial import RemedialActions, remedial_actions
 
 
 class IslandingError(ValueError):
@@ -38,6 +40,8 @@ class IslandingDecision:
         island_imbalance_mw: Generation minus load per island, MW.
         island_shed_mw: Load to shed per island so generation covers load, MW.
         disrupted_mw: Eq. 9, the sum over cut branches of (|P_from| + |P_to|) / 2, MW.
+        remedial: The load to shed (where, how much) and the machines to trip (core/remedial.py); none without a
+            split.
         unobserved_generators: Generators decided without a group (no PMU); their island is their bus's.
         constraint_fallback: Empty when the partitioner used eq. 6 as written; else why it departed from it (the
             spectral partitioner's group-balanced constraint weights when no beta exists, core/spectral.py).
@@ -55,6 +59,7 @@ class IslandingDecision:
     island_imbalance_mw: tuple[float, ...]
     island_shed_mw: tuple[float, ...]
     disrupted_mw: float
+    remedial: RemedialActions = RemedialActions()
     unobserved_generators: tuple[str, ...] = ()
     constraint_fallback: str = ''
     partitioner_summary: str = ''
@@ -92,7 +97,7 @@ def evaluate_partition(grid: Grid, bus_island: Mapping[int, int]) -> IslandingDe
         bus_island: Island of every bus; islands are numbered 0 .. n-1 with none empty.
 
     Returns:
-        The decision: cut set, per-island balance and disrupted flow.
+        The decision: cut set, per-island balance, disrupted flow and remedial actions.
 
     Raises:
         IslandingError: A bus missing or unknown, or island numbers not 0 .. n-1.
@@ -131,6 +136,7 @@ def evaluate_partition(grid: Grid, bus_island: Mapping[int, int]) -> IslandingDe
         island_imbalance_mw=tuple(float(x) for x in gen - load),
         island_shed_mw=tuple(float(x) for x in np.maximum(0.0, load - gen)),
         disrupted_mw=disrupted,
+        remedial=remedial_actions(grid, island_of),
     )
 
 

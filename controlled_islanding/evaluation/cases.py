@@ -160,7 +160,7 @@ def closed_loop_outcomes(case: CaseReport, scenario_path: Path, config: Any = No
             try:
                 if cut:
                     run = run_offline(scenario, 'cut', cut_branch_ids=cut, bus_island=decision.bus_island,
-                                      island_shed_mw=list(decision.island_shed_mw), opened_s=opened_s, config=config)
+                                      actions=decision.remedial, opened_s=opened_s, config=config)
                 else:
                     run = run_offline(scenario, 'no action', judged_from_s=opened_s, config=config)
             except (ClosedLoopError, ScenarioError, RuntimeError) as exc:

@@ -117,9 +117,11 @@ def render(results: list[dict]) -> str:
             cut = f', cut {", ".join(d["cut_branch_ids"])}' if d['split'] else ''
             lines.append(f'  decision: {d["status"]}{cut}')
             for c in d['breaker_commands']:
-                lines.append(f'  command {c["action"]} {c["breaker_id"]} ({c["branch_id"]})')
+                what = (f'{c["amount_mw"]:.1f} MW at bus {c["bus"]}' if c['action'] == 'shed' else
+                        c.get('generator', '') if c['action'] == 'trip' else c['branch_id'])
+                lines.append(f'  command {c["action"]} {c["breaker_id"]} ({what})')
         for e in r['events']:
-            if e['what'] in ('command', 'switching event', 'opened', 'shed scheduled'):
+            if e['what'] in ('switching event', 'opened'):  # each command is listed above, from the decision
                 lines.append('  ' + ', '.join(f'{k}={v:.3f}' if isinstance(v, float) else f'{k}={v}'
                                               for k, v in e.items()))
         loop = r['runs'].get('dtw', r['closed_loop'])
@@ -159,8 +161,8 @@ NOTES: tuple[tuple[tuple[str, ...], str], ...] = (
     (('ieee39_case2',), 'Case 2: G3, 725 MW, keeps its surplus on 120 MW of load (no machine fits in it), and '
      'that island speeds up.'),
     (('ieee14', 'ieee39_g3_multitrip', 'pjm5bus', 'nordic44'), 'An island with no load whose machines the '
-     'rejection rule trips (IEEE 14 G1 alone on bus 1, IEEE 39 G3 multitrip, PJM bus 4, Nordic 44 bus 6000) is '
-     'lost by definition, at 0 MW of load lost.'),
+     "decision's generation rejection trips (IEEE 14 G1 alone on bus 1, IEEE 39 G3 multitrip, PJM bus 4, Nordic 44 "
+     'bus 6000) is lost by definition, at 0 MW of load lost.'),
     (('pjm5bus',), 'PJM 5-bus: the groups were wrong, an island whose machines slip apart.'),
     (('gbnetwork',), "GBnetwork on a loaded machine: coherency's grouping of its 394 machines did not reach "
      'partitioning within groups_wait_s (2 s), so partitioning refused the request (REFUSED_STALE_GROUPS); other '
@@ -194,9 +196,10 @@ def markdown(results: list[dict], args: Any, figures: list[Path], page: Path, cm
            'scenario untouched, `milp` the exact minimum-disruption cut for the same generator groups opened at '
            'the same time. The headline is the load served: at the end of the run, the load of the islands that '
            "survived, net of every shed (the decision's and the grid's own UFLS), in MW and % of the pre-fault "
-           'load. The breakers of one decision open together, in one simulation step, once the last of their '
-           f"commands has come; breaker operating time {args.breaker_operating_s} s, the decision's load shed "
-           f'{args.shed_delay_s} s after the opening, simulated at least {args.run_after_s} s past the request.'
+           'load. The breakers of one decision open together, in one simulation step, once the last of its '
+           f'commands has come; breaker operating time {args.breaker_operating_s} s, the load sheds and generator '
+           f"trips breaker_command commanded for the decision {args.shed_delay_s} s after the opening, simulated at "
+           f'least {args.run_after_s} s past the request.'
            + ('' if getattr(args, 'trigger', 'scenario') == 'scenario' else
               " The request is not the scenario's: grid_sim's out-of-step trigger made it, at the first step where "
               "the measured rotor angles (the graph's /rotor_angles, against the first received) showed two machines "
@@ -223,10 +226,14 @@ def markdown(results: list[dict], args: Any, figures: list[Path], page: Path, cm
            '60.5 Hz per unit of 60 Hz) and every bus voltage in 0.90 to 1.10 pu (a bus or machine the case itself '
            'runs beyond a level is judged against its own pre-fault voltage). An island with no machine, or whose '
            'every machine was rejected, is lost by definition.',
-           "- Generation rejection: in every island whose machines' pre-fault output exceeds its load after the "
-           'shed by more than 5 % of that load, machines are tripped at the time of the shed, largest output '
-           'first, each only if it fits in the remaining surplus (closed_loop.generation_to_reject); the `milp` '
-           "row gets the same rule. It is the testbed's, not a node's: no decision carries it yet.",
+           "- Remedial actions, the islands' own balancing, are the decision's (core/remedial.py), not the "
+           "testbed's: an island short of generation sheds the deficit at each of its load buses in proportion to "
+           "the bus's load; in an island whose machines' dispatch exceeds its load after the shed by more than 5 % "
+           'of that load, machines are tripped, largest output first, each only if it fits in the remaining '
+           'surplus. partitioning puts them in the signed decision, breaker_command commands them under the rules '
+           "of its breakers (armed, signed, once each across restarts, within the snapshot's loads and machines, "
+           'audited), and grid_sim applies what was commanded and nothing else. The `milp` row applies the same '
+           'rule to its own islands offline (closed_loop.run_offline).',
            '- A simulator failure is its own outcome: "simulation failed at t s: reason", marked in the table and '
            'the figure (a black line where it stopped), never counted as load lost or served; first the run is '
            'repeated offline with the same actions at 1/4, then 1/16, of the step, and the remedy that worked is '

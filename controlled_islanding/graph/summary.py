@@ -35,12 +35,27 @@ def decision_dict(request_id: str, obs: Observation) -> dict:
         'unobserved_generators': dict(zip(msg.unobserved_generator_names,
                                           (int(i) for i in msg.unobserved_generator_island), strict=False)),
         'partitioner': msg.partitioner, 'constraint_fallback': msg.constraint_fallback,
-        'breaker_commands': [{'command_id': c.command_id, 'breaker_id': c.breaker_id, 'branch_id': c.branch_id,
-                              'action': 'open' if c.action == c.ACTION_OPEN else 'close'} for _, c in commands],
+        'remedial_actions': {'shed_mw_by_bus': {int(b): float(mw) for b, mw in zip(msg.shed_bus, msg.shed_mw,
+                                                                                   strict=False)},
+                             'trip_generators': list(msg.trip_generator_names)},
+        'breaker_commands': [command_dict(c) for _, c in commands],
         'latency_request_to_command_ms': latency_cmd,
         'latency_request_to_decision_ms': (t_dec - t_req) * 1e3 if t_req is not None else None,
         'partitioning_compute_ms': msg.compute_time_s * 1e3,
     }
+
+
+def command_dict(c: object) -> dict:
+    """Return a BreakerCommand as the summary holds it: its action by name, and what it names."""
+    names = {c.ACTION_OPEN: 'open', c.ACTION_CLOSE: 'close', c.ACTION_SHED_LOAD: 'shed',
+             c.ACTION_TRIP_GENERATOR: 'trip'}
+    out = {'command_id': c.command_id, 'breaker_id': c.breaker_id, 'branch_id': c.branch_id,
+           'action': names.get(int(c.action), f'unset ({int(c.action)})')}
+    if c.action == c.ACTION_SHED_LOAD:
+        out.update(bus=int(c.bus), amount_mw=float(c.amount_mw))
+    elif c.action == c.ACTION_TRIP_GENERATOR:
+        out.update(bus=int(c.bus), generator=c.generator_name)
+    return out
 
 
 def status_name(status: int) -> str:
@@ -178,7 +193,13 @@ def render(summary: dict) -> str:
     lines.append(f'cut lines: {", ".join(summary["cut_branch_ids"]) or "none"}')
     lines.append(f'disrupted power flow: {summary["disrupted_mw"]:.2f} MW')
     cmds = summary['breaker_commands']
-    lines.append('breaker commands: ' + (', '.join(f'{c["action"]} {c["breaker_id"]}' for c in cmds) or 'none'))
+    opens = [c for c in cmds if c['action'] not in ('shed', 'trip')]
+    lines.append('breaker commands: ' + (', '.join(f'{c["action"]} {c["breaker_id"]}' for c in opens) or 'none'))
+    sheds = [c for c in cmds if c['action'] == 'shed']
+    trips = [c['generator'] for c in cmds if c['action'] == 'trip']
+    if sheds or trips:
+        lines.append(f'remedial actions commanded: shed {sum(c["amount_mw"] for c in sheds):.1f} MW at {len(sheds)} '
+                     f'load buses; ' + (f'tripped {", ".join(trips)}' if trips else 'no machine tripped'))
     if summary['latency_request_to_command_ms'] is not None:
         lines.append(f'latency request -> breaker command: {summary["latency_request_to_command_ms"]:.1f} ms')
     else:

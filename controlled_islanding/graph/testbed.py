@@ -3,9 +3,11 @@
 Each scenario then runs with no action and with the exact MILP cut, in-process, as baselines.
 
 grid_sim publishes the snapshot, PMU frames, trips and the scenario's islanding request, executes the breaker
-commands in the simulation (breaker operating time, then the decision's load shed and generation rejection),
-keeps simulating and judges every island (sim/closed_loop.py). The result of a scenario is its decision, the
-three runs and a figure; evaluation/testbed_report.py makes the table and the page from the results.
+commands in the simulation (breaker operating time, then the load sheds and generator trips breaker_command
+commanded for the decision), keeps simulating and judges every island (sim/closed_loop.py). The baselines apply
+the same remedial-action rule (core/remedial.py) offline, through closed_loop.run_offline. The result of a
+scenario is its decision, the three runs and a figure; evaluation/testbed_report.py makes the table and the page
+from the results.
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ class TestbedSettings:
     Attributes:
         rate: 0 = lockstep (the simulation waits for the graph at the request), R > 0 = R x real time.
         breaker_operating_s: Breaker command -> branch open, s.
-        shed_delay_s: Branch open -> load shed, s.
+        shed_delay_s: Branch open -> the decision's load sheds and generator trips, s.
         run_after_s: Simulate at least this long after the request, s.
         trigger: Where the request comes from: 'scenario' (its time) or 'out-of-step' (grid_sim's trigger).
         timeout_s: Give up on one closed-loop run after this, wall s.
@@ -149,7 +151,22 @@ def _milp_cut(scenario: Any, decision: dict) -> dict:
     milp_island = dict(zip(grid.buses, (int(x) for x in model.labels_), strict=True))
     ev = evaluate_partition(grid, milp_island)
     return {'bus_island': milp_island, 'cut_branch_ids': list(ev.cut_branch_ids),
-            'island_shed_mw': list(ev.island_shed_mw), 'disrupted_mw': ev.disrupted_mw, 'optimal': model.optimal_}
+            'island_shed_mw': list(ev.island_shed_mw), 'remedial_actions': _actions_dict(ev.remedial),
+            'disrupted_mw': ev.disrupted_mw, 'optimal': model.optimal_}
+
+
+def _actions_dict(actions: Any) -> dict:
+    return {'shed_mw_by_bus': actions.shed_by_bus, 'trip_generators': list(actions.trip_generators)}
+
+
+def commanded_actions(decision: dict) -> Any:
+    """Return the load sheds and generator trips breaker_command commanded for a decision (summary form)."""
+    from controlled_islanding.core.remedial import RemedialActions
+
+    commands = decision['breaker_commands']
+    sheds = sorted((int(c['bus']), float(c['amount_mw'])) for c in commands if c['action'] == 'shed')
+    return RemedialActions(tuple(b for b, _ in sheds), tuple(mw for _, mw in sheds),
+                           tuple(c['generator'] for c in commands if c['action'] == 'trip'))
 
 
 def check_scenario(path: Path) -> Any:
@@ -222,16 +239,16 @@ def _run_scenario(path: Path, results: Path, args: TestbedSettings, cache: dict)
     traj = dict(np.load(f'{out / "grid_sim.json"}.npz'))
     trajectories = {'dtw': traj}
     if loop['simulation_failed'] is not None and decision and decision['split'] and loop['opened_s'] is not None:
-        # The graph's answer stands; the simulation of it is redone offline, the same cut and shed at the same
-        # time, with closed_loop.REMEDIES.
+        # The graph's answer stands; the simulation of it is redone offline, the same cut and commanded actions at
+        # the same time, with closed_loop.REMEDIES.
         _say(quiet, f'{scenario.name}: the closed loop\'s {loop["simulation_failed"]}; its actions re-run offline')
         bus_island = {b: isl['island'] for isl in decision['islands'] for b in isl['buses']}
         again = run_offline(scenario, 'dtw', cut_branch_ids=loop['cut_branch_ids'], bus_island=bus_island,
-                            island_shed_mw=[isl['shed_mw'] for isl in decision['islands']],
-                            opened_s=loop['opened_s'], config=config, progress=not quiet)
+                            actions=commanded_actions(decision), opened_s=loop['opened_s'], config=config,
+                            progress=not quiet)
         if again.simulation_failed is None:
-            loop = dict(again.summary(), remedy=f'the closed loop\'s {loop["simulation_failed"]}; its cut and shed '
-                        f're-run offline at the same time with {again.remedy or "the same step"}')
+            loop = dict(again.summary(), remedy=f'the closed loop\'s {loop["simulation_failed"]}; its cut and '
+                        f'actions re-run offline at the same time with {again.remedy or "the same step"}')
             result['runs']['dtw'] = loop
             traj = dict(traj, t_s=again.t_s, delta_rad=again.delta_rad, bus_v_pu=again.bus_v_pu)
             trajectories['dtw'] = traj
@@ -258,8 +275,7 @@ def _run_scenario(path: Path, results: Path, args: TestbedSettings, cache: dict)
             else:
                 _say(quiet, f'{scenario.name}: MILP cut {milp["cut_branch_ids"]} (ANDES in-process)')
                 m = run_offline(scenario, 'milp', cut_branch_ids=milp['cut_branch_ids'], bus_island=milp['bus_island'],
-                                island_shed_mw=milp['island_shed_mw'], opened_s=loop['opened_s'], config=config,
-                                progress=not quiet)
+                                opened_s=loop['opened_s'], config=config, progress=not quiet)
                 result['runs']['milp'] = m.summary()
                 trajectories['milp'] = {'t_s': m.t_s, 'delta_rad': m.delta_rad, 'bus_v_pu': m.bus_v_pu}
     result['figure'] = str(_figure(scenario, result, trajectories, traj, out / f'{scenario.name}_closed_loop.png'))

@@ -1,11 +1,15 @@
 """Breaker soak: a seeded adversary against a real breaker_command process, then every rule checked on its log.
 
-The adversary mixes valid decisions with duplicates, other spellings of branches, stale and future request
-stamps, forged and foreign signatures, unset statuses, cuts missing a branch or naming an inner one, resends,
-signed arm and disarm requests, and kill -9 restarts of the node. The ground truth is the audit log: replayed
-in order, it must never show a command while disarmed, for a decision that was not a valid, signed, fresh
-split, on a cut other than its islands' boundary, twice for one decision or one breaker, or beyond
-`max_breakers`; and every command seen on /breaker/commands must be in it.
+The adversary mixes valid decisions (some with remedial actions: load sheds and generator trips) with
+duplicates, other spellings of branches, stale and future request stamps, forged and foreign signatures, unset
+statuses, cuts missing a branch or naming an inner one, signed decisions whose actions the snapshot does not allow
+(a shed beyond a bus's load, at a bus without load, a NaN amount, a bus named twice, an unknown machine), actions
+on a decision that is not a split, amounts changed after signing, resends, signed arm and disarm requests, and
+kill -9 restarts of the node. The ground truth is the audit log: replayed in order, it must never show a command
+while disarmed, for a decision that was not a valid, signed, fresh split, on a cut other than its islands'
+boundary or actions other than its own, twice for one decision or one breaker, a machine tripped twice, more shed
+at a bus than its load in all, or beyond `max_breakers` or `max_actions`; and every command seen on
+/breaker/commands must be in it.
 
 Also the island and message builders the breaker tests use; nothing here assumes IEEE 39.
 """
@@ -13,22 +17,49 @@ Also the island and message builders the breaker tests use; nothing here assumes
 from __future__ import annotations
 
 import json
+import math
 import os
 import random
 import signal
 import time
 import uuid
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from controlled_islanding.core.grid import Branch, Grid
+from controlled_islanding.core.remedial import bus_load_mw
 from controlled_islanding.safety import signing
 from controlled_islanding.wire import topics
 
 MAX_BREAKERS = 8
+MAX_ACTIONS = 6
 MAX_DECISION_AGE_S = 30.0
+
+
+@dataclass(frozen=True)
+class Expected:
+    """What a valid decision may command: the breakers of its islands' boundary and its own remedial actions.
+
+    Attributes:
+        breakers: Breaker ids.
+        actions: ('shed', bus, MW) and ('trip', machine) entries.
+
+    """
+
+    breakers: frozenset[str]
+    actions: frozenset[tuple] = frozenset()
+
+
+def _logged_actions(commands: list[dict]) -> set[tuple]:
+    out: set[tuple] = set()
+    for c in commands:
+        if c.get('action') == 'shed':
+            out.add(('shed', int(c['bus']), float(c['amount_mw'])))
+        elif c.get('action') == 'trip':
+            out.add(('trip', str(c['generator'])))
+    return out
 
 
 class SoakError(RuntimeError):
@@ -63,10 +94,12 @@ def boundary(grid: Grid, island: dict[int, int]) -> list[Branch]:
 
 
 def decision_msg(island: dict[int, int], cut: list, request_stamp_ns: int, *, key: object, status: int | None = None,
-                 decision_id: str | None = None, sign: bool = True) -> object:
-    """Return an (optionally signed) IslandingDecision (rclpy) for an island map and a cut.
+                 decision_id: str | None = None, sign: bool = True, shed: dict[int, float] | None = None,
+                 trips: list[str] | tuple[str, ...] = ()) -> object:
+    """Return an (optionally signed) IslandingDecision (rclpy) for an island map, a cut and remedial actions.
 
-    `cut` holds Branch objects or (id, from bus, to bus) tuples.
+    `cut` holds Branch objects or (id, from bus, to bus) tuples; `shed` is the load to shed per bus, MW, `trips` the
+    machines to trip.
     """
     from controlled_islanding_msgs.msg import IslandingDecision
 
@@ -78,7 +111,8 @@ def decision_msg(island: dict[int, int], cut: list, request_stamp_ns: int, *, ke
         status=status, split=status == IslandingDecision.STATUS_SPLIT,
         bus_numbers=buses, bus_island=[island[b] for b in buses],
         cut_branch_ids=[e[0] for e in entries], cut_from_bus=[int(e[1]) for e in entries],
-        cut_to_bus=[int(e[2]) for e in entries])
+        cut_to_bus=[int(e[2]) for e in entries], shed_bus=[int(b) for b in (shed or {})],
+        shed_mw=[float(mw) for mw in (shed or {}).values()], trip_generator_names=list(trips))
     msg.request_stamp.sec, msg.request_stamp.nanosec = divmod(int(request_stamp_ns), 1_000_000_000)
     msg.header.stamp = msg.request_stamp
     if sign:
@@ -131,19 +165,24 @@ class SoakReport:
         return '\n'.join(lines + [f'  broken: {b}' for b in self.broken[:20]])
 
 
-def check_audit(records: list[dict], valid: dict[str, set[str]], published: list[str],
-                max_breakers: int = MAX_BREAKERS) -> tuple[list[str], set[str]]:
+def check_audit(records: list[dict], valid: Mapping[str, Expected], published: list[str],
+                max_breakers: int = MAX_BREAKERS, max_actions: int = MAX_ACTIONS,
+                bus_load: Mapping[int, float] | None = None) -> tuple[list[str], set[str]]:
     """Replay an audit log in order and return (rules broken, decision ids commanded).
 
     Args:
         records: The audit log's records, in file order.
-        valid: Decision id -> the breakers of its islands' boundary, for every decision sent that was a
-            valid, signed, fresh split (any other commanded decision breaks a rule).
+        valid: Decision id -> what it may command, for every decision sent that was a valid, signed, fresh split
+            (any other commanded decision breaks a rule).
         published: Command ids seen on /breaker/commands.
-        max_breakers: The node's cap.
+        max_breakers: The node's cap on breakers.
+        max_actions: The node's cap on remedial actions.
+        bus_load: Each bus's load in the snapshot, MW (None: sheds are not checked against it).
 
     """
     armed, opened, commanded, broken = False, set(), set(), []
+    tripped: set[str] = set()
+    shed: dict[int, float] = {}
     for r in records:
         if r['event'] == 'start':
             armed = False
@@ -153,20 +192,37 @@ def check_audit(records: list[dict], valid: dict[str, set[str]], published: list
             opened.discard(r['breaker_id'])
         if r['event'] != 'command':
             continue
-        breakers = {c['breaker_id'] for c in r['commands']}
+        breakers = {c['breaker_id'] for c in r['commands'] if c.get('action', 'open') == 'open'}
+        actions = _logged_actions(r['commands'])
         decision = r['decision_id']
         if not armed:
             broken.append(f'command while disarmed: {decision}')
         if decision not in valid:
             broken.append(f'command for a decision that must be refused: {decision}')
-        elif breakers != valid[decision]:
-            broken.append(f'cut {sorted(breakers)} differs from the boundary {sorted(valid[decision])}')
+        else:
+            if breakers != valid[decision].breakers:
+                broken.append(f'cut {sorted(breakers)} differs from the boundary {sorted(valid[decision].breakers)}')
+            if actions != valid[decision].actions:
+                broken.append(f'decision {decision}: actions {sorted(actions)} differ from its own '
+                              f'{sorted(valid[decision].actions)}')
         if decision in commanded:
             broken.append(f'decision {decision} commanded twice')
         if breakers & opened:
             broken.append(f'breakers {sorted(breakers & opened)} commanded twice')
         if len(breakers) > max_breakers:
             broken.append(f'{len(breakers)} breakers > max_breakers={max_breakers}')
+        if len(actions) > max_actions:
+            broken.append(f'{len(actions)} actions > max_actions={max_actions}')
+        machines = {a[1] for a in actions if a[0] == 'trip'}
+        if machines & tripped:
+            broken.append(f'machines {sorted(machines & tripped)} tripped twice')
+        tripped |= machines
+        for _, bus, mw in (a for a in actions if a[0] == 'shed'):
+            shed[bus] = shed.get(bus, 0.0) + mw
+            if not (math.isfinite(mw) and mw > 0) or (
+                    bus_load is not None and shed[bus] > bus_load.get(bus, 0.0) + 1e-6):
+                broken.append(f'bus {bus}: {shed[bus]:.3f} MW shed in all (this time {mw}), its load '
+                              f'{(bus_load or {}).get(bus, float("nan")):.3f} MW')
         commanded.add(decision)
         opened |= breakers
     logged = {c['command_id'] for r in records if r['event'] == 'command' for c in r['commands']}
@@ -219,8 +275,10 @@ def run_breaker_soak(trials: int, seed: int, key_dir: Path, results: Path,
     results.mkdir(parents=True, exist_ok=True)
     audit = results / 'breaker_audit.jsonl'
     params = {'audit_log': audit, 'max_decision_age_s': MAX_DECISION_AGE_S, 'max_breakers': MAX_BREAKERS,
-              'key_dir': key_dir}
-    valid: dict[str, set[str]] = {}
+              'max_actions': MAX_ACTIONS, 'key_dir': key_dir}
+    loads = bus_load_mw(grid)
+    load_buses = sorted(b for b, mw in loads.items() if mw > 0)
+    valid: dict[str, Expected] = {}
     sent: list[object] = []
     published: list[str] = []
     diagnostics: dict[str, str] = {}
@@ -299,7 +357,23 @@ def run_breaker_soak(trials: int, seed: int, key_dir: Path, results: Path,
                 island, cut = rng.choice(splits)
                 entries: list = list(cut)
                 kind = rng.choice(['good', 'good', 'alias', 'dup', 'stale', 'future', 'forged', 'foreign',
-                                   'missing', 'extra', 'resend', 'unset', 'unsigned'])
+                                   'missing', 'extra', 'resend', 'unset', 'unsigned', 'good', 'over_shed',
+                                   'ghost_load', 'ghost_machine', 'nan_shed', 'twice_shed', 'forged_amount',
+                                   'no_split_actions'])
+                # Small sheds at a few load buses, sometimes a trip: each valid on its own, refused once a bus's
+                # load is used up or the machine tripped before.
+                shed = {b: round(rng.uniform(0.01, 0.3) * loads[b], 3)
+                        for b in rng.sample(load_buses, rng.randint(0, 3))} if rng.random() < 0.6 else {}
+                trips = [rng.choice(grid.generators).name] if rng.random() < 0.1 else []
+                if kind == 'over_shed':
+                    b = rng.choice(load_buses)
+                    shed[b] = loads[b] * rng.uniform(1.01, 100.0)
+                elif kind == 'ghost_load':
+                    shed[rng.choice([b for b in grid.buses if loads.get(b, 0.0) <= 0] + [max(grid.buses) + 7])] = 1.0
+                elif kind == 'ghost_machine':
+                    trips = [*trips, 'GENROU_999']
+                elif kind == 'nan_shed':
+                    shed[rng.choice(load_buses)] = rng.choice([float('nan'), float('inf'), -1.0, 0.0])
                 stamp = now_ns()
                 if kind == 'alias':
                     entries = [(f'{b.to_bus}-{b.from_bus}', b.to_bus, b.from_bus) for b in cut] + entries
@@ -317,12 +391,22 @@ def run_breaker_soak(trials: int, seed: int, key_dir: Path, results: Path,
                     msg = rng.choice(sent)
                 else:
                     key = Ed25519PrivateKey.generate() if kind == 'foreign' else decision_key
-                    msg = decision_msg(island, entries, stamp, key=key, status=0 if kind == 'unset' else None,
-                                       sign=kind != 'unsigned')
+                    status = 0 if kind == 'unset' else 2 if kind == 'no_split_actions' else None  # 2: NO_SPLIT
+                    if kind in ('no_split_actions', 'forged_amount') and not shed:
+                        shed = {load_buses[0]: 1.0}
+                    msg = decision_msg(island, entries, stamp, key=key, status=status, sign=kind != 'unsigned',
+                                       shed=shed, trips=trips)
+                    if kind == 'twice_shed':
+                        msg.shed_bus, msg.shed_mw = [load_buses[0]] * 2, [0.5, 0.5]
+                        msg.signature = signing.sign(key, signing.decision_payload(msg))
                     if kind == 'forged':
                         msg.bus_island = [1 - x for x in msg.bus_island]
+                    if kind == 'forged_amount':
+                        msg.shed_mw = [mw + 0.001 for mw in msg.shed_mw]
                     if kind in ('good', 'alias', 'dup') or (kind == 'missing' and len(cut) == 1):
-                        valid[msg.decision_id] = {field_names.get(b.branch_id, f'CB-{b.branch_id}') for b in cut}
+                        valid[msg.decision_id] = Expected(
+                            frozenset(field_names.get(b.branch_id, f'CB-{b.branch_id}') for b in cut),
+                            frozenset([('shed', b, mw) for b, mw in shed.items()] + [('trip', n) for n in trips]))
                     sent.append(msg)
                     del sent[:-50]
                 decisions.publish(msg)
@@ -337,6 +421,6 @@ def run_breaker_soak(trials: int, seed: int, key_dir: Path, results: Path,
             node.destroy_node()
             context.try_shutdown()
     records = [json.loads(line) for line in audit.read_text().splitlines()]
-    broken, commanded = check_audit(records, valid, published)
+    broken, commanded = check_audit(records, valid, published, bus_load=loads)
     return SoakReport(trials=trials, seed=seed, restarts=restarts, commanded_decisions=len(commanded),
                       broken=broken, wall_s=time.monotonic() - t0)

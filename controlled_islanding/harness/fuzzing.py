@@ -4,7 +4,8 @@ The four pipeline nodes run as their own processes (supervised, on sim time driv
 breaker node armed by a signed operator request. Each input topic in turn gets N seeded messages, each with
 at least one defect (non-finite or negative values, arrays at and beyond the nodes' caps, parallel arrays of
 unequal length, empty, unknown, duplicate or renamed ids, zero, far-past and far-future stamps, unset enums,
-unsigned and forged decisions). The receiving nodes' /diagnostics counters (`rejected.*`, `error.*`) are
+unsigned and forged decisions, decisions whose remedial actions are no amounts, name no bus or machine, or exceed
+the caps). The receiving nodes' /diagnostics counters (`rejected.*`, `error.*`) are
 read before and after each topic. Then the default bag is played, as fast as possible in lockstep, through
 the SAME processes, and its decision is compared with the manifest's.
 
@@ -95,7 +96,7 @@ STARTUP_S = 90.0
 LARGEST_KINDS: dict[str, tuple[str, ...]] = {
     topics.PMU_FRAMES: ('over_cap', 'at_cap_unknown'), topics.NETWORK_SNAPSHOT: ('over_cap', 'at_cap_nan'),
     topics.ROTOR_ANGLES: ('over_cap', 'at_cap_renamed'), topics.COHERENT_GROUPS: ('over_cap',),
-    topics.ISLANDING_DECISION: ('over_cap',),
+    topics.ISLANDING_DECISION: ('over_cap', 'over_cap_actions'),
 }
 WARM_PLATEAU_KB = 1024
 WARM_ROUNDS = 12
@@ -701,7 +702,8 @@ class Adversary:
                              ('attacker_key', 12), ('attacker_key_claiming_partitioning', 8), ('unset_status', 8),
                              ('inconsistent_status', 6), ('zero_stamp', 6), ('future_stamp', 8),
                              ('past_stamp', 6), ('empty_ids', 6), ('array_length', 6), ('duplicate_id', 6),
-                             ('over_cap', 0.5)])
+                             ('garbage_actions', 10), ('actions_array_length', 6), ('over_cap', 0.5),
+                             ('over_cap_actions', 0.5)])
         buses, islands = [], []
         for k, members in enumerate(self.s.expected_islands or [[int(b) for b in self.s.snapshot.bus_numbers]]):
             buses += members
@@ -727,6 +729,29 @@ class Adversary:
             msg.bus_island = list(msg.bus_island)[:-1]
         elif kind == 'duplicate_id':
             msg.decision_id = f'fuzz-decision-{rng.randrange(max(1, self.n))}'
+        elif kind == 'garbage_actions':
+            # Sheds that are not amounts, at buses that do not exist or twice, trips of machines no case has.
+            n = rng.randrange(1, 20)
+            msg.shed_bus = [rng.choice([0, 2**32 - 1, *buses[:3]]) for _ in range(n)]
+            msg.shed_mw = [rng.choice([float('nan'), float('inf'), -1.0, 0.0, 1e300, 5.0]) for _ in range(n)]
+            msg.trip_generator_names = [rng.choice(['', 'GENROU_999', 'x' * 300, *self.s.snapshot.generator_names[:2]])
+                                        for _ in range(rng.randrange(0, 5))]
+        elif kind == 'actions_array_length':
+            msg.shed_bus = list(buses[:2])
+            msg.shed_mw = [1.0] * rng.choice([0, 1, 3])
+        elif kind == 'over_cap_actions':
+            key = f'decision:{kind}'
+            if key not in self._big:
+                m = MAX_BUSES + 1
+                self._big[key] = IslandingDecision(
+                    decision_id='fuzz-big-actions', request_id='fuzz-big-actions', method='dtw',
+                    status=IslandingDecision.STATUS_SPLIT, split=True, bus_numbers=buses, bus_island=islands,
+                    cut_branch_ids=msg.cut_branch_ids, cut_from_bus=msg.cut_from_bus, cut_to_bus=msg.cut_to_bus,
+                    shed_bus=list(range(m)), shed_mw=[1.0] * m, trip_generator_names=['G'] * (MAX_GENERATORS + 1))
+            big = self._big[key]
+            big.decision_id = f'fuzz-big-actions-{self.n}'
+            self._stamp(big.request_stamp, 'fresh')
+            return kind, big
         elif kind == 'over_cap':
             key = f'decision:{kind}'
             if key not in self._big:

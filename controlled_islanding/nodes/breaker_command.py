@@ -6,7 +6,9 @@ it. In short: a decision is executed only if it is signed by the decision key, n
 even before a restart: the audit log is read back at start-up), answers a request that is fresh on this
 node's clock, the node is armed by a signed operator request, and its cut is exactly the set of in-service
 branches between its islands in the network this node holds, within `max_breakers`, with generation in
-every island. Then every breaker is commanded once, after one fsync'ed audit record that lists them all.
+every island; and its remedial actions (load to shed per bus, machines to trip) name loads and machines of that
+network, within what is left of each bus's load and of machines not tripped before, within `max_actions`. Then
+every breaker and every action is commanded once, after one fsync'ed audit record that lists them all.
 If the audit log cannot be read or written, nothing is commanded and diagnostics say ERROR.
 
 Arming is a state visible to standard ROS tools as the read-only parameter `armed`. A lifecycle node was
@@ -39,7 +41,7 @@ from controlled_islanding.ros.params import NodeSetupError
 from controlled_islanding.ros.sim_clock import SimClockWatch
 from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.safety import signing
-from controlled_islanding.safety.actuation import Refusal, plan_commands
+from controlled_islanding.safety.actuation import Refusal, plan_actions, plan_commands
 from controlled_islanding.safety.audit import AuditError, AuditLog
 from controlled_islanding.safety.topology import Topology, TopologyError
 from controlled_islanding.wire import topics
@@ -48,6 +50,8 @@ from controlled_islanding.wire.qos import DECISION_LEASE_S
 from controlled_islanding.wire.timebounds import ClockJump
 
 _MAX_ID_CHARS = 128
+_ACTIONS = {'open': BreakerCommand.ACTION_OPEN, 'shed': BreakerCommand.ACTION_SHED_LOAD,
+            'trip': BreakerCommand.ACTION_TRIP_GENERATOR}
 _NOT_DECIDED = {
     IslandingDecision.STATUS_REFUSED_STALE_GROUPS: 'stale groups',
     IslandingDecision.STATUS_REFUSED_NO_SNAPSHOT: 'no snapshot',
@@ -123,16 +127,21 @@ class BreakerCommandNode(Node):
             'refuse an arm/disarm request signed longer ago than this on the wall clock, s', 0.1, 3600.0))
         self.declare_parameter('max_breakers', 20, _descriptor(
             'the most breakers one decision may open', 1, 100000, integer=True))
+        self.declare_parameter('max_actions', 80, _descriptor(
+            'the most remedial actions (load sheds and generator trips) one decision may take; with max_breakers '
+            '(20) within the 100 commands /breaker/commands keeps, so no decision overflows it', 0, 100000,
+            integer=True))
         self.declare_parameter('max_remembered_decisions', 100000, _descriptor(
             'decision ids kept in memory; beyond, ids too old to pass the age rule are forgotten', 100, 10**7,
             integer=True))
         p = {name: self.get_parameter(name).value for name in (
             'breakers_file', 'audit_log', 'key_dir', 'max_decision_age_s', 'future_tolerance_s',
-            'max_arm_request_age_s', 'max_breakers', 'max_remembered_decisions')}
+            'max_arm_request_age_s', 'max_breakers', 'max_actions', 'max_remembered_decisions')}
         self.max_age_s = float(p['max_decision_age_s'])
         self.future_tolerance_s = float(p['future_tolerance_s'])
         self.max_arm_age_s = float(p['max_arm_request_age_s'])
         self.max_breakers = int(p['max_breakers'])
+        self.max_actions = int(p['max_actions'])
         self.max_remembered = int(p['max_remembered_decisions'])
         self.override: dict[str, str] = {}
         if p['breakers_file']:
@@ -301,8 +310,11 @@ class BreakerCommandNode(Node):
     def _authenticate(self, msg: IslandingDecision) -> None:
         snapshot = self.topology.snapshot
         max_entries = 2 * len(snapshot.branches) if snapshot is not None else self.limits.max_branches
-        if len(msg.bus_numbers) > self.limits.max_buses or len(msg.cut_branch_ids) > max_entries:
-            raise Refusal('too_large', f'{len(msg.bus_numbers)} buses and {len(msg.cut_branch_ids)} cut entries')
+        if (len(msg.bus_numbers) > self.limits.max_buses or len(msg.cut_branch_ids) > max_entries
+                or max(len(msg.shed_bus), len(msg.shed_mw)) > self.limits.max_buses
+                or len(msg.trip_generator_names) > self.limits.max_generators):
+            raise Refusal('too_large', f'{len(msg.bus_numbers)} buses, {len(msg.cut_branch_ids)} cut entries, '
+                                       f'{len(msg.shed_bus)} sheds and {len(msg.trip_generator_names)} trips')
         _check_signature('decision', self.decision_key, self.decision_key_id, msg.key_id,
                          lambda: signing.decision_payload(msg), msg.signature)
         if not 0 < len(msg.decision_id) <= _MAX_ID_CHARS:
@@ -314,6 +326,8 @@ class BreakerCommandNode(Node):
             raise Refusal('unset_status', f'status={msg.status} is not a decision status')
         if msg.split != (msg.status == IslandingDecision.STATUS_SPLIT):
             raise Refusal('inconsistent_status', f'split={msg.split} but status={msg.status}')
+        if not msg.split and (len(msg.shed_bus) or len(msg.shed_mw) or len(msg.trip_generator_names)):
+            raise Refusal('inconsistent_status', f'status={msg.status} carries remedial actions; only a split does')
         now_s = self._now_s()
         if request_s <= 0:
             raise Refusal('missing_stamp', 'request_stamp is zero')
@@ -400,13 +414,20 @@ class BreakerCommandNode(Node):
             plan = plan_commands(grid, msg.bus_numbers, msg.bus_island, msg.cut_branch_ids, msg.cut_from_bus,
                                  msg.cut_to_bus, max_breakers=self.max_breakers,
                                  open_breakers=self._open_breakers(), breaker_override=self.override)
+            state = self.audit.state
+            actions = plan_actions(grid, msg.bus_numbers, msg.bus_island, msg.shed_bus, msg.shed_mw,
+                                   msg.trip_generator_names, max_actions=self.max_actions,
+                                   shed_before_mw=state.shed_mw, tripped_before=state.tripped)
         except Refusal as exc:
             self._refuse(exc.reason, f'decision {msg.decision_id!r}: {exc}', **seen)
             return
         commands = [{'command_id': f'{msg.decision_id}/{c.breaker_id}', 'breaker_id': c.breaker_id,
                      'branch_id': c.branch_id, 'action': 'open'} for c in plan.commands]
-        # One record for the whole cut, on disk before the first command leaves: a crash can lose commands
-        # but never repeat one, and never leaves a half-recorded cut.
+        commands += [{'command_id': f'{msg.decision_id}/{a.device_id}', 'breaker_id': a.device_id, 'branch_id': '',
+                      'action': a.kind, 'bus': a.bus, **({'amount_mw': a.amount_mw} if a.kind == 'shed' else
+                                                         {'generator': a.generator})} for a in actions]
+        # One record for the whole decision, cut and actions, on disk before the first command leaves: a crash can
+        # lose commands but never repeat one, and never leaves a half-recorded decision.
         if not self._record('command', commands=commands, islands=plan.n_islands, **seen):
             self.diag.reject('audit_unavailable', f'decision {msg.decision_id!r}: the command record could not '
                                                   f'be written; nothing commanded')
@@ -414,12 +435,16 @@ class BreakerCommandNode(Node):
         stamp = self.get_clock().now().to_msg()
         for c in commands:
             out = BreakerCommand(command_id=c['command_id'], decision_id=msg.decision_id, breaker_id=c['breaker_id'],
-                                 branch_id=c['branch_id'], action=BreakerCommand.ACTION_OPEN)
+                                 branch_id=c['branch_id'], action=_ACTIONS[c['action']], bus=int(c.get('bus', 0)),
+                                 generator_name=c.get('generator', ''), amount_mw=float(c.get('amount_mw', 0.0)))
             out.header.stamp = stamp
             self.pub.publish(out)
         self.diag.computed(time.perf_counter() - t0)
-        self.get_logger().info(f'decision {msg.decision_id}: opened {len(commands)} breakers '
-                               f'{", ".join(c["breaker_id"] for c in commands)}')
+        shed = sum(a.amount_mw for a in actions)
+        self.get_logger().info(f'decision {msg.decision_id}: opened {len(plan.commands)} breakers '
+                               f'{", ".join(c.breaker_id for c in plan.commands)}; shed {shed:.1f} MW at '
+                               f'{sum(1 for a in actions if a.kind == "shed")} buses; tripped '
+                               f'{", ".join(a.generator for a in actions if a.kind == "trip") or "no machine"}')
 
     def close(self) -> None:
         """Close the audit log."""

@@ -2,12 +2,14 @@
 
 It publishes what the field would: the pre-fault network snapshot, PMU frames at the scenario's rate (with its
 noise and impairments, sim/pmu.PmuStream), branch status changes (the scenario's trips, and every branch
-it opens on command), the scenario's islanding request, and /clock. It executes /breaker/commands: the OPEN
-commands of one decision open their branches together, in one simulation step, `breaker_operating_s` after the
-last of them came (one switching event, sim/closed_loop.SwitchingEvents; those that came within
-`command_wait_s` wall of the first, if some never come), then
-`shed_delay_s` later sheds the load the decision named in each island short of generation and trips machines
-in each island with a surplus (generation rejection; sim/closed_loop.py says how). After `run_after_s` past
+it opens on command), the scenario's islanding request, and /clock. It executes /breaker/commands, and nothing
+else: the OPEN commands of one decision open their branches together, in one simulation step,
+`breaker_operating_s` after the last of the decision's commands came (one switching event,
+sim/closed_loop.SwitchingEvents; those that came within `command_wait_s` wall of the first, if some never come),
+and `shed_delay_s` later its SHED_LOAD commands shed their amount at their bus and its TRIP_GENERATOR commands
+trip their machine (sim/closed_loop.py says how). It decides no shed or trip of its own; the grid's own
+protection (PRC-024 trips, UFLS) stays in the simulation. A command it cannot apply (an unset or CLOSE action, a
+branch, bus or machine the case lacks, a shed beyond the bus's load) is listed as ignored. After `run_after_s` past
 the request it publishes a post-islanding assessment per island on /grid/assessment
 (diagnostic_msgs/DiagnosticArray, one status per island), writes it to `report_file` (JSON) and the
 trajectories to `<report_file>.npz`, and exits.
@@ -79,7 +81,6 @@ from controlled_islanding.sim.closed_loop import (
     Sample,
     SwitchingEvent,
     SwitchingEvents,
-    apply_decision,
     out_of_step,
 )
 from controlled_islanding.sim.pmu import Frame, PmuStream
@@ -134,6 +135,12 @@ def frame_msg(frame: Frame) -> PmuFrame:
     msg.header.stamp = _stamp(frame.tag_s)
     msg.header.frame_id = PDC_FRAME_ID
     return msg
+
+
+def _expected_items(decision: IslandingDecision) -> list[str]:
+    """Return what a split decision's commands switch: its cut's branch ids, then its remedial actions' keys."""
+    return ([str(b) for b in decision.cut_branch_ids] + [f'shed:{int(b)}' for b in decision.shed_bus]
+            + [f'trip:{n}' for n in decision.trip_generator_names])
 
 
 class GridSimNode(Node):
@@ -203,6 +210,7 @@ class GridSimNode(Node):
         self.decisions: dict[str, IslandingDecision] = {}
         self.commands: list[tuple[float, float, BreakerCommand]] = []  # (wall s, sim s at receipt, msg)
         self.handled_commands: set[str] = set()
+        self.remedial: dict[str, dict[str, BreakerCommand]] = {}  # decision -> item -> its SHED or TRIP command
         self.switching = SwitchingEvents(float(self.get_parameter('command_wait_s').value))
         self.newest_angle_s = -1.0
         self.newest_frame_s = -1.0
@@ -266,15 +274,31 @@ class GridSimNode(Node):
                 keep.append(frame)
         self.queue = keep
 
+    def _item(self, run: GridRun, msg: BreakerCommand) -> str | None:
+        """Return what a command switches (a branch id, 'shed:<bus>', 'trip:<machine>'), or None if it cannot apply."""
+        if msg.action == BreakerCommand.ACTION_OPEN and msg.branch_id in run.branch_ends:
+            return msg.branch_id
+        if msg.action == BreakerCommand.ACTION_SHED_LOAD:
+            load = run.island_load_mw([msg.bus])
+            amount = float(msg.amount_mw)
+            return f'shed:{msg.bus}' if math.isfinite(amount) and 0 < amount <= load * (1 + 1e-9) + 1e-9 else None
+        if msg.action == BreakerCommand.ACTION_TRIP_GENERATOR and msg.generator_name in run.generator_names:
+            return f'trip:{msg.generator_name}'
+        return None
+
     def _execute(self, run: GridRun, wall: float, sim_at: float, msg: BreakerCommand) -> None:
-        """Take a command: its opening joins its decision's switching event (sim/closed_loop.SwitchingEvents)."""
+        """Take a command: it joins its decision's switching event (sim/closed_loop.SwitchingEvents)."""
         if msg.command_id in self.handled_commands:
             return
         self.handled_commands.add(msg.command_id)
-        if msg.action != BreakerCommand.ACTION_OPEN or msg.branch_id not in run.branch_ends:
+        item = self._item(run, msg)
+        if item is None:
             self.events.append({'what': 'command ignored', 'command_id': msg.command_id, 'action': int(msg.action),
-                                'branch_id': msg.branch_id})
+                                'branch_id': msg.branch_id, 'bus': int(msg.bus), 'generator': msg.generator_name,
+                                'amount_mw': float(msg.amount_mw)})
             return
+        if item != msg.branch_id:
+            self.remedial.setdefault(msg.decision_id, {})[item] = msg
         cfg = run.config
         if self.rate == 0 and self.request_sent_wall is not None:
             # Lockstep: sim time stood still while the graph worked; charge the wall time it took.
@@ -282,29 +306,33 @@ class GridSimNode(Node):
         else:
             at = max(_sim_s(msg.header.stamp), sim_at) + cfg.breaker_operating_s
         at = max(at, self.t_now)
-        self.events.append({'what': 'command', 'command_id': msg.command_id, 'branch_id': msg.branch_id,
+        self.events.append({'what': 'command', 'command_id': msg.command_id, 'item': item,
                             'breaker_id': msg.breaker_id, 'decision_id': msg.decision_id,
-                            'command_stamp_s': _sim_s(msg.header.stamp), 'received_sim_s': sim_at,
-                            'ready_at_s': at, 'wall_after_request_s': None if self.request_sent_wall is None
+                            'amount_mw': float(msg.amount_mw), 'command_stamp_s': _sim_s(msg.header.stamp),
+                            'received_sim_s': sim_at, 'ready_at_s': at,
+                            'wall_after_request_s': None if self.request_sent_wall is None
                             else wall - self.request_sent_wall})
-        late = self.switching.add(msg.decision_id, msg.branch_id, at, wall)
+        late = self.switching.add(msg.decision_id, item, at, wall)
         if late is not None:
             self._switch(run, late)
 
     def _switch(self, run: GridRun, event: SwitchingEvent) -> None:
-        """Open one switching event's branches together; then, once per decision, its islands' shed."""
+        """Open one switching event's branches together; shed_delay_s later, apply its load sheds and trips."""
         at = max(event.at_s, self.t_now)
-        run.open_branches(list(event.branch_ids), at, why=f'open {", ".join(event.branch_ids)}')
-        self.events.append({'what': 'switching event', 'decision_id': event.decision_id,
-                            'branch_ids': list(event.branch_ids), 'at_s': at, 'missing': list(event.missing),
-                            'late': event.late})
-        decision = next((d for d in self.decisions.values() if d.decision_id == event.decision_id), None)
-        if decision is not None and not event.late:
-            bus_island = dict(zip((int(b) for b in decision.bus_numbers), (int(k) for k in decision.bus_island),
-                                  strict=True))
-            shed = apply_decision(run, [], bus_island, list(decision.island_shed_mw), at)
-            self.events.append({'what': 'shed scheduled', 'decision_id': decision.decision_id,
-                                'at_s': at + run.config.shed_delay_s, 'shed_mw_by_island': shed})
+        actions = self.remedial.get(event.decision_id, {})
+        branches = [i for i in event.items if i not in actions]
+        if branches:
+            run.open_branches(branches, at, why=f'open {", ".join(branches)}')
+        shed = {int(actions[i].bus): float(actions[i].amount_mw) for i in event.items if i.startswith('shed:')}
+        trips = [actions[i].generator_name for i in event.items if i.startswith('trip:')]
+        after = at + run.config.shed_delay_s
+        if shed:
+            run.shed_loads(shed, after, why=f'shed {event.decision_id}')
+        if trips:
+            run.trip_generators(trips, after, why=f'reject {event.decision_id}')
+        self.events.append({'what': 'switching event', 'decision_id': event.decision_id, 'branch_ids': branches,
+                            'at_s': at, 'shed_mw_by_bus': shed, 'tripped': trips, 'actions_at_s': after,
+                            'missing': list(event.missing), 'late': event.late})
 
     # --- the run ---------------------------------------------------------------------------------------------
     def _hook(self, run: GridRun, sample: Sample) -> None:
@@ -347,8 +375,8 @@ class GridSimNode(Node):
         for wall, sim_at, msg in list(self.commands):
             self._execute(run, wall, sim_at, msg)
         self.commands.clear()
-        cuts = {d.decision_id: list(d.cut_branch_ids) for d in self.decisions.values() if d.split}
-        for event in self.switching.due(cuts, time.monotonic()):
+        expected = {d.decision_id: _expected_items(d) for d in self.decisions.values() if d.split}
+        for event in self.switching.due(expected, time.monotonic()):
             self._switch(run, event)
         for action in run.actions:
             if action.what.startswith('open ') and action.applied_s is not None and not action.detail.get('said'):
@@ -393,7 +421,7 @@ class GridSimNode(Node):
             self.get_logger().warning('lockstep: no decision for the request within decision_timeout_s')
             self.events.append({'what': 'no decision', 'waited_wall_s': time.monotonic() - t0})
         elif decision.split:
-            want = len(decision.cut_branch_ids)
+            want = len(_expected_items(decision))
             self._spin(float(self.get_parameter('command_wait_s').value),
                        lambda: sum(1 for _, _, c in self.commands if c.decision_id == decision.decision_id) >= want)
         self.held_wall_s += time.monotonic() - t0
@@ -449,14 +477,11 @@ class GridSimNode(Node):
         opened_s = max((a.applied_s for a in opened), default=None)
         cut = [b for a in opened for b in a.detail['branches']]
         bus_island = None
-        shed: dict[int, float] = {}
         if decision is not None and decision.split and opened:
             bus_island = dict(zip((int(b) for b in decision.bus_numbers), (int(k) for k in decision.bus_island),
                                   strict=True))
-            shed = {int(k): v for e in self.events if e['what'] == 'shed scheduled'
-                    for k, v in e['shed_mw_by_island'].items()}
         outcome = run.outcome('closed loop', cut, bus_island, opened_s,
-                              opened_s if opened_s is not None else run.scenario.request_s, shed)
+                              opened_s if opened_s is not None else run.scenario.request_s)
         array = DiagnosticArray()
         array.header.stamp = _stamp(self.t_now)
         for isl in outcome.islands:

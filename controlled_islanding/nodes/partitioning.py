@@ -88,7 +88,8 @@ def decision_to_msg(decision: Decision, request: IslandingRequest, method: str, 
         unobserved_generator_names=unobserved,
         unobserved_generator_island=[decision.bus_island[(generator_bus or {})[n]] for n in unobserved],
         partitioner=decision.partitioner_summary, constraint_fallback=decision.constraint_fallback,
-        suspect_generator_names=list(suspect))
+        suspect_generator_names=list(suspect), shed_bus=list(decision.remedial.shed_bus),
+        shed_mw=list(decision.remedial.shed_mw), trip_generator_names=list(decision.remedial.trip_generators))
 
 
 class PartitioningNode(Node):

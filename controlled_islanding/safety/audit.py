@@ -29,6 +29,8 @@ class AuditState:
         commanded: Breaker id -> (decision id, node clock s) of every open command issued and not reported
             closed again since (a branch status 'in service' stamped after the command).
         nonces: Arm/disarm nonce -> request stamp (s, wall clock) of every authenticated arm request.
+        shed_mw: Load bus -> load commanded shed there so far, MW (every decision's sheds added up).
+        tripped: Machine -> the decision id that commanded it tripped.
         records: Number of records read.
         repaired_tail: A torn last line (a crash mid-write) was cut off; it described nothing published.
 
@@ -37,6 +39,8 @@ class AuditState:
     decisions: dict[str, float] = field(default_factory=dict)
     commanded: dict[str, tuple[str, float]] = field(default_factory=dict)
     nonces: dict[str, float] = field(default_factory=dict)
+    shed_mw: dict[int, float] = field(default_factory=dict)
+    tripped: dict[str, str] = field(default_factory=dict)
     records: int = 0
     repaired_tail: bool = False
 
@@ -49,7 +53,15 @@ class AuditState:
             self.decisions[str(decision_id)] = float(record.get('request_stamp_s', 0.0))
         if event == 'command':
             for command in record['commands']:
-                self.commanded[str(command['breaker_id'])] = (str(decision_id), float(record.get('ros_time_s', 0.0)))
+                action = command.get('action', 'open')
+                if action == 'shed':
+                    bus = int(command['bus'])
+                    self.shed_mw[bus] = self.shed_mw.get(bus, 0.0) + float(command['amount_mw'])
+                elif action == 'trip':
+                    self.tripped[str(command['generator'])] = str(decision_id)
+                else:
+                    self.commanded[str(command['breaker_id'])] = (str(decision_id),
+                                                                  float(record.get('ros_time_s', 0.0)))
         if event == 'reclosed':
             self.commanded.pop(str(record['breaker_id']), None)
         if event in ('armed', 'disarmed') and record.get('nonce'):

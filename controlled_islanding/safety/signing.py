@@ -35,7 +35,7 @@ from controlled_islanding import atomic
 
 # Who signs what: the decision maker (partitioning) and the operator who arms and disarms.
 ROLES = ('partitioning', 'operator')
-DECISION_DOMAIN = 'controlled_islanding/IslandingDecision/v1'
+DECISION_DOMAIN = 'controlled_islanding/IslandingDecision/v2'  # v2: the remedial actions too
 ARM_DOMAIN = 'controlled_islanding/SetArmed/v1'
 SIGNATURE_BYTES = 64
 
@@ -173,7 +173,9 @@ def decision_payload(msg: object) -> bytes:
         'request_stamp_ns': _stamp_ns(msg.request_stamp), 'status': int(msg.status), 'split': bool(msg.split),
         'bus_numbers': [int(x) for x in msg.bus_numbers], 'bus_island': [int(x) for x in msg.bus_island],
         'cut_branch_ids': [str(x) for x in msg.cut_branch_ids], 'cut_from_bus': [int(x) for x in msg.cut_from_bus],
-        'cut_to_bus': [int(x) for x in msg.cut_to_bus], 'key_id': str(msg.key_id)})
+        'cut_to_bus': [int(x) for x in msg.cut_to_bus], 'shed_bus': [int(x) for x in msg.shed_bus],
+        'shed_mw': [float(x) for x in msg.shed_mw], 'trip_generator_names': [str(x) for x in msg.trip_generator_names],
+        'key_id': str(msg.key_id)})
 
 
 def arm_payload(request: object, target: str) -> bytes:

@@ -15,8 +15,9 @@ action scheduled at time T is applied in the hook of the first integration step 
 it lands at most one step (`step_s`, 1/120 s in the bags) late; the time it really happened is reported.
 
 One decision, one switching event. The breakers one signed decision commands open together, in one integration
-step, once the last of their commands has arrived and the breaker operating time has passed (SwitchingEvents):
-a remedial action scheme trips its breakers within a cycle of each other, and opened one by one, as each
+step, once the last of its commands (its remedial actions' included) has arrived and the breaker operating time has
+passed (SwitchingEvents); its load shed and generator trips follow `shed_delay_s` later, together. Why: a
+remedial action scheme trips its breakers within a cycle of each other, and opened one by one, as each
 command's own arrival would have it, the run passes through topologies no one chose. Measured on Nordic 44's
 4-branch cut of bus 6000 at 1.383 s, one step (8.3 ms) apart, with no shed or rejection: the bus-6000 island
 peaks at 60.9 Hz and its four machines trip on overspeed, against below 51 Hz and none as one event
@@ -24,20 +25,19 @@ peaks at 60.9 Hz and its four machines trip on overspeed, against below 51 Hz an
 commands do not all come within a wait (grid_sim's command_wait_s, wall) opens those that came, together, and
 says which were missing; a command for a decision already switched opens on its own, late.
 
-Load shedding (the decision's "load to shed"). `shed_delay_s` after the cut, every ANDES load (PQ) on the buses of
-an island the decision says is short of generation is scaled by (1 - shed / load), load = the island's
-load in the simulation, P and Q alike (each load keeps its power factor): proportional shedding at every bus
-of the island, the rule export.py uses for MATPOWER. ANDES converts PQ loads to constant impedance for the
-time-domain run, so all six of its equivalent constants (Ppf, Qpf, Req, Xeq, Ipeq, Iqeq) are scaled together.
-
-Generation rejection, the companion of load shedding in islanding schemes: at the same time, in every island
-whose dispatched generation exceeds its load after the shed by more than `rejection_margin` (5 % of that load by
-default, left to the governors: with the usual 5 % droop it settles a fully loaded island about 0.15 Hz high),
-machines are tripped, largest output first, each only if it fits in the remaining surplus
-(`generation_to_reject`). Tripping is `set_status(idx, 0)` on the SynGen, which ANDES propagates to its
-governor, exciter and stabiliser. The numbers are the simulation's at t = 0 (machine outputs, island load),
-not the snapshot's: a case whose static generators feed several machines can list more generation than runs.
-A rejected machine is judged with its island until its trip and left out afterwards (its state is frozen).
+Remedial actions (the decision's load shedding and generator tripping). The simulation decides none: what to
+shed where, and which machines to trip, is core/remedial.py's rule, carried by the signed decision and commanded
+by breaker_command; grid_sim applies the commanded actions, and run_offline the same rule's actions. Both are
+applied `shed_delay_s` after the cut. A shed of S MW at a bus whose pre-fault load is L MW scales every ANDES load
+(PQ) on that bus by (1 - S / L), P and Q alike (each load keeps its power factor; GridRun.shed_loads). ANDES
+converts PQ loads to constant impedance for the time-domain run, so all six of its equivalent constants (Ppf, Qpf,
+Req, Xeq, Ipeq, Iqeq) are scaled together. A machine trip is `set_status(idx, 0)` on the SynGen, which ANDES
+propagates to its governor, exciter and stabiliser; a tripped machine is judged with its island until its trip
+and left out afterwards (its state is frozen), and the output it is reported with is the simulation's at t = 0.
+A machine on a bus ANDES has left with no in-service branch is already off the network: its trip (the turbine's)
+is recorded but not switched in ANDES, whose solver does not converge when a machine on such a bus is switched
+off. An island of the present topology whose every machine is tripped is de-energised: its lines are opened
+(ANDES cannot solve an island with lines but no source: measured, IEEE 39 G3 multitrip stopped at the trip).
 
 The judge: the grid's own protection, and each island at the end of the run. Every rule comes from a standard,
 scaled to the case's nominal frequency f0 (ANDES `config.freq`: 50 Hz for Nordic 44, 60 Hz for the others) by
@@ -103,6 +103,7 @@ from typing import Any
 
 import numpy as np
 
+from controlled_islanding.core.remedial import RemedialActions, remedial_actions
 from controlled_islanding.sim.andes_sim import prepare_case
 from controlled_islanding.sim.scenario import Scenario
 
@@ -123,7 +124,7 @@ class LoopConfig:
 
     Attributes:
         breaker_operating_s: From the breaker command to the branch opening in the simulation, s.
-        shed_delay_s: From the opening to the load shed, s.
+        shed_delay_s: From the opening to the decision's load shed and generator trips, s.
         run_after_s: The run lasts at least this long after the islanding request, s (and at least end_s).
         coherence_bound_rad: Largest change of a machine pair's angle difference within an island, rad.
         f_min_pu, f_max_pu: The continuous frequency band an island must be back in at the end of the run, pu
@@ -136,8 +137,6 @@ class LoopConfig:
             each load's pre-fault value shed) per stage, in the style of PRC-006 (empty: none).
         ufls_delay_s: How long an island's frequency must stay below a stage's level before it sheds, s.
         end_window_s: "At the end of the run" is its last end_window_s, s.
-        rejection_margin: Generation surplus an island keeps without tripping machines, as a fraction of its
-            load after the shed (generation_to_reject).
         overspeed_trip_pu: Speed above which a machine's overspeed protection trips it, pu of rated speed (None:
             no overspeed protection).
 
@@ -152,7 +151,6 @@ class LoopConfig:
     v_min_pu: float = 0.9
     v_max_pu: float = 1.1
     voltage_settle_s: float = 0.5
-    rejection_margin: float = 0.05
     overspeed_trip_pu: float | None = 1.10
     ride_through: bool = True
     ufls_stages: tuple[tuple[float, float], ...] = ((59.3 / 60.0, 0.1), (59.0 / 60.0, 0.1), (58.7 / 60.0, 0.1))
@@ -373,61 +371,63 @@ class Outcome:
 
 @dataclass(frozen=True)
 class SwitchingEvent:
-    """The breakers of one decision, opened together in one step (see the module docstring).
+    """What one decision switches together: its breakers in one step, its remedial actions after (module docstring).
 
     Attributes:
         decision_id: The decision whose commands these are.
-        branch_ids: Branches to open, in the order their commands came.
-        at_s: When they open, s of sim time: the latest of their commands' arrival + operating time.
-        missing: Branches of the decision's cut whose command had not come when it switched.
+        items: What its commands name, in the order they came: a branch id for an opening, or the key of a remedial
+            action (the caller's, e.g. 'shed:<bus>', 'trip:<machine>').
+        at_s: When they switch, s of sim time: the latest of their commands' arrival + operating time.
+        missing: Items of the decision whose command had not come when it switched.
         late: The decision had switched already; this command came after it.
 
     """
 
     decision_id: str
-    branch_ids: tuple[str, ...]
+    items: tuple[str, ...]
     at_s: float
     missing: tuple[str, ...] = ()
     late: bool = False
 
 
 class SwitchingEvents:
-    """Gathers breaker commands by decision into switching events; pure, no simulation (see the module docstring)."""
+    """Gathers commands by decision into switching events; pure, no simulation (see the module docstring)."""
 
     def __init__(self, wait_s: float) -> None:
         """Make an empty collector; a decision's commands are awaited at most wait_s (wall s) after its first."""
         self.wait_s = wait_s
-        self._waiting: dict[str, dict[str, float]] = {}  # decision -> branch -> its opening time, s
+        self._waiting: dict[str, dict[str, float]] = {}  # decision -> item -> its time, s
         self._first_wall: dict[str, float] = {}
         self.switched: set[str] = set()
 
-    def add(self, decision_id: str, branch_id: str, opens_at_s: float, wall_s: float) -> SwitchingEvent | None:
-        """Take one command (branch_id to open no earlier than opens_at_s, s; it came at wall_s, wall s).
+    def add(self, decision_id: str, item: str, at_s: float, wall_s: float) -> SwitchingEvent | None:
+        """Take one command (item to switch no earlier than at_s, s; it came at wall_s, wall s).
 
         Returns:
-            The switching event of a command whose decision has switched already (it opens alone), else None.
+            The switching event of a command whose decision has switched already (it switches alone), else None.
 
         """
         if decision_id in self.switched:
-            return SwitchingEvent(decision_id, (branch_id,), opens_at_s, late=True)
+            return SwitchingEvent(decision_id, (item,), at_s, late=True)
         self._first_wall.setdefault(decision_id, wall_s)
         got = self._waiting.setdefault(decision_id, {})
-        got[branch_id] = max(opens_at_s, got.get(branch_id, opens_at_s))
+        got[item] = max(at_s, got.get(item, at_s))
         return None
 
-    def due(self, cuts: Mapping[str, Sequence[str]], wall_s: float) -> list[SwitchingEvent]:
+    def due(self, expected: Mapping[str, Sequence[str]], wall_s: float) -> list[SwitchingEvent]:
         """Return the decisions ready to switch, and forget them.
 
         Args:
-            cuts: Each known decision's cut (branch ids); a decision not in it waits for wait_s.
+            expected: Each known decision's items (its cut's branch ids and its actions' keys); a decision not in it
+                waits for wait_s.
             wall_s: Now, wall s.
 
         """
         out = []
         for decision_id, got in list(self._waiting.items()):
-            cut = cuts.get(decision_id)
-            missing = tuple(b for b in cut if b not in got) if cut is not None else ()
-            complete = cut is not None and not missing
+            want = expected.get(decision_id)
+            missing = tuple(b for b in want if b not in got) if want is not None else ()
+            complete = want is not None and not missing
             if not complete and wall_s - self._first_wall[decision_id] < self.wait_s:
                 continue
             out.append(SwitchingEvent(decision_id, tuple(got), max(got.values()), missing=missing))
@@ -582,63 +582,83 @@ class GridRun:
         self._pending.append((float(at_s), action, do))
         return action
 
-    def shed_load(self, buses: Iterable[int], shed_mw: float, at_s: float, why: str = 'shed') -> Applied:
-        """Schedule shedding shed_mw (MW) of the load on these buses, proportionally, at at_s (s)."""
+    def shed_loads(self, shed_mw_by_bus: Mapping[int, float], at_s: float, why: str = 'shed') -> Applied:
+        """Schedule a load shed at at_s (s): at each bus, shed_mw_by_bus[bus] MW of its pre-fault load.
+
+        A shed of S MW at a bus whose pre-fault load is L MW disconnects the share S / L of what is still connected
+        of each of its loads (its feeders): every PQ row of the bus is scaled by (1 - S / L). After the grid's UFLS
+        has disconnected part of a load, the shed takes that share of the rest, so no MW is shed twice, and it
+        removes less than S. The MW it removed, by bus, are in the action's detail once applied.
+
+        Raises:
+            ClosedLoopError: A bus carries no load in the case, or the amount is not in (0, its load].
+
+        """
         ss = self.ss
-        bus_set = {int(b) for b in buses}
-        rows = [i for i in range(ss.PQ.n) if ss.PQ.u.v[i] and int(ss.PQ.bus.v[i]) in bus_set]
         mva = float(ss.config.mva)
-        load_mw = float(sum(ss.PQ.p0.v[i] for i in rows)) * mva
-        fraction = 0.0 if load_mw <= 0 else min(1.0, max(0.0, shed_mw / load_mw))
+        plan: list[tuple[int, list[int], float]] = []
+        for bus, mw in sorted(shed_mw_by_bus.items()):
+            rows = [i for i in range(ss.PQ.n) if ss.PQ.u.v[i] and int(ss.PQ.bus.v[i]) == int(bus)]
+            load_mw = float(sum(ss.PQ.p0.v[i] for i in rows)) * mva
+            if load_mw <= 0 or not 0 < float(mw) <= load_mw * (1 + 1e-9) + 1e-9:
+                raise ClosedLoopError(f'shed {mw} MW at bus {bus} of {self.scenario.case.name}: its load is '
+                                      f'{load_mw:.3f} MW')
+            plan.append((int(bus), rows, min(1.0, float(mw) / load_mw)))
         action = Applied(what=why, scheduled_s=float(at_s),
-                         detail={'buses': sorted(bus_set), 'load_mw': load_mw, 'shed_mw': fraction * load_mw,
-                                 'fraction': fraction})
+                         detail={'planned_mw_by_bus': {int(b): float(mw) for b, mw in shed_mw_by_bus.items()},
+                                 'shed_mw_by_bus': {}, 'shed_mw': 0.0})
 
         def do() -> None:
-            self._scale_loads(rows, 1.0 - fraction)
+            by_bus = {}
+            for bus, rows, fraction in plan:
+                by_bus[bus] = fraction * float(sum(self._load_p0_mw[i] * self._load_left[i] for i in rows))
+                self._scale_loads(rows, 1.0 - fraction)
+            action.detail.update(shed_mw_by_bus=by_bus, shed_mw=sum(by_bus.values()))
 
         self._pending.append((float(at_s), action, do))
         return action
 
-    def reject_surplus(self, buses: Iterable[int], shed_mw: float, at_s: float, why: str = 'reject') -> Applied:
-        """Schedule generation rejection (generation_to_reject) in the island of these buses at at_s, s.
+    def trip_generators(self, names: Sequence[str], at_s: float, why: str = 'reject') -> Applied:
+        """Schedule tripping these machines (generation rejection) at at_s, s (see the module docstring).
 
-        The numbers are the simulation's own at t = 0 (the pre-fault power flow): each machine's electrical
-        output and the island's load, less shed_mw (MW) shed at the same time. A machine on a bus ANDES has left
-        with no in-service branch is already off the network; its rejection (the turbine trip) is recorded but
-        not switched in ANDES, whose solver does not converge when a machine on such a bus is switched off. An
-        island whose every machine is rejected is de-energised: its inner lines open, leaving such buses.
+        Raises:
+            ClosedLoopError: A name is not a machine in service in the case.
+
         """
-        bus_set = {int(b) for b in buses}
-        action = Applied(what=why, scheduled_s=float(at_s), detail={'machines': [], 'output_mw': {}})
+        unknown = sorted(set(names) - set(self.generator_names))
+        if unknown:
+            raise ClosedLoopError(f'trip {unknown[:5]}: not machines in service in {self.scenario.case.name}')
+        trip = list(dict.fromkeys(names))
+        action = Applied(what=why, scheduled_s=float(at_s), detail={'machines': trip, 'output_mw': {}})
 
         def do() -> None:
             ss = self.ss
             mva = float(ss.config.mva)
             first = self.samples[0]
-            machine_mw = {n: float(p) * mva for n, b, p in zip(self.generator_names, self.generator_buses,
-                                                              first.p_pu, strict=True) if b in bus_set}
-            load_mw = float(sum(ss.PQ.p0.v[i] for i in range(ss.PQ.n)
-                                if ss.PQ.u.v[i] and int(ss.PQ.bus.v[i]) in bus_set)) * mva
-            trip = generation_to_reject(machine_mw, load_mw, shed_mw, self.config.rejection_margin)
-            action.detail.update(machines=list(trip), output_mw={n: machine_mw[n] for n in trip},
-                                 island_generation_mw=sum(machine_mw.values()), island_load_mw=load_mw)
+            output = dict(zip(self.generator_names, (float(p) * mva for p in first.p_pu), strict=True))
+            action.detail['output_mw'] = {n: output[n] for n in trip}
+            uid_of = dict(zip(self.generator_names, (int(ss.Bus.idx2uid(b)) for b in self.generator_buses),
+                              strict=True))
+            gone = set(trip) | set(self.rejected())
+            dark = [comp for comp in self._components()
+                    if {n for n, uid in uid_of.items() if uid in comp} and
+                    {n for n, uid in uid_of.items() if uid in comp} <= gone]
             isolated = {int(ss.Bus.idx.v[i]) for i in ss.Bus.islanded_buses}
-            if trip and len(trip) == len(machine_mw):
-                # No load left to serve and every machine goes: the island is de-energised. ANDES cannot solve an
-                # island with lines but no source (measured: IEEE 39 G3 multitrip stopped at the trip), so its
-                # lines are opened, which leaves every bus with no branch for ANDES to zero.
+            for comp in dark:
+                # Every machine of this island goes: it is de-energised. ANDES cannot solve an island with lines but
+                # no source, so its lines are opened, which leaves every bus with no branch for ANDES to zero.
                 for k in range(ss.Line.n):
-                    if ss.Line.ue.v[k] and {int(ss.Line.bus1.v[k]), int(ss.Line.bus2.v[k])} <= bus_set:
+                    if ss.Line.ue.v[k] and int(ss.Line.a1.a[k]) in comp and int(ss.Line.a2.a[k]) in comp:
                         ss.Line.set_status(ss.Line.idx.v[k], 0)
                         ss.TDS.custom_event = True
+                isolated |= {int(ss.Bus.idx.v[i]) for i in comp}
+            if dark:
                 ss.conn.check_connectivity(info=False)
-                isolated |= bus_set
             for model in self._syn:
-                names = [str(n) for n in model.name.v]
+                model_names = [str(n) for n in model.name.v]
                 for name in trip:
-                    if name in names and int(model.bus.v[names.index(name)]) not in isolated:
-                        model.set_status(model.idx.v[names.index(name)], 0)  # its governor, exciter, PSS go too
+                    if name in model_names and int(model.bus.v[model_names.index(name)]) not in isolated:
+                        model.set_status(model.idx.v[model_names.index(name)], 0)  # its governor, exciter, PSS go too
                         ss.TDS.custom_event = True
 
         self._pending.append((float(at_s), action, do))
@@ -708,6 +728,12 @@ class GridRun:
         """Return the load UFLS shed on these buses so far, MW."""
         bus_set = {int(b) for b in buses}
         return float(sum(mw for a in self.actions if a.what.startswith('UFLS')
+                         for b, mw in a.detail['shed_mw_by_bus'].items() if b in bus_set))
+
+    def shed_mw(self, buses: Iterable[int]) -> float:
+        """Return the load the remedial actions shed on these buses so far, MW (UFLS not included)."""
+        bus_set = {int(b) for b in buses}
+        return float(sum(mw for a in self.actions if a.what.startswith('shed') and a.applied_s is not None
                          for b, mw in a.detail['shed_mw_by_bus'].items() if b in bus_set))
 
     def rejected(self) -> dict[str, tuple[float, float]]:
@@ -820,8 +846,8 @@ class GridRun:
     def run(self, hook: Callable[[GridRun, Sample], None] | None = None) -> None:
         """Run the time-domain simulation to run_until_s, calling hook(self, sample) at every step.
 
-        The hook may schedule actions (open_branches, shed_load); an action whose time has come is applied
-        before the next step. It may block (that is how the graph is kept in step with the simulation).
+        The hook may schedule actions (open_branches, shed_loads, trip_generators); an action whose time has come
+        is applied before the next step. It may block (that is how the graph is kept in step with the simulation).
 
         Raises:
             ClosedLoopError: ANDES stopped before the end.
@@ -932,9 +958,8 @@ class GridRun:
         return [ld.p_mw for ld in self.grid.loads]
 
     def outcome(self, label: str, cut_branch_ids: Sequence[str], bus_island: Mapping[int, int] | None,
-                opened_s: float | None, judged_from_s: float, shed_by_island: Mapping[int, float] | None = None,
-                ) -> Outcome:
-        """Assess the finished run per island (see the module docstring).
+                opened_s: float | None, judged_from_s: float) -> Outcome:
+        """Assess the finished run per island (see the module docstring); the sheds are those the run applied.
 
         Args:
             label: Name of the run.
@@ -942,7 +967,6 @@ class GridRun:
             bus_island: Island of every bus, or None for one island of the whole grid.
             opened_s: When the cut happened, s, or None.
             judged_from_s: Start of the assessment window, s.
-            shed_by_island: Load shed per island, MW.
 
         """
         t = np.array([s.t_s for s in self.samples])
@@ -951,11 +975,12 @@ class GridRun:
         delta = np.vstack([s.delta_rad for s in self.samples])
         omega = np.vstack([s.omega_pu for s in self.samples])
         volts = np.vstack([s.bus_v_pu for s in self.samples])
+        by_island = _island_buses(self.bus_numbers, bus_island)
         islands = assess(t, delta, omega, volts, self.generator_names, self.generator_buses, self.bus_numbers,
                          bus_island, judged_from_s, self.config, float(self.ss.config.freq),
-                         {k: self.island_load_mw(b) for k, b in _island_buses(self.bus_numbers, bus_island).items()},
-                         shed_by_island or {}, self.machines_tripped(), self.rejected(),
-                         {k: self.ufls_shed_mw(b) for k, b in _island_buses(self.bus_numbers, bus_island).items()})
+                         {k: self.island_load_mw(b) for k, b in by_island.items()},
+                         {k: self.shed_mw(b) for k, b in by_island.items()}, self.machines_tripped(), self.rejected(),
+                         {k: self.ufls_shed_mw(b) for k, b in by_island.items()})
         failed = None
         if self.stopped_s is not None:
             failed = f'simulation failed at {self.stopped_s:.3f} s: {self.failure}'
@@ -1133,79 +1158,43 @@ def out_of_step(angle_rad: Sequence[float], reference_rad: Sequence[float], v_pu
     return float(dev.max() - dev.min()) > separation_rad
 
 
-def generation_to_reject(machine_mw: Mapping[str, float], load_mw: float, shed_mw: float = 0.0,
-                         margin: float = 0.05) -> tuple[str, ...]:
-    """Return the machines an island with a generation surplus trips (see the module docstring).
-
-    The rule: surplus = generation - (load - shed). Nothing is tripped while surplus <= margin x (load - shed).
-    Otherwise machines are taken largest output first, each only if its output fits in what is left of the
-    surplus (so rejection never turns the surplus into a deficit, which would need a shed nobody planned),
-    until the rest is within the margin or no machine fits. Largest first keeps the number of machines
-    tripped small. An island with no load left trips every machine: there is nothing for them to serve.
-
-    Args:
-        machine_mw: Dispatched output of each machine of the island, MW.
-        load_mw: Island load, MW.
-        shed_mw: Load the decision sheds in the island, MW.
-        margin: Surplus left to the governors, as a fraction of the island load after the shed.
-
-    Returns:
-        Names of the machines to trip, largest output first.
-
-    """
-    served = max(0.0, load_mw - shed_mw)
-    left = sum(machine_mw.values()) - served
-    out: list[str] = []
-    for name, mw in sorted(machine_mw.items(), key=lambda item: (-item[1], item[0])):
-        if left <= margin * served + 1e-9:
-            break
-        if 0.0 < mw <= left + 1e-9:
-            out.append(name)
-            left -= mw
-    return tuple(out)
-
-
-def apply_decision(run: GridRun, cut_branch_ids: Sequence[str], bus_island: Mapping[int, int],
-                   island_shed_mw: Sequence[float], opened_s: float) -> dict[int, float]:
-    """Schedule a cut at opened_s, then shed_delay_s later each island's shed or generation rejection.
-
-    Islands short of generation shed the decision's load; islands with a surplus trip machines by
-    generation_to_reject.
-
-    Returns:
-        The load to shed per island, MW, as the decision gave it.
-
-    """
+def apply_decision(run: GridRun, cut_branch_ids: Sequence[str], actions: RemedialActions, opened_s: float) -> None:
+    """Schedule a cut at opened_s, then its remedial actions (load shed, generator trips) shed_delay_s later."""
     if cut_branch_ids:
         run.open_branches(cut_branch_ids, opened_s, why='open cut')
-    shed = {}
     at = opened_s + run.config.shed_delay_s
-    for island, buses in _island_buses(run.bus_numbers, bus_island).items():
-        mw = float(island_shed_mw[island]) if island < len(island_shed_mw) else 0.0
-        if mw > 0:
-            action = run.shed_load(buses, mw, at, why=f'shed island {island}')
-            shed[island] = action.detail['shed_mw']
-        run.reject_surplus(buses, shed.get(island, 0.0), at, why=f'reject island {island}')
-    return shed
+    if actions.shed_bus:
+        run.shed_loads(actions.shed_by_bus, at, why='shed')
+    if actions.trip_generators:
+        run.trip_generators(actions.trip_generators, at, why='reject')
 
 
 def run_offline(scenario: Scenario, label: str, *, cut_branch_ids: Sequence[str] = (),
-                bus_island: Mapping[int, int] | None = None, island_shed_mw: Sequence[float] = (),
+                bus_island: Mapping[int, int] | None = None, actions: RemedialActions | None = None,
                 opened_s: float | None = None, judged_from_s: float | None = None,
                 config: LoopConfig = LoopConfig(), progress: bool = False, remedies: bool = True) -> Outcome:
     """Run a scenario with a given cut (or none) applied at opened_s, with no graph; return its outcome.
+
+    The one offline entry point that applies a decision: the cut at opened_s, its remedial actions shed_delay_s
+    later. By default those are core/remedial.py's, the rule partitioning puts in every decision, computed on the
+    case's own pre-fault network for these islands, so an offline cut (the MILP row, an oracle's candidates) is
+    judged with the actions the graph would have commanded for it.
 
     Args:
         scenario: The scenario.
         label: Name of the run.
         cut_branch_ids: Branches to open (empty: no action).
         bus_island: The islands the cut forms (None with no cut).
-        island_shed_mw: Load to shed per island, MW.
+        actions: The load to shed and machines to trip; None: core/remedial.remedial_actions for bus_island;
+            RemedialActions() for none.
         opened_s: When the cut takes effect, s.
         judged_from_s: Start of the assessment window, s (default opened_s, else the request time).
         config: Loop settings.
         progress: Report progress on stderr.
         remedies: If the run fails, try REMEDIES (see the module docstring).
+
+    Raises:
+        ClosedLoopError: A cut without its islands or time, or actions that name no load or machine of the case.
 
     """
     if cut_branch_ids and (bus_island is None or opened_s is None):
@@ -1213,11 +1202,13 @@ def run_offline(scenario: Scenario, label: str, *, cut_branch_ids: Sequence[str]
     failures = []
     for divisor in (1, *(REMEDIES if remedies else ())):
         run = GridRun(replace(scenario, step_s=scenario.step_s / divisor), config, progress=progress)
-        shed = apply_decision(run, cut_branch_ids, bus_island, island_shed_mw, opened_s) if cut_branch_ids else {}
+        if cut_branch_ids:
+            todo = remedial_actions(run.grid, bus_island) if actions is None else actions
+            apply_decision(run, cut_branch_ids, todo, opened_s)
         run.run()
         opened = next((a.applied_s for a in run.actions if a.what == 'open cut'), None)
         start = judged_from_s if judged_from_s is not None else (opened if opened is not None else scenario.request_s)
-        out = run.outcome(label, cut_branch_ids, bus_island if cut_branch_ids else None, opened, start, shed)
+        out = run.outcome(label, cut_branch_ids, bus_island if cut_branch_ids else None, opened, start)
         if out.simulation_failed is None:
             return replace(out, remedy=None if divisor == 1 else
                            f"step {scenario.step_s / divisor:.6g} s (1/{divisor} of the scenario's, after: "
