@@ -9,6 +9,7 @@ from breaker_cases import ANDES_CASES, andes_grid, two_islands
 from controlled_islanding.core.grid import Generator, Grid, Load
 from controlled_islanding.core.islanding import evaluate_partition
 from controlled_islanding.core.remedial import (
+    MAX_SHED_BUSES,
     REJECTION_MARGIN,
     RemedialActions,
     bus_load_mw,
@@ -56,11 +57,14 @@ def _check(grid: Grid, island: dict[int, int]) -> RemedialActions:
     shed = actions.shed_by_island(island)
     for k in range(decision.n_islands):
         members = {b for b, i in island.items() if i == k}
-        # The whole deficit, spread in proportion to each load bus's load, every bus of the island with load.
+        # The whole deficit, spread in proportion to each load bus's load, at the island's largest loads.
         assert shed.get(k, 0.0) == pytest.approx(decision.island_shed_mw[k], abs=1e-6)
         at = {b: mw for b, mw in actions.shed_by_bus.items() if b in members}
         if decision.island_shed_mw[k] > 0:
-            assert set(at) == {b for b in members if loads.get(b, 0.0) > 0}
+            loaded = sorted((b for b in members if loads.get(b, 0.0) > 0), key=lambda b: (-loads[b], b))
+            assert set(at) == set(loaded[:len(at)]), 'the largest loads'
+            assert len(at) == len(loaded) or len(at) == MAX_SHED_BUSES or sum(
+                loads[b] for b in loaded[:len(at) - 1]) < decision.island_shed_mw[k], 'no more buses than needed'
             assert len({round(mw / loads[b], 9) for b, mw in at.items()}) == 1, 'one share for every bus'
         assert all(0 < mw <= loads[b] + 1e-9 for b, mw in at.items())
         # Tripping never turns the island's surplus into a deficit.
@@ -105,3 +109,19 @@ def test_the_rule_on_matpower_ieee39_and_on_a_grid_with_negative_loads():
     assert remedial_actions(grid, dict.fromkeys(grid.buses, 0)) == RemedialActions(), 'one island: nothing to do'
     with pytest.raises(ValueError, match='no island'):
         remedial_actions(grid, {1: 0, 2: 1})
+
+
+def test_a_large_island_sheds_at_its_largest_loads_within_the_breakers_action_budget():
+    """GBnetwork split by a ball around each of its first machines: hundreds of load buses, a command per shed bus."""
+    grid = andes_grid('GBnetwork')
+    loads = bus_load_mw(grid)
+    capped = 0
+    for seed in range(6):
+        island = two_islands(grid, seed_index=seed)
+        actions = _check(grid, island)
+        for k, mw in actions.shed_by_island(island).items():
+            at = [b for b in actions.shed_bus if island[b] == k]
+            loaded = sorted((loads[b] for b, i in island.items() if i == k and loads.get(b, 0.0) > 0), reverse=True)
+            capped += len(loaded) > MAX_SHED_BUSES
+            assert len(at) <= MAX_SHED_BUSES or sum(loaded[:MAX_SHED_BUSES]) < mw, (seed, k, len(at))
+    assert capped, 'no island had more load buses than the cap; the test proves nothing'

@@ -333,3 +333,23 @@ def test_help_teaches_every_input(capsys: pytest.CaptureFixture[str]) -> None:
     for taught in ('summary.json', 'output_bag', 'result.json', 'testbed --all-unstable --json', '--scenario ',
                    'not a decision', '--case bags/'):
         assert taught in text, taught
+
+
+def test_the_decisions_shed_is_exported_at_the_buses_it_names_and_nowhere_else() -> None:
+    """A decision's remedial actions shed at chosen buses (core/remedial.py's largest loads); export follows them."""
+    ss = export.load_case('ieee14/ieee14_full.xlsx')
+    buses = tuple(int(b) for b in ss.Bus.idx.v)
+    whole = export.matpower_case(ss, export.Decision((), (buses,), (0.0,)))
+    pd = dict(zip(whole['bus'][:, 0].astype(int), whole['bus'][:, 2], strict=True))
+    qd = dict(zip(whole['bus'][:, 0].astype(int), whole['bus'][:, 3], strict=True))
+    shed = {3: 0.5 * pd[3], 4: 0.25 * pd[4]}
+    summary = {'split': True, 'cut_branch_ids': [], 'islands': [{'buses': list(buses), 'shed_mw': sum(shed.values())}],
+               'remedial_actions': {'shed_mw_by_bus': {str(b): mw for b, mw in shed.items()}, 'trip_generators': []}}
+    got = export.matpower_case(ss, export.Decision.from_summary(summary))['bus']
+    for row in got:
+        b = int(row[0])
+        assert row[2] == pytest.approx(pd[b] - shed.get(b, 0.0)), f'bus {b}: P'
+        assert row[3] == pytest.approx(qd[b] * (1 - shed.get(b, 0.0) / pd[b]) if b in shed else qd[b]), f'bus {b}: Q'
+    summary['remedial_actions']['shed_mw_by_bus'] = {'3': pd[3] + 1.0}
+    with pytest.raises(export.ExportError, match='bus 3'):
+        export.matpower_case(ss, export.Decision.from_summary(summary))

@@ -24,8 +24,10 @@ Anything else is refused ("not a decision: ..."), as is a case whose islands do 
 shed) and generation the decision counted on.
 
   --to matpower   NAME.m: the case with the cut branches (and the outages the decision saw) at status 0,
-                  one reference bus per island and each island's load cut by its load to shed, so that
-                  each island's power flow solves on its own (MATPOWER, PYPOWER; for pandapower, --to pandapower)
+                  one reference bus per island and the load shed at the buses the decision's remedial
+                  actions name (older decisions: each island's load cut by its load to shed), so that
+                  each island's power flow solves on its own (MATPOWER, PYPOWER; for pandapower, --to pandapower);
+                  the machines the decision trips stay in service: generation is the decision's scheduled one
   --to pandapower a pandapower net as JSON (pandapower.from_json): that case through pandapower's converter,
                   lines, transformers and impedances named by branch id, the cut ones in_service False,
                   one ext_grid per island, so pandapower.runpp solves every island

@@ -7,9 +7,11 @@ Everything is computed from the network a node holds (the snapshot): each genera
 
 Load shedding. An island whose load exceeds its dispatched generation sheds the difference, spread over its load
 buses in proportion to each bus's load (a bus's load is the sum of its loads in the snapshot; a bus whose sum is not
-positive is not shed). Proportional shedding at every load bus of the island is the rule export.py uses for
-MATPOWER and the rule the testbed applied before the decision carried it: no one bus is emptied, and each keeps its
-power factor.
+positive is not shed): no one bus is emptied, and each keeps its power factor, as the testbed shed before the
+decision carried it. An island of more than MAX_SHED_BUSES load buses sheds at its largest ones only (ties by bus
+number), adding the next largest while they cannot cover the deficit: every shed is a command, and a large
+system's island of hundreds of load buses (GBnetwork's: 236) would otherwise exceed what breaker_command takes in
+one decision (`max_actions`, 80), and the whole decision would be refused.
 
 Generation rejection, the companion of load shedding in islanding schemes: in an island whose dispatched
 generation exceeds its load after the shed by more than `margin` (5 % of that load by default, left to the
@@ -27,6 +29,9 @@ from dataclasses import dataclass
 from controlled_islanding.core.grid import Grid
 
 REJECTION_MARGIN = 0.05  # surplus left to the governors, as a fraction of the island's load after the shed
+# Three short islands shed within breaker_command's max_actions (80) with room for the trips; an IEEE 39 island has
+# at most 19 load buses, so every island of the small systems still sheds at each of its load buses.
+MAX_SHED_BUSES = 20
 
 
 @dataclass(frozen=True)
@@ -137,7 +142,7 @@ def remedial_actions(grid: Grid, bus_island: Mapping[int, int], margin: float = 
         machines = {g.name: float(g.p_mw) for g in grid.generators if g.bus in members}
         load = sum(mw for b, mw in loads.items() if b in members)
         deficit = load - sum(mw for mw in machines.values() if math.isfinite(mw))
-        sheddable = {b: mw for b, mw in loads.items() if b in members and mw > 0}
+        sheddable = _largest_covering({b: mw for b, mw in loads.items() if b in members and mw > 0}, deficit)
         total = sum(sheddable.values())
         shed_here = 0.0
         if deficit > 1e-9 and total > 0:
@@ -148,3 +153,14 @@ def remedial_actions(grid: Grid, bus_island: Mapping[int, int], margin: float = 
         trips += generation_to_reject(machines, load, shed_here, margin)
     buses = sorted(shed)
     return RemedialActions(tuple(buses), tuple(shed[b] for b in buses), tuple(trips))
+
+
+def _largest_covering(load_mw: Mapping[int, float], deficit_mw: float) -> dict[int, float]:
+    """Return the MAX_SHED_BUSES largest loads (ties by bus), and the next largest while they sum below the deficit."""
+    ranked = sorted(load_mw.items(), key=lambda item: (-item[1], item[0]))
+    n = min(len(ranked), MAX_SHED_BUSES)
+    total = sum(mw for _, mw in ranked[:n])
+    while n < len(ranked) and total < deficit_mw:
+        total += ranked[n][1]
+        n += 1
+    return dict(ranked[:n])

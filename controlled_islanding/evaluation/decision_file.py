@@ -174,7 +174,10 @@ def _message_dict(msg: Any) -> dict[str, Any]:
                 'shed_mw': float(msg.island_shed_mw[i])} for i in range(len(msg.island_generation_mw))]
     return {'split': bool(msg.split), 'status': status.get(int(msg.status), str(msg.status)),
             'decision_id': msg.decision_id, 'request_id': msg.request_id, 'islands': islands,
-            'cut_branch_ids': list(msg.cut_branch_ids)}
+            'cut_branch_ids': list(msg.cut_branch_ids),
+            'remedial_actions': {'shed_mw_by_bus': {int(b): float(mw) for b, mw in zip(msg.shed_bus, msg.shed_mw,
+                                                                                      strict=True)},
+                                 'trip_generators': list(msg.trip_generator_names)}}
 
 
 def decision_and_case(source: DecisionFile, case: str | None = None, addfile: str | None = None,

@@ -5,7 +5,9 @@ formats), so branch ids are matched in either orientation: ANDES names transform
 
 - MATPOWER: the whole case with the cut branches (and any outages the decision saw) at status 0, one
   reference bus per island (the island's largest in-service generator, unless it holds the case's own),
-  and each island's load scaled down by the decision's load to shed, so every island solves on its own.
+  and the decision's load shed at each bus it names (a decision without remedial actions: each island's load
+  scaled down by its load to shed), so every island solves on its own. The machines the decision trips stay in
+  service in the case: the island's generation is the decision's scheduled generation.
   `island_cases` splits it into one case per island, which MATPOWER or PYPOWER run as they are
   (pandapower's converter misreads some transformers of it: use `pandapower_net`).
 - pandapower: that MATPOWER case through pandapower's own converter, every line, transformer and impedance
@@ -47,6 +49,9 @@ class Decision:
         outages: Branches already out when the decision was made.
         island_load_mw: Load in each island before the shed, MW, as the decision saw it (empty: not known).
         island_generation_mw: Scheduled generation in each island, MW, as the decision saw it (empty: not known).
+        shed_mw_by_bus: The decision's load shed at each bus, MW (its remedial actions, core/remedial.py); empty
+            for a decision that carries no actions, whose island shed is then spread over every load bus of the
+            island in proportion.
 
     """
 
@@ -56,6 +61,7 @@ class Decision:
     outages: tuple[str, ...] = ()
     island_load_mw: tuple[float, ...] = ()
     island_generation_mw: tuple[float, ...] = ()
+    shed_mw_by_bus: tuple[tuple[int, float], ...] = ()
 
     @classmethod
     def from_summary(cls, summary: Mapping[str, Any], outages: Iterable[str] = ()) -> Decision:
@@ -82,12 +88,14 @@ class Decision:
             else:
                 islands = tuple(tuple(int(b) for b in isl) for isl in raw)
                 shed = tuple(float(s) for s in summary['island_shed_mw'])
-        except (KeyError, TypeError, ValueError) as exc:
+            by_bus = tuple(sorted((int(b), float(mw)) for b, mw in
+                                  (summary.get('remedial_actions') or {}).get('shed_mw_by_bus', {}).items()))
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise ExportError(f'decision: missing or malformed field ({exc!r}); expected cut_branch_ids (or '
                               'cut_branches) and islands with shed_mw (or island_shed_mw)') from None
         if len(shed) != len(islands):
             raise ExportError(f'decision: {len(islands)} islands but {len(shed)} shed values')
-        return cls(cut, islands, shed, tuple(outages), load, generation)
+        return cls(cut, islands, shed, tuple(outages), load, generation, by_bus)
 
 
 def load_case(case: str | Path, addfile: str | Path | None = None) -> Any:
@@ -207,6 +215,13 @@ def matpower_case(ss: Any, decision: Decision) -> dict[str, Any]:
     gen[:ss.Slack.n, _GEN_PG] = np.asarray(ss.Slack.p.v, dtype=float) * mva
     ppc['branch'][line_rows(ss, [*decision.outages, *decision.cut_branch_ids]), _BR_STATUS] = 0
     row_of = {int(b): i for i, b in enumerate(bus[:, _BUS_I])}
+    for b, shed_mw in decision.shed_mw_by_bus:
+        load_mw = float(bus[row_of[b], _BUS_PD]) if b in row_of else 0.0
+        if load_mw < shed_mw - 1e-6:
+            raise ExportError(f'the decision sheds {shed_mw:.1f} MW at bus {b}, which has {load_mw:.1f} MW of load '
+                              'in the case')
+        # Keeping the bus's power factor, as a shed of whole feeders of like loads would.
+        bus[row_of[b], [_BUS_PD, _BUS_QD]] *= max(0.0, 1.0 - shed_mw / load_mw)
     for k, (buses, shed_mw) in enumerate(zip(decision.islands, decision.island_shed_mw, strict=True)):
         unknown = [b for b in buses if b not in row_of]
         if unknown:
@@ -222,7 +237,7 @@ def matpower_case(ss: Any, decision: Decision) -> dict[str, Any]:
                 bus[r, _BUS_TYPE] = _PV
         bus[keep, _BUS_TYPE] = _REF
         load_mw = float(bus[rows, _BUS_PD].sum())
-        if shed_mw > 0 and load_mw > 0:
+        if shed_mw > 0 and load_mw > 0 and not decision.shed_mw_by_bus:
             # Shed in proportion at every bus, keeping each load's power factor.
             scale = max(0.0, 1.0 - shed_mw / load_mw)
             bus[rows, _BUS_PD] *= scale

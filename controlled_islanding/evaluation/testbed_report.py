@@ -227,8 +227,9 @@ def markdown(results: list[dict], args: Any, figures: list[Path], page: Path, cm
            'runs beyond a level is judged against its own pre-fault voltage). An island with no machine, or whose '
            'every machine was rejected, is lost by definition.',
            "- Remedial actions, the islands' own balancing, are the decision's (core/remedial.py), not the "
-           "testbed's: an island short of generation sheds the deficit at each of its load buses in proportion to "
-           "the bus's load; in an island whose machines' dispatch exceeds its load after the shed by more than 5 % "
+           "testbed's: an island short of generation sheds the deficit at each of its load buses (its 20 largest "
+           "where it has more) in proportion to the bus's load; in an island whose machines' dispatch exceeds its "
+           'load after the shed by more than 5 % '
            'of that load, machines are tripped, largest output first, each only if it fits in the remaining '
            'surplus. partitioning puts them in the signed decision, breaker_command commands them under the rules '
            "of its breakers (armed, signed, once each across restarts, within the snapshot's loads and machines, "
