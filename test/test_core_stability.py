@@ -157,14 +157,15 @@ def test_bad_machine_data_and_frames_are_refused_naming_the_fault() -> None:
 
 
 def test_the_pipeline_on_ieee39_bags_alarms_before_the_slip_and_stays_quiet_on_a_stable_run() -> None:
-    from controlled_islanding.evaluation.predictors import study
+    from controlled_islanding.evaluation.predictors import report, run_from_bag, study
 
-    unstable = study(__import__('controlled_islanding.evaluation.predictors', fromlist=['x']).run_from_bag(
-        BAGS / 'ieee39_g6g7_unstable'), names=('sime', 'forecast'))
-    for name in ('sime', 'forecast'):
+    names = ('sime', 'forecast')
+    unstable = study(run_from_bag(BAGS / 'ieee39_g6g7_unstable'), names=names)
+    for name in names:
         assert unstable.lead_s(name) > 0.1, name
         assert unstable.groups_right(name), name
-    from controlled_islanding.evaluation.predictors import run_from_bag
-
-    stable = study(run_from_bag(BAGS / 'ieee39_paper_case2'), names=('sime', 'forecast'))
+    stable = study(run_from_bag(BAGS / 'ieee39_paper_case2'), names=names)
     assert all(o.alarm_s is None for o in stable.outcomes.values())
+    lines = report([unstable, stable], names)
+    assert '| sime | 1 / 1 | 1 / 1 | 1 / 1 |' in '\n'.join(lines)
+    assert any(line.startswith('| ieee39_paper_case2 |') and line.count('quiet') == 2 for line in lines)

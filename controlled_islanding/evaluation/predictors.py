@@ -70,6 +70,7 @@ class MonitorInputs:
     truth: dict[str, int]
     first_pole_slip_s: float | None
     scenario_request_s: float
+    clearings_s: tuple[float, ...] = ()
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -115,6 +116,7 @@ class ScenarioRun:
         first_pole_slip_s: First time two machines are more than pi rad apart, s; None if never.
         request_s: The scenario's own fixed islanding request, s.
         end_s: The last time tag, s.
+        clearings_s: When the scenario's faults clear, s (from its YAML; empty when unknown).
 
     """
 
@@ -128,6 +130,7 @@ class ScenarioRun:
     first_pole_slip_s: float | None
     request_s: float
     end_s: float
+    clearings_s: tuple[float, ...] = ()
 
 
 def monitor_inputs(run: ScenarioRun) -> MonitorInputs:
@@ -176,7 +179,8 @@ def monitor_inputs(run: ScenarioRun) -> MonitorInputs:
     return MonitorInputs(name=run.name, source=run.source, generator_names=[g.name for g in gens], t_s=tags,
                          delivery_s=col[0], delta_rad=col[1], omega_pu=col[2], tm_pu=col[3], pe_pu=col[4],
                          v_pu=col[5], valid=col[6], freq_hz=f0, grid=run.grid, truth=run.truth,
-                         first_pole_slip_s=run.first_pole_slip_s, scenario_request_s=run.request_s, notes=notes)
+                         first_pole_slip_s=run.first_pole_slip_s, scenario_request_s=run.request_s,
+                         clearings_s=run.clearings_s, notes=notes)
 
 
 def run_from_bag(path: str | Path) -> ScenarioRun:
@@ -199,7 +203,8 @@ def run_from_bag(path: str | Path) -> ScenarioRun:
         slip = first_pole_slip_s(bag.truth_t_s, bag.truth_angles_rad)
     request = float(bag.request_t_s[0]) if len(bag.request_t_s) else math.nan
     return ScenarioRun(bag.path.name, str(bag.path), bag, np.asarray(bag.frame_present), bag.rate_fps, bag.grid,
-                       truth, None if slip is None else float(slip), request, float(bag.tag_s[-1]))
+                       truth, None if slip is None else float(slip), request, float(bag.tag_s[-1]),
+                       _clearings(bag.path.parent / str(entry.get('scenario', f'{bag.path.name}.yaml'))))
 
 
 def run_from_scenario(path: str | Path) -> ScenarioRun:
@@ -219,7 +224,17 @@ def run_from_scenario(path: str | Path) -> ScenarioRun:
     truth = {n: int(k) for n, k in zip(sim.generator_names, labels, strict=True)}
     return ScenarioRun(scenario.name, f'ANDES {Path(path)}', data, np.asarray(data.frame_present),
                        float(scenario.rate_fps), sim.grid, truth, first_pole_slip_s(data.tag_s, data.truth_delta_rad),
-                       scenario.request_s, float(data.tag_s[-1]))
+                       scenario.request_s, float(data.tag_s[-1]), tuple(f.clear_s for f in scenario.faults))
+
+
+def _clearings(path: Path) -> tuple[float, ...]:
+    """Return when the faults of the scenario YAML at path clear, s (empty when there is no such file)."""
+    from controlled_islanding.sim.scenario import ScenarioError, load_scenario
+
+    try:
+        return tuple(f.clear_s for f in load_scenario(path).faults) if path.is_file() else ()
+    except ScenarioError:
+        return ()
 
 
 class SeparationRuleMonitor:
@@ -409,9 +424,13 @@ def report(results: Sequence[ScenarioResult], names: Sequence[str] = PREDICTORS)
                      f'{sc.right_in_time} / {sc.unstable} | {leads} | {np.nanmedian(cpu):.2f} ({np.nanmax(cpu):.1f}) |')
     lines += ['', '| scenario | system, f0 | machines | final k | first slip, s | '
               + ' | '.join(f'{n}: alarm, s' for n in names) + ' |', '|---|---|---:|---:|---:|' + '---|' * len(names)]
+    names_seen = [r.inputs.name for r in results]
     for r in results:
         slip = r.inputs.first_pole_slip_s
-        lines.append(f'| {r.inputs.name} | {r.system}, {r.inputs.freq_hz:g} Hz | {len(r.inputs.generator_names)} | '
+        label = r.inputs.name
+        if names_seen.count(label) > 1:  # a bag and a scenario file of one name: say which
+            label += f' ({Path(r.inputs.source.removeprefix("ANDES ")).parent.name})'
+        lines.append(f'| {label} | {r.system}, {r.inputs.freq_hz:g} Hz | {len(r.inputs.generator_names)} | '
                      f'{r.inputs.truth_k} | {"none" if slip is None else f"{slip:.2f}"} | '
                      + ' | '.join(_cell(r, n) for n in names) + ' |')
     wrong = [(r, n) for r in results for n in names
@@ -464,10 +483,17 @@ CHOICE = """\
 
 {reasons}
 
-Neither predictor can save the runs that slip within about 0.1 s of their fault's clearing ({unsavable}): there
-the machines are past their unstable equilibrium when the fault clears, and a prediction from the faulted network
-is no prediction (the monitor cannot know when protection will clear). A scheme that must act there acts on the
-fault itself (out-of-step protection), not on a forecast.
+Runs that separate where neither predictor alarms before the first pole slip:
+
+{missed}
+
+A slip within about 0.1 s of the clearing comes with the machines already past their unstable equilibrium when
+the fault clears: a prediction from the faulted network is no prediction, since the monitor cannot know when
+protection will clear, and only protection acting on the fault itself (out-of-step tripping) is in time there. A
+slip on a later swing, after the first has come back (a second swing, or an oscillation that grows), is beyond
+the forecast, which judges first swings, and SIME judges a later swing only once it decelerates. And where the
+clearing leaves the terminal voltages where the fault held them (the electrical centre of the separation at the
+faulted bus), no switching is seen at all, so no swing is judged.
 
 ## What the monitor node will need (issue 30, second part)
 
@@ -482,33 +508,65 @@ fault itself (out-of-step protection), not on a forecast.
 """
 
 
-def write_report(results: Sequence[ScenarioResult], path, *, command: str, chosen: str = 'sime',
-                 reasons: str = '') -> None:
+def write_report(results: Sequence[ScenarioResult], path, *, command: str) -> None:
     """Write the page (docs/prediction.md): the figures, every scenario, the choice and what the node needs."""
     from pathlib import Path as _Path
 
     from controlled_islanding.atomic import write_text
 
-    unsavable = ', '.join(r.inputs.name for r in results if r.inputs.truth_k > 1
-                          and all(r.outcomes[n].alarm_s is None or (r.lead_s(n) or 0) <= 0
-                                  for n in ('sime', 'forecast') if n in r.outcomes)) or 'none'
+    chosen = choose(results)
+    missed = []
+    for r in results:
+        if r.inputs.truth_k > 1 and not any((r.lead_s(n) or 0) > 0 for n in ('sime', 'forecast') if n in r.outcomes):
+            cleared = [c for c in r.inputs.clearings_s if c <= (r.inputs.first_pole_slip_s or math.inf)]
+            after = f'{r.inputs.first_pole_slip_s - cleared[-1]:.2f} s after its last fault cleared' if cleared \
+                else 'no fault cleared before it'
+            missed.append(f'- {r.inputs.name}: first slip at {r.inputs.first_pole_slip_s:.2f} s, {after}')
     body = ['# Predicting the separation: the stability predictors compared', '',
             f'Generated by `{command}`; do not edit by hand (the text is in '
             '`controlled_islanding/evaluation/predictors.py`).', '', INTRO, '## Figures', '',
-            *report(results), '', CHOICE.format(chosen=chosen, reasons=reasons or choice_reasons(results),
-                                                 unsavable=unsavable), '']
+            *report(results), '', CHOICE.format(chosen=chosen, reasons=choice_reasons(results, chosen),
+                                                 missed='\n'.join(missed) or '- none'), '']
     write_text(_Path(path), '\n'.join(body))
 
 
-def choice_reasons(results: Sequence[ScenarioResult]) -> str:
+TRAITS = {
+    'sime': ('its verdict comes with a standard error, so its bar is a false-alarm rate (3 sigma); its one-machine '
+             'equivalent cuts the machines in two at a time, and a machine that swings out with the critical '
+             'group and comes back can be named with it'),
+    'forecast': ("its groups are sim/truth.py's own rule applied to a forecast of every machine, so any number of "
+                 'groups can come out of one forecast; it judges the first swing after a cleared fault only, looks '
+                 '1 s ahead, and its confidence is only the agreement of its quadratic and cubic curves'),
+}
+
+
+def choose(results: Sequence[ScenarioResult], names: Sequence[str] = ('sime', 'forecast')) -> str:
+    """Return the predictor that names the final groups before the first slip on the most separating runs.
+
+    Ties go to the fewer false alarms, then the more alarms in time, then the longer median lead.
+    """
+    def key(name: str) -> tuple:
+        sc = score(results, name)
+        return sc.right_in_time, sc.quiet, sc.in_time, float(np.median(sc.leads_s)) if sc.leads_s else -math.inf
+
+    return max(names, key=key)
+
+
+def choice_reasons(results: Sequence[ScenarioResult], chosen: str) -> str:
     """Return the reasons for the choice, with this run's figures."""
-    s, f, rule = score(results, 'sime'), score(results, 'forecast'), score(results, 'separation rule')
+    other = 'sime' if chosen == 'forecast' else 'forecast'
+    a, b, rule = score(results, chosen), score(results, other), score(results, 'separation rule')
 
     def lead(sc: Score) -> str:
         return f'{np.median(sc.leads_s):.2f} s' if sc.leads_s else 'none'
 
-    return (f'Both predictors stay quiet on {s.quiet} and {f.quiet} of the {s.stable} runs that stay one group '
-            f'(SIME, forecast), where the separation rule raises {rule.stable - rule.quiet}. '
-            f'On the {s.unstable} that separate, SIME alarms before the first slip on {s.in_time} (median lead '
-            f'{lead(s)}), with the final groups on {s.right_in_time}; the forecast on {f.in_time} (median lead '
-            f'{lead(f)}), with the final groups on {f.right_in_time}.')
+    return (f'The rule of choice: the predictor that names the final groups before the first pole slip on the most '
+            f'runs that separate, then the fewer false alarms. **{chosen}** does on {a.right_in_time} of '
+            f'{a.unstable}, {other} on {b.right_in_time}; {chosen} alarms before the slip on {a.in_time} (median lead '
+            f'{lead(a)}), {other} on {b.in_time} (median lead {lead(b)}). Both stay quiet on the runs that stay one '
+            f'group ({a.quiet} and {b.quiet} of {a.stable}), where the separation rule alarms on '
+            f'{rule.stable - rule.quiet}: the predictors answer where the swing ends, the rule where it is.\n\n'
+            f'- {chosen}: {TRAITS[chosen]}.\n- {other}: {TRAITS[other]}.\n\n'
+            f'The monitor of the second part should run {chosen}; the other stays in core/ as the comparison, and the '
+            'coherency node can call the chosen one on its window (`fit`) so that the request and the decision '
+            'agree on the groups.')
