@@ -144,8 +144,11 @@ def monitor_inputs(run: ScenarioRun) -> MonitorInputs:
     from controlled_islanding.core.dse import MachineData, StreamingDSE
 
     channels, gens = run.channels, run.grid.generators
-    cols = _columns(channels.station_ids, channels.buses, gens)
-    f0 = nominal_hz(channels.frequency_hz)
+    try:
+        cols = _columns(channels.station_ids, channels.buses, gens)
+        f0 = nominal_hz(channels.frequency_hz)
+    except PredictionStudyError as exc:
+        raise PredictionStudyError(f'{run.source}: {exc}; a predictor needs every generator') from None
     stream = StreamingDSE(MachineData.of_generators(gens), run.rate_fps, 0.1, history_s=1.0, freq_hz=f0)
     detector = BadDataDetector()
     station_of = [channels.station_ids[c] for c in cols]
