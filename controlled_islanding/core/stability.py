@@ -71,6 +71,10 @@ import numpy as np
 __all__ = ['MachineSet', 'OmibVerdict', 'SIMEPredictor', 'StabilityError', 'switching']
 
 POLE_SLIP_RAD = math.pi  # the angle at which one machine slips a pole on another (sim/truth.py's rule)
+# How long before the first pole slip islanding must be asked for, s: the breakers' operating time (three cycles,
+# 50 ms, sim/closed_loop.py's breaker_operating_s) and as much again for the graph, whose request-to-command
+# latency is 10 to 300 ms as measured (docs/benchmarks.md, "Request latency under load").
+TIME_TO_ACT_S = 0.1
 
 
 class StabilityError(ValueError):
@@ -339,9 +343,9 @@ class SIMEPredictor:
         history_s: Frames kept, s: longer than a first swing (0.5 to 2 s for electromechanical modes of 0.25 to
             1 Hz), so a swing's samples since its switching are all there.
         max_groups: Most groups named (the coherency node's cap); deeper splits are not made.
-        time_to_act_s: How long before the first pole slip an islanding must be asked for: the graph's request
-            latency and the breakers' operating time (50 ms, three cycles at 60 Hz). The alarm waits for a side's
-            own split that leans to separating only while the predicted slip is further away than this.
+        time_to_act_s: How long before the first pole slip an islanding must be asked for (TIME_TO_ACT_S). The
+            alarm waits for a side's own split that leans to separating only while the predicted slip is further
+            away than this.
 
     Attributes (after update):
         separates_, groups_, first_slip_s_, confidence_: see the module docstring.
@@ -353,7 +357,7 @@ class SIMEPredictor:
     """
 
     def __init__(self, machines: MachineSet, noise_tve: float = 0.01, z_alarm: float = 3.0, history_s: float = 2.0,
-                 max_groups: int = 8, time_to_act_s: float = 0.1) -> None:
+                 max_groups: int = 8, time_to_act_s: float = TIME_TO_ACT_S) -> None:
         if not z_alarm > 0 or max_groups < 2 or not time_to_act_s >= 0:
             raise StabilityError(f'z_alarm > 0, max_groups >= 2 and time_to_act_s >= 0 needed, got {z_alarm}, '
                                  f'{max_groups}, {time_to_act_s}')
