@@ -228,3 +228,30 @@ def test_pmu_ingestion_counts_missing_frames_on_the_streams_own_tag_grid(rclpy_c
         assert node.diag.values['missing_frames'] == '1'  # the one left out, not 40 more
     finally:
         node.destroy_node()
+
+
+def test_every_answer_carries_the_speeds_and_torques_it_was_found_with(bag):
+    # A stability monitor reads them beside the angles (core/stability.py): the filter's own at an in-order
+    # frame, a copy's ahead of a missing tag, interpolated for a late frame.
+    gens = bag.grid.generators
+    v, va, i, ia = phasors(bag, gens)
+    _, frames = around_fault(bag, 0.5, 0.5)
+    rows = list(range(len(bag.tag_s)))[frames]
+    dse = StreamingDSE(MachineData.of_generators(gens), bag.rate_fps, reorder_s=0.1, history_s=1.0)
+
+    def offer(k):
+        return dse.offer(bag.t0_s + bag.tag_s[k], v[k], va[k], i[k], ia[k], np.isfinite(v[k]))
+
+    for k in rows[:20]:
+        offer(k)
+        assert np.array_equal(dse.omega_pu_, dse.dse.omega_pu_) and np.array_equal(dse.tm_pu_, dse.dse.tm_pu_)
+    speeds = {}
+    for k in rows[20:24]:
+        offer(k)
+        speeds[k] = (dse.omega_pu_.copy(), dse.tm_pu_.copy())
+    offer(rows[25])  # ahead of the missing rows[24]: a copy of the filter answers, the filter itself waits
+    assert dse.ahead_frames == 1 and np.isfinite(dse.omega_pu_).all()
+    assert not np.array_equal(dse.omega_pu_, dse.dse.omega_pu_)
+    offer(rows[22])  # again, late: the filter's answer at that tag, from its history
+    assert dse.late_frames == 1
+    assert np.allclose(dse.omega_pu_, speeds[rows[22]][0]) and np.allclose(dse.tm_pu_, speeds[rows[22]][1])

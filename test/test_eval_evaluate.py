@@ -257,3 +257,16 @@ def test_closed_loop_column_runs_each_cut_once_in_andes_and_shows_what_a_split_d
     cells = table_rows(case)
     assert cells[0][-1].startswith(f'{sum(i["survived"] for i in dtw["islands"])}/2')
     assert cells[1][-1].startswith('0/1 (island 0: machines')
+
+
+def test_predictors_page_compares_the_predictors_frame_by_frame(tmp_path, capsys):
+    page = tmp_path / 'prediction.md'
+    bags = [str(_bag('ieee39_paper_case2')), str(_bag('ieee39_g6g7_unstable'))]
+    assert main(['evaluate', *bags, '--predictors', str(page)]) == 0
+    text = page.read_text()
+    assert text.startswith('# Predicting the separation') and 'do not edit by hand' in text
+    row = next(line for line in text.splitlines() if line.startswith('| ieee39_g6g7_unstable |'))
+    assert row.count('right') >= 2, row  # SIME and the forecast name the final groups before the slip
+    quiet = next(line for line in text.splitlines() if line.startswith('| ieee39_paper_case2 |'))
+    assert quiet.count('quiet') == 3, quiet
+    assert '## The predictor chosen' in text and 'ieee39_g6g7_unstable' in capsys.readouterr().out

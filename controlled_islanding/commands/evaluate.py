@@ -6,8 +6,10 @@ import json
 import logging
 from pathlib import Path
 
-from controlled_islanding.commands import CliError, progress_bar
+from controlled_islanding.commands import CliError
 from controlled_islanding.commands.evaluate_attacks import sweep_attacks
+from controlled_islanding.commands.evaluate_predictors import compare_predictors
+from controlled_islanding.commands.evaluate_rules import compare_rules, sweep_observability
 from controlled_islanding.evaluation.cases import (
     PAPER_CASES,
     EvaluateError,
@@ -62,6 +64,10 @@ large cases.
 --observability FILE.md instead drops PMUs (the largest machines kept first, and seeded random placements) at
 100/75/50/25 % coverage and scores each placement's decision against the truth and the MILP (docs/observability.md).
 
+--predictors FILE.md instead runs the stability predictors (core/stability.py, core/swing_forecast.py) and today's
+separation rule frame by frame on the DSE angles of the bags and --andes scenarios: alarm against the first pole
+slip, false alarms, groups at the alarm (docs/prediction.md).
+
 --k-rules FILE.md instead compares every k rule (core/k_rules.py) on the bags and on --andes scenarios
 (simulated here, the simulator's own rotor angles), and writes the table (docs/coherency_rules.md).
 
@@ -103,10 +109,12 @@ def add_arguments(parser) -> None:
                              '--draws seeded random placements) on the bags and write the table '
                              '(docs/observability.md)')
     parser.add_argument('--attacks', type=Path, metavar='FILE.md', help='instead, the attack sweep (docs/attacks.md)')
+    parser.add_argument('--predictors', type=Path, metavar='FILE.md',
+                        help='instead, compare the stability predictors and write this page (docs/prediction.md)')
     parser.add_argument('--draws', type=int, default=5, help='random placements per coverage (--observability)')
     parser.add_argument('--seed', type=int, default=0, help='seed of the random placements (--observability)')
     parser.add_argument('--andes', action='append', type=Path, metavar='SCENARIO.yaml', default=[],
-                        help='with --k-rules: also simulate this scenario in ANDES and compare on its rotor angles')
+                        help='with --k-rules or --predictors: also simulate this scenario in ANDES')
     parser.add_argument('--time-limit-s', type=float, default=60.0, help='MILP time limit per solve, s (default: 60)')
     parser.add_argument('--closed-loop', action='store_true',
                         help="also run each row's cut in ANDES on the bag's scenario and judge every island "
@@ -128,6 +136,8 @@ def run(args) -> int:
         raise CliError(f'--window-s ({args.window_s}) and --time-limit-s ({args.time_limit_s}) must be positive '
                        f'and --max-groups ({args.max_groups}) at least 2, --dtw-band-samples '
                        f'({args.dtw_band_samples}) not negative')
+    if args.predictors:
+        return compare_predictors(args, args.bags)
     from controlled_islanding.wire.bagdata import BagDataError, load_bag
 
     bags = []
@@ -137,11 +147,11 @@ def run(args) -> int:
         except BagDataError as exc:
             raise CliError(str(exc)) from exc
     if args.k_rules:
-        return _compare_rules(args, bags)
+        return compare_rules(args, bags)
     if args.observability or args.attacks:
-        return _sweep_observability(args, bags) if args.observability else sweep_attacks(args, bags)
+        return sweep_observability(args, bags) if args.observability else sweep_attacks(args, bags)
     if args.andes:
-        raise CliError('--andes is for --k-rules')
+        raise CliError('--andes is for --k-rules and --predictors')
     cases = []
     if args.paper_cases:
         for name in PAPER_CASES:
@@ -185,66 +195,4 @@ def run(args) -> int:
                             *(f'--report-figures {c}' for c in args.report_figures or [])])
         write_report(cases, args.report, figures_for=shown, command=command)
         log.info('report: %s', args.report)
-    return 0
-
-
-def _scenario(study, bag):
-    try:
-        return study.scenario_from_bag(bag, manifest_entry(bag))
-    except EvaluateError as exc:
-        raise CliError(f'{bag.path}: {exc}') from exc
-
-
-def _compare_rules(args, bags) -> int:
-    """Compare every k rule on the bags and the --andes scenarios; print the tables and write the page."""
-    from controlled_islanding.core.k_rules import RULES
-    from controlled_islanding.evaluation import coherency_rules as study
-
-    scenarios = [_scenario(study, bag) for bag in bags]
-    for path in args.andes:
-        log.info('%s: simulating in ANDES', path)
-        try:
-            scenarios.append(study.scenario_from_andes(path))
-        except EvaluateError as exc:
-            raise CliError(str(exc)) from exc
-    with progress_bar(len(scenarios) * len(RULES), 'k rules', 'rule') as bar:
-        def step(text: str) -> None:
-            log.info(text)
-            bar.update()
-
-        results = study.compare(scenarios, window_s=args.window_s, max_groups=args.max_groups,
-                                dtw_band=args.dtw_band_samples or None, step_s=args.lead_step_s, progress=step)
-    print(study.format_console(results))
-    command = ' '.join(['controlled-islanding evaluate', *args.bags, *(f'--andes {p}' for p in args.andes),
-                        '--k-rules', str(args.k_rules)])
-    study.write_report(results, args.k_rules, chosen=args.k_rule, command=command, window_s=args.window_s,
-                       step_s=args.lead_step_s)
-    log.info('report: %s', args.k_rules)
-    return 0
-
-
-def _sweep_observability(args, bags) -> int:
-    """Sweep PMU coverage on every bag; print the table and write the page."""
-    from controlled_islanding.evaluation import coherency_rules as study
-    from controlled_islanding.evaluation import observability_sweep as obs
-
-    if not bags:
-        raise CliError('--observability needs at least one BAG')
-    rows = []
-    with progress_bar(len(bags), 'observability', 'bag') as bar:
-        for bag in bags:
-            scenario = _scenario(study, bag)
-            try:
-                rows += obs.sweep(scenario, bag.grid_at(scenario.request_s + 1e-9), draws=args.draws,
-                                  seed=args.seed, window_s=args.window_s, max_groups=args.max_groups,
-                                  k_rule=args.k_rule, dtw_band=args.dtw_band_samples or None,
-                                  time_limit_s=args.time_limit_s, progress=log.info)
-            except obs.SweepError as exc:
-                raise CliError(str(exc)) from exc
-            bar.update()
-    print('\n'.join(obs.table(rows)))
-    command = ' '.join(['controlled-islanding evaluate', *args.bags, '--observability', str(args.observability),
-                        f'--draws {args.draws} --seed {args.seed}'])
-    obs.write_report(rows, args.observability, command=command, k_rule=args.k_rule, window_s=args.window_s)
-    log.info('report: %s', args.observability)
     return 0

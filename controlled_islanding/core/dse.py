@@ -364,6 +364,8 @@ class RotorAngleDSE:
             1 - cos(phi / 2): within the TVE only up to that turn; a machine slipping poles turns further), and
             not within judge_after_s of the machine's (re)initialisation. NaN elsewhere, and for steady_state
             machines.
+        tm_pu_: Latest mechanical torque per machine, pu on the system base: the filter's random-walk state, which
+            follows a governor's action from the measured swing (NaN for steady_state machines).
         n_initialisations_: Times each machine was (re-)initialised.
 
     """
@@ -434,7 +436,7 @@ class RotorAngleDSE:
         for bank in twin._banks:
             for name in ('x', 'cov', 'aux', 'q_rate', 'live', 'last_t', 'v_last', 'i_last', 'nis', 'init_t'):
                 setattr(bank, name, getattr(bank, name).copy())
-        for name in ('delta_rad_', 'omega_pu_', 'nis_', '_steady_last_t', 'n_initialisations_'):
+        for name in ('delta_rad_', 'omega_pu_', 'tm_pu_', 'nis_', '_steady_last_t', 'n_initialisations_'):
             setattr(twin, name, getattr(self, name).copy())
         return twin
 
@@ -450,6 +452,7 @@ class RotorAngleDSE:
         self.delta_rad_ = np.full(n, np.nan)
         self.omega_pu_ = np.full(n, np.nan)
         self.nis_ = np.full(n, np.nan)
+        self.tm_pu_ = np.full(n, np.nan)
         self._steady_last_t = np.full(n, -np.inf)
         self.n_initialisations_ = np.zeros(n, dtype=int)
         return self
@@ -578,6 +581,7 @@ class RotorAngleDSE:
         rows = bank.rows
         self.delta_rad_[rows] = np.where(bank.live, bank.x[:, 0], np.nan)
         self.omega_pu_[rows] = np.where(bank.live, bank.x[:, 1], np.nan)
+        self.tm_pu_[rows] = np.where(bank.live, bank.x[:, bank.model.tm_index], np.nan)
 
     def _initialise(self, bank: _Bank, start: np.ndarray, v: np.ndarray, i: np.ndarray) -> None:
         p = {k: val[start] for k, val in bank.p.items()}
@@ -684,6 +688,10 @@ class StreamingDSE:
         innovations: (time tag, RotorAngleDSE.nis_) of each frame the filter took, in order, until the caller
             takes them (at most the frames of ``history_s``): a frame's innovation is known only once the filter
             takes it, which is up to ``reorder_s`` after it came.
+        omega_pu_, tm_pu_: The rotor speeds (pu) and mechanical torques (pu, system base) of the latest answer, one
+            per machine, found as its angles were (the filter's own at an in-order frame, the copy's ahead of a
+            missing tag, interpolated for a late frame); NaN where the angle is NaN and for steady-state machines.
+            A stability monitor reads them beside the angles.
 
     """
 
@@ -697,7 +705,9 @@ class StreamingDSE:
         self._done: int | None = None  # newest time tag (in periods of rate_fps) the filter has taken
         self._grid = TagGrid()  # the stream's own tag grid, in periods of rate_fps
         self._pending: dict[int, tuple] = {}  # key -> (t, v_mag, v_ang, i_mag, i_ang, valid)
-        self._history: deque[tuple[float, np.ndarray]] = deque()
+        self._history: deque[tuple[float, np.ndarray, np.ndarray]] = deque()  # (t, angles, (speeds, torques))
+        self.omega_pu_ = np.full(len(machines.names), np.nan)
+        self.tm_pu_ = np.full(len(machines.names), np.nan)
         self.lost_frames = 0
         self.late_frames = 0
         self.ahead_frames = 0
@@ -742,6 +752,7 @@ class StreamingDSE:
                 angles = self._take(*self._pending.pop(nxt))
                 if nxt == key:
                     answer = angles
+                    self.omega_pu_, self.tm_pu_ = self.dse.omega_pu_.copy(), self.dse.tm_pu_.copy()
             elif (newest - nxt) * period > self.reorder_s + 1e-9:
                 first = min(self._pending)
                 if (first - nxt) * period > self.dse.max_gap_s:
@@ -771,6 +782,7 @@ class StreamingDSE:
         # the frames around them, the filter's own rule between frames.
         for k in sorted(k for k in self._pending if k <= key):
             angles = probe.update(*self._pending[k])
+        self.omega_pu_, self.tm_pu_ = probe.omega_pu_.copy(), probe.tm_pu_.copy()
         return angles
 
     def _take(self, t: float, v_mag, v_ang, i_mag, i_ang, valid) -> np.ndarray:
@@ -779,7 +791,7 @@ class StreamingDSE:
             self.innovations.append((t, self.dse.nis_.copy()))
             while self.innovations[0][0] < t - self.history_s:
                 self.innovations.popleft()
-        self._history.append((t, angles))
+        self._history.append((t, angles, np.stack([self.dse.omega_pu_, self.dse.tm_pu_])))
         while self._history and self._history[0][0] < t - self.history_s:
             self._history.popleft()
         return angles
@@ -788,10 +800,14 @@ class StreamingDSE:
         times = [h[0] for h in self._history]
         k = int(np.searchsorted(times, t))
         if k == len(times) and k and abs(times[-1] - t) < 1e-9:
+            self.omega_pu_, self.tm_pu_ = self._history[-1][2].copy()
             return self._history[-1][1].copy()
         if k == 0 or k == len(times):
-            return np.full(len(self.dse.models_), np.nan)
-        (t0, a0), (t1, a1) = self._history[k - 1], self._history[k]
+            nan = np.full(len(self.dse.models_), np.nan)
+            self.omega_pu_, self.tm_pu_ = nan.copy(), nan.copy()
+            return nan
+        (t0, a0, s0), (t1, a1, s1) = self._history[k - 1], self._history[k]
         w = (t - t0) / (t1 - t0)
+        self.omega_pu_, self.tm_pu_ = s0 + w * (s1 - s0)
         return a0 + w * (a1 - a0)
 
