@@ -96,3 +96,26 @@ def test_replay_junit_xml_writes_the_report_of_bags_that_cannot_be_replayed(tmp_
     assert (suite.get('tests'), suite.get('errors')) == ('2', '2')
     for case in suite.findall('testcase'):
         assert 'cannot read the bag' in case.find('error').get('message'), ET.tostring(case)
+
+
+def test_a_replay_ends_once_the_breaker_log_holds_every_decision_and_each_command_recorded_was_seen(tmp_path):
+    import json
+    from types import SimpleNamespace
+
+    from controlled_islanding.graph.observer import Observation
+    from controlled_islanding.graph.replay import breaker_done
+
+    obs = Observation()
+    obs.decisions = {f'req-{i}': (float(i), SimpleNamespace(decision_id=f'd{i}')) for i in (1, 2)}
+    log = tmp_path / 'breaker_audit.jsonl'
+    assert not breaker_done(log, obs)  # no log yet
+    records = [{'event': 'start'}, {'event': 'command', 'decision_id': 'd1', 'authenticated': True,
+                                    'commands': [{'command_id': 'd1/CB-1'}, {'command_id': 'd1/CB-2'}]}]
+    log.write_text(''.join(json.dumps(r) + '\n' for r in records))
+    assert not breaker_done(log, obs)  # d2 not handled yet
+    log.write_text(log.read_text() + json.dumps({'event': 'no_split', 'decision_id': 'd2'}) + '\n{"event": "ref')
+    assert not breaker_done(log, obs)  # handled, but d1's commands not seen; a half-written last line is skipped
+    obs.commands = [(3.0, SimpleNamespace(command_id='d1/CB-1'))]
+    assert not breaker_done(log, obs)
+    obs.commands.append((3.1, SimpleNamespace(command_id='d1/CB-2')))
+    assert breaker_done(log, obs)

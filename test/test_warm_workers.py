@@ -11,9 +11,11 @@ from pathlib import Path
 
 import pytest
 
+from controlled_islanding.graph.replay import bag_topics
 from controlled_islanding.graph.suite import SuiteRun, replay_suite
 from controlled_islanding.graph.worker import replay_options
 from controlled_islanding.sim.manifest import manifest_entries
+from controlled_islanding.wire import topics
 
 REPO = Path(__file__).resolve().parents[1]
 BAGS = {e['name']: REPO / 'bags' / e['bag'] for e in manifest_entries() if (REPO / 'bags' / e['bag']).exists()}
@@ -93,3 +95,9 @@ def test_bag_after_bag_in_one_worker_decides_and_commands_as_each_bag_alone_and_
         assert {d['request_id'] for d in summaries[name]['decisions']} == {
             d['request_id'] for d in by_itself['decisions']}
     assert summaries['b']['breaker_commands'][0]['command_id'] != summaries['c']['breaker_commands'][0]['command_id']
+    # A composed graph's summary holds what each node counted once it had taken every message of the bag (read
+    # from the nodes after the play, not their last /diagnostics): every frame and the snapshot, nothing lost.
+    for name, bag in (('a', ieee14), ('b', kundur), ('c', kundur)):
+        ingestion = summaries[name]['diagnostics']['/pmu_ingestion']
+        assert int(ingestion['received']) == bag_topics(bag)[topics.PMU_FRAMES] + 1, (name, ingestion)
+        assert ingestion['lost./pmu/frames'] == '0' and ingestion['missing_frames'] == '0', (name, ingestion)

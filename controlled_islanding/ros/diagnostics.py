@@ -323,6 +323,12 @@ class Diagnostics:
     def publish(self) -> None:
         """Publish the node's DiagnosticStatus and its topics' ones."""
         self._last_publish_s = time.monotonic()
+        array = DiagnosticArray(status=self.statuses())
+        array.header.stamp = self._node.get_clock().now().to_msg()
+        self._pub.publish(array)
+
+    def statuses(self) -> list[DiagnosticStatus]:
+        """Return the node's DiagnosticStatus and its topics' ones, as publish() sends them now."""
         level, message = self.level()
         pairs = {
             'input_rate_hz': f'{self.input_rate_hz():.1f}',
@@ -347,9 +353,7 @@ class Diagnostics:
         statuses += [DiagnosticStatus(level=t.level, name=t.name, hardware_id='controlled_islanding', message=t.message,
                                       values=[KeyValue(key=k, value=v) for k, v in t.values.items()])
                      for t in self.topics]
-        array = DiagnosticArray(status=statuses)
-        array.header.stamp = self._node.get_clock().now().to_msg()
-        self._pub.publish(array)
+        return statuses
 
 
 def writers_matched(values: dict[str, str], count_subscribers: Callable[[str], int]) -> bool:
