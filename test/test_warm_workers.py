@@ -70,15 +70,21 @@ def test_bag_after_bag_in_one_worker_decides_and_commands_as_each_bag_alone_and_
     killer.start()
     try:
         # One worker at a time: the first dies in 'killed'; its successor replays a, b and c, one after the other.
+        not_a_bag = tmp_path / 'not_a_bag'
+        not_a_bag.mkdir()
+        (not_a_bag / 'metadata.yaml').write_text('this is not rosbag2 metadata\n')
         report = replay_suite([SuiteRun('killed', ieee14, FAST), SuiteRun('a', ieee14, FAST),
-                               SuiteRun('b', kundur, FAST), SuiteRun('c', kundur, FAST)], tmp_path / 'run', jobs=1,
-                              warm=True)
+                               SuiteRun('b', kundur, FAST), SuiteRun('c', kundur, FAST),
+                               SuiteRun('broken', not_a_bag, FAST)], tmp_path / 'run', jobs=1, warm=True)
     finally:
         stop.set()
     alone = replay_suite([SuiteRun('alone', kundur, FAST)], tmp_path / 'alone', jobs=1, warm=True)
     rows = {r['name']: r for r in report['rows']}
     assert not rows['killed']['ok'] and 'warm worker replaying it died (exit status -9)' in rows['killed']['error']
     assert all(rows[n]['ok'] for n in 'abc'), [rows[n]['error'] for n in 'abc']
+    # A bag the player cannot read is a failed row that says so in one line, and the worker goes on.
+    assert not rows['broken']['ok'] and 'bag_player failed: bag_player could not start: cannot read the bag: ' in \
+        rows['broken']['error'] and 'Traceback' not in rows['broken']['error'], rows['broken']['error']
     worker_logs = {p.name: p.read_text() for p in (tmp_path / 'run').glob('worker-*.log')}
     assert len(worker_logs) == 2 and all(f'replaying {n}' in worker_logs['worker-1.log'] for n in 'abc')
 

@@ -54,6 +54,9 @@ class _Thread:
         try:
             target()
             self.returncode = 0
+        except GraphError as exc:  # a node that refused to start says why; no traceback
+            self.error = str(exc)
+            self.returncode = 1
         except Exception:
             self.error = traceback.format_exc()
             self.returncode = 1
@@ -146,9 +149,15 @@ class ComposedGraph:
             self._stack.close()
 
     def _make(self, spec: NodeSpec, overrides: Mapping[str, object] | None) -> object:
+        """Make one node in this graph's Context; GraphError with the node's own words if it refuses to start."""
+        from controlled_islanding.ros.params import NodeSetupError
+
         module = importlib.import_module(f'controlled_islanding.nodes.{spec.executable}')
-        node = getattr(module, NODE_CLASSES[spec.executable])(
-            context=self.context, cli_args=ros_arguments(spec, overrides, self.namespace, self.remaps))
+        try:
+            node = getattr(module, NODE_CLASSES[spec.executable])(
+                context=self.context, cli_args=ros_arguments(spec, overrides, self.namespace, self.remaps))
+        except NodeSetupError as exc:
+            raise GraphError(f'{spec.executable} could not start: {exc}') from exc
         self._nodes[spec.executable] = node
         return node
 
@@ -171,6 +180,8 @@ class ComposedGraph:
         if spec.executable in _PIPELINE:
             try:
                 self.executor.add_node(self._make(spec, overrides))
+            except GraphError:
+                raise
             except Exception as exc:
                 raise GraphError(f'{spec.executable} could not start: {type(exc).__name__}: {exc}') from exc
             if 'pipeline' not in self._threads:

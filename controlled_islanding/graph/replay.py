@@ -188,7 +188,9 @@ def run_graph(bag: Path, results: Path, options: ReplayOptions, hosts: dict[str,
 
             def player_alive() -> None:
                 if player.poll() is not None:
-                    raise GraphError(f'bag_player failed:\n{sup.log_tail("bag_player")}')
+                    tail = sup.log_tail('bag_player')
+                    separator = '\n' if '\n' in tail else ' '  # a refusal to start is one line, a traceback many
+                    raise GraphError(f'bag_player failed:{separator}{tail}')
 
             def topic_name(t: str) -> str:
                 return remaps.get(t, topics.in_namespace(t, ns))
@@ -285,7 +287,8 @@ def _watch(observer: Observer, sup: object, player: subprocess.Popen, options: R
     done_at = None
     exited_at = math.inf  # when the player was seen to have exited, monotonic s
     while time.monotonic() < deadline:
-        observer.spin_for(0.01)
+        # Messages wake the spin at once; the period only bounds how late the player's exit or a probe is seen.
+        observer.spin_for(0.01 if probe_period else 0.05)
         sup.supervise(obs.heartbeats_s)
         bag_done = player.poll() is not None
         if bag_done and 'player_exited' not in obs.phases_unix:
