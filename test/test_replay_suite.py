@@ -133,7 +133,7 @@ def test_a_replay_ends_once_the_breaker_log_holds_every_decision_and_each_comman
     assert breaker_done(log, obs)
 
 
-def test_the_progress_bar_is_drawn_on_a_terminal_that_says_it_is_zero_by_zero(monkeypatch):
+def test_the_progress_bar_is_drawn_on_a_terminal_that_says_it_is_zero_by_zero(monkeypatch, caplog):
     """A CI runner's pseudo-terminal (or `script`) often reports 0 columns and 0 rows; tqdm then drew nothing."""
     import logging
     import os
@@ -143,7 +143,7 @@ def test_the_progress_bar_is_drawn_on_a_terminal_that_says_it_is_zero_by_zero(mo
     leader, follower = os.openpty()  # a new pseudo-terminal is 0 x 0
     with open(follower, 'w', closefd=True) as terminal, open(leader, 'rb', closefd=True) as screen:
         monkeypatch.setattr('sys.stderr', terminal)
-        monkeypatch.setattr(logging.getLogger('controlled_islanding'), 'level', logging.INFO)
+        caplog.set_level(logging.INFO, logger='controlled_islanding')  # as the command line sets it
         with progress_bar(3, 'replay', 'bag') as bar:
             bar.update()
             bar.refresh()
