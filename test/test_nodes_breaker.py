@@ -25,6 +25,7 @@ from rcl_interfaces.srv import GetParameters, SetParameters
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.graph.supervisor import GRAPH
 from controlled_islanding.harness import breaker_soak
+from controlled_islanding.ros.diagnostics import DECISIONS_HANDLED
 from controlled_islanding.safety import signing
 from controlled_islanding.wire import topics
 
@@ -180,6 +181,8 @@ def test_breaker_rules_on_a_real_process(tmp_path):
         send(probe, stale_groups)
         send(probe, suspect)
         assert handled(probe, base + 5 + len(bad) + 3)
+        # Every decision it finished with, refused or not, is counted (a replay's player waits on this count).
+        assert probe.wait_counter(NODE, DECISIONS_HANDLED, 5 + len(bad) + 3) == 5 + len(bad) + 3
         probe.spin_for(0.3)
         assert len(commands) == len(cut), 'a refused decision produced a command'
 

@@ -12,11 +12,15 @@ frame played, and then until /coherent_groups has (coherency has taken every sam
 coherency node still working through a backlog, or through its first, slow computation, would otherwise get
 the request seconds late and partitioning refuse it as stale, which real time never sees); after it, data
 keeps flowing in bag order (frames delayed past the request still arrive after it, as in real time, up to
-`lockstep_lead_s` of bag time past it) but /clock stays at the request time until a decision is out, plus
-`lockstep_settle_s` for its consumers to handle it. A wait for the decision lasts at most `lockstep_timeout_s`,
-after which the request is sent again with its id (twice at most: a restarted partitioning node lost it);
-a wait for rotor angles or groups lasts until they stop moving towards the newest frame for that long, since
-under load each stage can take longer than any fixed time while it still catches up. So the decision
+`lockstep_lead_s` of bag time past it) but /clock stays at the request time until a decision is out and
+`decision_consumer` (breaker_command, which refuses a decision more than max_decision_age_s older than its
+clock) has handled it, as its /diagnostics say at once (`decisions_handled`). A graph whose decision readers
+include no such node (a test's probe) gets `lockstep_settle_s` of wall time instead: no fixed time is right for
+a loaded breaker_command, which once took longer than the 0.1 s it had and refused GBnetwork's cut as stale. A
+wait for the decision lasts at most `lockstep_timeout_s`, after which the request is sent again with its id
+(twice at most: a restarted partitioning node lost it); a wait for rotor angles, groups or the consumer lasts
+until they stop moving towards what is awaited for that long, since under load each stage can take longer than
+any fixed time while it still catches up. So the decision
 sees the data a real-time replay would, and no node sees it as stale on the replayed clock, however loaded the
 machine is.
 
@@ -55,6 +59,7 @@ from pathlib import Path
 
 from builtin_interfaces.msg import Time
 from controlled_islanding_msgs.msg import CoherentGroups, IslandingDecision, RotorAngles
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -63,7 +68,7 @@ from rosbags.highlevel import AnyReader
 from rosgraph_msgs.msg import Clock
 
 from controlled_islanding import atomic
-from controlled_islanding.ros.diagnostics import Diagnostics
+from controlled_islanding.ros.diagnostics import DECISIONS_HANDLED, Diagnostics
 from controlled_islanding.ros.endpoints import qos_for
 from controlled_islanding.ros.params import NodeSetupError, message_class
 from controlled_islanding.ros.spin import spin_node
@@ -91,6 +96,7 @@ class BagPlayerNode(Node):
         self.declare_parameter('lockstep_on_requests', True)
         self.declare_parameter('lockstep_timeout_s', 20.0)
         self.declare_parameter('lockstep_settle_s', 0.1)
+        self.declare_parameter('decision_consumer', 'breaker_command')
         self.declare_parameter('lockstep_lead_s', 0.5)
         self.declare_parameter('report_file', '')
         self.declare_parameter('clock_min_step_s', 0.0)
@@ -115,6 +121,7 @@ class BagPlayerNode(Node):
         self.lockstep = self.afap and bool(self.get_parameter('lockstep_on_requests').value)
         self.lockstep_timeout_s = float(self.get_parameter('lockstep_timeout_s').value)
         self.lockstep_settle_s = float(self.get_parameter('lockstep_settle_s').value)
+        self.decision_consumer = str(self.get_parameter('decision_consumer').value)
         self.lockstep_lead_ns = int(float(self.get_parameter('lockstep_lead_s').value) * 1e9)
         self.report_file = self.get_parameter('report_file').value
         self.clock_step_ns = int(float(self.get_parameter('clock_min_step_s').value) * 1e9)
@@ -161,6 +168,7 @@ class BagPlayerNode(Node):
                         if qos_for(t).durability == DurabilityPolicy.TRANSIENT_LOCAL}
         self.newest_angle_ns = -1
         self.newest_groups_ns = -1
+        self.consumer_handled = 0  # decisions decision_consumer said it has handled
         self.frames_sent = 0  # PMU frames published so far
         self.answered_upto = -1  # the latest frame (by publication index) answered on /rotor_angles
         self.unanswered: dict[int, deque[int]] = {}  # frame time tag, ns -> indices of its unanswered frames
@@ -179,6 +187,9 @@ class BagPlayerNode(Node):
                 self.angles_sub,
                 self.create_subscription(CoherentGroups, topics.relative(topics.COHERENT_GROUPS), self._on_groups,
                                          qos_for(topics.COHERENT_GROUPS))]
+            self.consumer_status = f'{self.get_namespace().rstrip("/")}/{self.decision_consumer}'
+            self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diagnostics,
+                                     qos_for(topics.DIAGNOSTICS))
         self.diag = Diagnostics(self)
         self.loaded_unix = time.time()
         self.get_logger().info(f'{len(self.messages)} messages on {len(self.pubs)} topics from {bag}')
@@ -194,6 +205,26 @@ class BagPlayerNode(Node):
             self.answered_upto = max(self.answered_upto, waiting.popleft())
             if not waiting:
                 del self.unanswered[stamp_ns]
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name == self.consumer_status:
+                for kv in status.values:
+                    if kv.key == DECISIONS_HANDLED and kv.value.isdigit():
+                        self.consumer_handled = max(self.consumer_handled, int(kv.value))
+
+    def _consumer_reads_decisions(self) -> bool:
+        topic = self.resolve_topic_name(topics.relative(topics.ISLANDING_DECISION))
+        return any(info.node_name == self.decision_consumer and info.node_namespace == self.get_namespace()
+                   for info in self.get_subscriptions_info_by_topic(topic))
+
+    def _await_handled(self, executor: SingleThreadedExecutor) -> None:
+        """Hold until decision_consumer has handled every decision seen; lockstep_settle_s if none reads them."""
+        if self._consumer_reads_decisions():
+            self._hold(executor, f'decision handled by {self.decision_consumer}',
+                       lambda: self.consumer_handled >= self.decisions, lambda: self.consumer_handled)
+        else:
+            self._spin_until(executor, time.monotonic() + self.lockstep_settle_s)
 
     def _on_groups(self, msg: CoherentGroups) -> None:
         stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
@@ -364,7 +395,7 @@ class BagPlayerNode(Node):
                            lambda f=last_frame_ns: self.newest_groups_ns >= f - _STAMP_ROUNDING_NS,
                            lambda: self.newest_groups_ns)
             if frozen_at_ns is not None and self.decisions >= waiting_for:
-                self._spin_until(executor, time.monotonic() + self.lockstep_settle_s)
+                self._await_handled(executor)
                 frozen_at_ns = None
             clock_ns = t_ns if frozen_at_ns is None else frozen_at_ns
             if self.clock_pub is not None and (self.clock_ns is None or request
@@ -391,7 +422,7 @@ class BagPlayerNode(Node):
                 executor.spin_once(timeout_sec=0.0)
         if frozen_at_ns is not None:
             self._await_decision(executor, waiting_for, pending_request)
-            self._spin_until(executor, time.monotonic() + self.lockstep_settle_s)
+            self._await_handled(executor)
         wall_s = time.monotonic() - start
         bag_s = (self.messages[-1][1] - t0_ns) * 1e-9
         report = {'messages': len(self.messages), 'bag_duration_s': bag_s, 'wall_s': wall_s,
