@@ -79,6 +79,8 @@ from controlled_islanding.wire.interfaces import typestore
 _STAMP_ROUNDING_NS = 1_000
 _POLL_S = 0.02  # longest spin between two looks at a wait's condition, s
 
+_UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'  # rmw_dds_common's name of an endpoint whose node is not yet known
+
 
 class BagPlayerNode(Node):
     """Loads a bag into memory and plays it onto its topics."""
@@ -213,13 +215,19 @@ class BagPlayerNode(Node):
                     if kv.key == DECISIONS_HANDLED and kv.value.isdigit():
                         self.consumer_handled = max(self.consumer_handled, int(kv.value))
 
-    def _consumer_reads_decisions(self) -> bool:
+    def _consumer_reads_decisions(self) -> bool | None:
+        """Return whether decision_consumer reads decisions; None while a reader's node is not yet known."""
         topic = self.resolve_topic_name(topics.relative(topics.ISLANDING_DECISION))
-        return any(info.node_name == self.decision_consumer and info.node_namespace == self.get_namespace()
-                   for info in self.get_subscriptions_info_by_topic(topic))
+        readers = self.get_subscriptions_info_by_topic(topic)
+        if any(info.node_name == self.decision_consumer and info.node_namespace == self.get_namespace()
+               for info in readers):
+            return True
+        # A reader's node name comes on its own discovery topic, later than the reader itself under load.
+        return None if any(info.node_name == _UNKNOWN_NODE for info in readers) else False
 
     def _await_handled(self, executor: SingleThreadedExecutor) -> None:
         """Hold until decision_consumer has handled every decision seen; lockstep_settle_s if none reads them."""
+        self._hold(executor, 'the names of the decision readers', lambda: self._consumer_reads_decisions() is not None)
         if self._consumer_reads_decisions():
             self._hold(executor, f'decision handled by {self.decision_consumer}',
                        lambda: self.consumer_handled >= self.decisions, lambda: self.consumer_handled)
