@@ -19,6 +19,7 @@ from controlled_islanding.evaluation.oracle import (
     neighbour_groupings,
     partition_key,
     pick_best,
+    pick_neighbours,
     request_times,
 )
 from controlled_islanding.sim.scenario import load_scenario
@@ -57,24 +58,42 @@ def test_the_window_starts_at_the_first_fault_clearing_on_several_systems_or_the
 def test_neighbours_of_the_truth_are_merges_nearest_moves_and_loosest_machines_alone():
     names = ['A', 'B', 'C', 'D', 'E', 'F']
     truth = [0, 0, 0, 1, 1, 2]
-    final = [0.0, 0.2, 1.5, 9.0, 9.4, 30.0]  # C lags its group towards D and E; F alone far away
-    out = neighbour_groupings(names, truth, final, max_moves=2, max_alone=1)
-    assert out[0] == ('truth', (0, 0, 0, 1, 1, 2))
-    got = dict((g, what) for what, g in out)
-    assert len(got) == len(out)  # each grouping once
-    merges = [g for what, g in out if 'merged' in what]
+    dev = [0.0, 0.2, 1.5, 9.0, 9.4, 30.0]  # C lags its group towards D and E; F alone far away
+    out = neighbour_groupings(names, truth, dev)
+    assert out[0] == ('truth', 'truth', (0, 0, 0, 1, 1, 2))
+    assert len({g for _, _, g in out}) == len(out)  # each grouping once
+    merges = [g for kind, _, g in out if kind == 'merge']
     assert sorted(merges) == sorted([(0, 0, 0, 0, 0, 1), (0, 0, 0, 1, 1, 0), (0, 0, 0, 1, 1, 1)])
-    moves = [(what, g) for what, g in out if 'moved' in what]
+    moves = [(what, g) for kind, what, g in out if kind == 'move']
     # Nearest first by the truth's own complete-linkage distance: C to {D, E} is 7.9 rad, D to {A, B, C} 9.0.
-    assert moves == [('C moved to the group of D+E (7.90 rad)', (0, 0, 1, 1, 1, 2)),
-                     ('D moved to the group of A+B, ... (9.00 rad)', (0, 0, 0, 0, 1, 2))]
-    assert not any(what.startswith('F moved') for what, _ in out)  # F alone: moving it is a merge
-    alone = [(what, g) for what, g in out if 'alone' in what]
-    assert alone == [('C alone (1.40 rad from its group)', (0, 0, 1, 2, 2, 3))]
-    two = neighbour_groupings(['G1', 'G2', 'G3'], [0, 0, 1], [0.0, 0.1, 7.0], max_moves=9, max_alone=9)
-    assert not any('merged' in what for what, _ in two)  # two groups merged is no split, no action's row
+    assert moves[:2] == [('C moved to the group of D+E (7.90 rad)', (0, 0, 1, 1, 1, 2)),
+                         ('D moved to the group of A+B, ... (9.00 rad)', (0, 0, 0, 0, 1, 2))]
+    assert len(moves) == 10  # A, B, C, D and E, each to either other group
+    assert not any(what.startswith('F moved') for what, _ in moves)  # F alone: moving it is a merge
+    alone = [(what, g) for kind, what, g in out if kind == 'alone']
+    assert alone[0] == ('C alone (1.40 rad from its group on average)', (0, 0, 1, 2, 2, 3))
+    two = neighbour_groupings(['G1', 'G2', 'G3'], [0, 0, 1], [0.0, 0.1, 7.0])
+    assert not any(kind == 'merge' for kind, _, _ in two)  # two groups merged is no split, no action's row
     # G2 (6.9 rad from G3) moves before G1 (7.0); G1 alone and G2 alone are one grouping, three singletons.
-    assert [g for _, g in two] == [(0, 0, 1), (0, 1, 1), (0, 1, 0), (0, 1, 2)]
+    assert [g for _, _, g in two] == [(0, 0, 1), (0, 1, 1), (0, 1, 0), (0, 1, 2)]
+
+
+def test_the_first_moves_and_machines_alone_that_give_a_cut_are_kept_trying_a_few_more_at_most():
+    ranked = [('truth', 'truth', (0,)), ('merge', 'm1', (1,)), ('move', 'a', (2,)), ('move', 'b', (3,)),
+              ('move', 'c', (4,)), ('move', 'd', (5,)), ('alone', 'x', (6,)), ('alone', 'y', (7,))]
+    asked = []
+
+    def gives_cut(what, groups):
+        asked.append(what)
+        return what not in {'a', 'm1', 'x'}
+
+    kept = pick_neighbours(ranked, 2, 1, gives_cut)
+    assert [what for _, what, _ in kept] == ['truth', 'm1', 'b', 'c', 'y']  # 'a' has no cut: 'c' takes its place
+    assert asked == ['a', 'b', 'c', 'x', 'y']  # the truth and merges are kept unasked; 'd' never needed
+    assert [w for _, w, _ in pick_neighbours(ranked, 1, 0, lambda w, g: False)] == ['truth', 'm1']
+    asked.clear()
+    pick_neighbours(ranked * 3, 1, 1, lambda w, g: asked.append(w) or False)
+    assert asked.count('a') + asked.count('b') + asked.count('c') + asked.count('d') == 3  # 3 tries per kept one
 
 
 def test_candidates_equal_up_to_island_numbering_are_run_once_with_their_sources_merged():

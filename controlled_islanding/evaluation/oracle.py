@@ -15,10 +15,14 @@ What it searches:
      truth grouping (sim/truth.truth_groups on the no-action run) and its neighbours, which are
      a. every merge of two of its groups (with three groups or more; two merged from two is no split);
      b. the max_moves single-machine moves to another group nearest by the truth's own measure, the
-        complete-linkage distance max_q |d_p(T) - d_q(T)| from the machine to the other group's machines
-        (final rotor-angle deviations, rad); a move that would empty the machine's group is a merge, in a.;
-     c. the max_alone machines loosest in their group (largest mean distance |d_p(T) - d_q(T)| to the other
-        machines of their group) each alone in a new group;
+        complete-linkage distance max_q |d_p - d_q| from the machine to the other group's machines, taken on
+        the rotor-angle deviations d = delta(t) - delta(0) at the end of the window (the first pole slip): what
+        a grouping made at a request time in the window can see (the final deviations of a slipping run put
+        every machine of the other group tens of rad away, alike); a move that would empty the machine's
+        group is a merge, in a.; a move that no connected partition allows (no MILP cut) is passed over for
+        the next nearest (pick_neighbours);
+     c. the max_alone machines loosest in their group (largest mean distance |d_p - d_q| to the other machines
+        of their group, at the same instant) each alone in a new group, passed over likewise;
   2. the spectral cut (core/spectral.py, the paper's method) of the truth grouping;
   3. the graph's own cut (the closed-loop decision's islands), when it split;
   and no action. Each grouping is solved once per topology (trips before the request out), the grid as a
@@ -116,47 +120,72 @@ def _numbered(labels: Sequence[int]) -> tuple[int, ...]:
     return tuple(order.setdefault(int(x), len(order)) for x in labels)
 
 
-def neighbour_groupings(names: Sequence[str], groups: Sequence[int], final_rad: Sequence[float], max_moves: int,
-                        max_alone: int) -> list[tuple[str, tuple[int, ...]]]:
-    """Return the truth grouping and its neighbours (see the module docstring), each once, truth first.
+def neighbour_groupings(names: Sequence[str], groups: Sequence[int], dev_rad: Sequence[float]
+                        ) -> list[tuple[str, str, tuple[int, ...]]]:
+    """Return the truth grouping and every neighbour of it (see the module docstring), each once, truth first.
 
     Args:
         names: Machine names.
         groups: The truth group of each machine.
-        final_rad: Each machine's final rotor-angle deviation d_p(T) = delta_p(T) - delta_p(0), rad.
-        max_moves: How many single-machine moves, nearest first.
-        max_alone: How many machines alone in a new group, loosest first.
+        dev_rad: Each machine's rotor-angle deviation d_p = delta_p(t) - delta_p(0) at the end of the request
+            window (the first pole slip), rad.
 
     Returns:
-        (what it is, group of each machine numbered in order of first appearance) per grouping.
+        (kind: 'truth', 'merge', 'move' or 'alone'; what it is; group of each machine numbered in order of first
+        appearance) per grouping: the truth, every merge, every move nearest first, every machine alone loosest
+        first (pick_neighbours keeps the first of each kind that give a cut).
 
     """
     truth = _numbered(groups)
-    d = np.asarray(final_rad, dtype=float)
+    d = np.asarray(dev_rad, dtype=float)
     k = max(truth) + 1 if truth else 0
     members = [[p for p, g in enumerate(truth) if g == h] for h in range(k)]
 
     def named(h: int) -> str:
         return '+'.join(names[p] for p in members[h][:2]) + (', ...' if len(members[h]) > 2 else '')
 
-    out = [('truth', truth)]
+    out = [('truth', 'truth', truth)]
     if k >= 3:
         for a in range(k):
             for b in range(a + 1, k):
-                out.append((f'groups of {named(a)} and {named(b)} merged',
+                out.append(('merge', f'groups of {named(a)} and {named(b)} merged',
                             _numbered([a if g == b else g for g in truth])))
     moves = sorted((float(np.max(np.abs(d[p] - d[members[h]]))), p, h) for p, g in enumerate(truth)
                    for h in range(k) if h != g and len(members[g]) > 1)
-    for dist, p, h in moves[:max_moves]:
-        out.append((f'{names[p]} moved to the group of {named(h)} ({dist:.2f} rad)',
+    for dist, p, h in moves:
+        out.append(('move', f'{names[p]} moved to the group of {named(h)} ({dist:.2f} rad)',
                     _numbered([h if q == p else g for q, g in enumerate(truth)])))
     loose = sorted((-float(np.mean(np.abs(d[p] - d[[q for q in members[g] if q != p]]))), p)
                    for p, g in enumerate(truth) if len(members[g]) > 1)
-    for neg, p in loose[:max_alone]:
-        out.append((f'{names[p]} alone ({-neg:.2f} rad from its group)',
+    for neg, p in loose:
+        out.append(('alone', f'{names[p]} alone ({-neg:.2f} rad from its group on average)',
                     _numbered([k if q == p else g for q, g in enumerate(truth)])))
     seen: set[tuple[int, ...]] = set()
-    return [(what, g) for what, g in out if not (g in seen or seen.add(g))]
+    return [(kind, what, g) for kind, what, g in out if not (g in seen or seen.add(g))]
+
+
+def pick_neighbours(ranked: Sequence[tuple[str, str, tuple[int, ...]]], max_moves: int, max_alone: int,
+                    gives_cut: Callable[[str, tuple[int, ...]], bool]) -> list[tuple[str, str, tuple[int, ...]]]:
+    """Return the truth, every merge, and the first max_moves moves and max_alone machines alone that give a cut.
+
+    A move or a machine alone that no connected partition allows (gives_cut(what, groups) False) is passed over
+    for the next, at most 3 x its kind's count of tries in all. The truth and the merges are kept whatever
+    gives_cut says (a merge may give no cut: it is then said, and has no candidate).
+    """
+    cap = {'move': max_moves, 'alone': max_alone}
+    kept: dict[str, int] = {}
+    tries: dict[str, int] = {}
+    out = []
+    for kind, what, groups in ranked:
+        if kind in cap:
+            if kept.get(kind, 0) >= cap[kind] or tries.get(kind, 0) >= 3 * cap[kind]:
+                continue
+            tries[kind] = tries.get(kind, 0) + 1
+            if not gives_cut(what, groups):
+                continue
+            kept[kind] = kept.get(kind, 0) + 1
+        out.append((kind, what, groups))
+    return out
 
 
 def partition_key(bus_island: Mapping[int, int]) -> frozenset[frozenset[int]]:
@@ -380,10 +409,11 @@ def search(scenario: Scenario, config: LoopConfig | None = None, settings: Oracl
     if no_action.judged_from_s != scenario.request_s and no_action.simulation_failed is None:
         no_action = no_action.rejudged(scenario.request_s, config)
     names = no_action.generator_names
-    final = no_action.delta_rad[-1] - no_action.delta_rad[0]
-    groupings = neighbour_groupings(names, truth_groups(no_action.t_s, no_action.delta_rad), final,
-                                    settings.max_moves, settings.max_alone) if times else []
-    candidates, grids, skipped, proposed = _candidates(scenario, names, groupings, times, graph_islands, settings, say)
+    at_slip = int(np.searchsorted(no_action.t_s, times[-1] - 1e-9)) if times else 0
+    ranked = neighbour_groupings(names, truth_groups(no_action.t_s, no_action.delta_rad),
+                                 no_action.delta_rad[at_slip] - no_action.delta_rad[0]) if times else []
+    candidates, grids, groupings, skipped, proposed = _candidates(scenario, names, ranked, times, graph_islands,
+                                                                  settings, say)
     say(f'{scenario.name} oracle: {len(times)} request times {times[0]:.3f} .. {times[-1]:.3f} s, '
         f'{len(groupings)} groupings, {len(candidates)} distinct candidates (of {proposed} proposed)'
         if times else f'{scenario.name} oracle: no pole slip without action: only no action is searched')
@@ -415,7 +445,7 @@ def search(scenario: Scenario, config: LoopConfig | None = None, settings: Oracl
             f'{", ".join(cut)} ({"; ".join(c.sources)}): {verdict}; best {best.served_mw if best else 0:.0f} MW; '
             f'{time.monotonic() - start:.0f} s so far, up to about {left:.0f} s left')
     named = tuple((what, tuple(tuple(n for n, g in zip(names, gs, strict=True) if g == h) for h in range(max(gs) + 1)))
-                  for what, gs in groupings)
+                  for _, what, gs in groupings)
     return OracleResult(best=best, window_s=(times[0], times[-1]) if times else (clearing, clearing),
                         step_s=0.0 if len(times) < 2 else times[1] - times[0], times_s=times, end_s=end_s,
                         first_pole_slip_s=slip, groupings=named, skipped=tuple(skipped), tried=tuple(tried),
@@ -430,12 +460,15 @@ def _cached(runs: dict, key: tuple[Any, ...], run: Callable[[], Outcome]) -> tup
     return runs[key][0], True
 
 
-def _candidates(scenario: Scenario, names: Sequence[str], groupings: Sequence[tuple[str, tuple[int, ...]]],
+def _candidates(scenario: Scenario, names: Sequence[str], ranked: Sequence[tuple[str, str, tuple[int, ...]]],
                 times: Sequence[float], graph_islands: Mapping[int, int] | None, settings: OracleSettings,
-                say: Callable[[str], None]) -> tuple[list[Candidate], dict[tuple[str, ...], Grid], list[str], int]:
-    """Return the distinct candidates in the order they run, the grid of each topology, what gave none, how many.
+                say: Callable[[str], None]) -> tuple[list[Candidate], dict[tuple[str, ...], Grid],
+                                                     list[tuple[str, str, tuple[int, ...]]], list[str], int]:
+    """Return the candidates in running order, each topology's grid, the groupings, what gave no cut, how many.
 
-    Each grouping's MILP (and the truth's spectral) cut is solved once per topology.
+    The candidates are distinct (dedupe), the groupings those searched, the count that of the candidates proposed.
+    Each grouping's MILP (and the truth's spectral) cut is solved once per topology; which neighbours are searched
+    is settled on the topology of the first request time (pick_neighbours).
     """
     from controlled_islanding.core.milp import ExactPartition, MilpError
     from controlled_islanding.core.spectral import ConstrainedSpectralPartition, SpectralError
@@ -464,12 +497,17 @@ def _candidates(scenario: Scenario, names: Sequence[str], groupings: Sequence[tu
                 say(f'{scenario.name} oracle: no {kind} cut for {what}: {exc}')
         return solved[key]
 
+    groupings: list[tuple[str, str, tuple[int, ...]]] = []
+    if times:
+        first, grids[first] = _grid_at(case.grid, changes, times[0])
+        groupings = pick_neighbours(ranked, settings.max_moves, settings.max_alone,
+                                    lambda what, groups: partition('milp', what, groups, first) is not None)
     for t in times:
         topology, grid = _grid_at(case.grid, changes, t)
         grids.setdefault(topology, grid)
         if graph_islands is not None:
             proposed.append(Candidate(t, {b: int(graph_islands.get(b, 0)) for b in grid.buses}, ['graph'], topology))
-        for kind, (what, groups) in [('milp', groupings[0]), ('spectral', groupings[0])] + \
+        for kind, (_, what, groups) in [('milp', groupings[0]), ('spectral', groupings[0])] + \
                 [('milp', g) for g in groupings[1:]]:
             bus_island = partition(kind, what, groups, topology)
             if bus_island is not None and len(set(bus_island.values())) > 1:
@@ -477,4 +515,4 @@ def _candidates(scenario: Scenario, names: Sequence[str], groupings: Sequence[tu
     rank = ['milp of truth', 'graph', 'spectral of truth']
     candidates = sorted(dedupe(proposed), key=lambda c: (min(rank.index(s) if s in rank else len(rank)
                                                              for s in c.sources), c.request_s))
-    return candidates, grids, skipped, len(proposed)
+    return candidates, grids, groupings, skipped, len(proposed)
