@@ -55,7 +55,8 @@ def gap_lines(results: list[dict]) -> list[str]:
         best = r['runs'].get('oracle')
         if best is None:
             if 'oracle_search' in r:
-                out.append(f'- {r["scenario"]}: the search found nothing: every run failed, no action\'s too.')
+                why = r['oracle_search'].get('error') or "every run failed, no action's too"
+                out.append(f'- {r["scenario"]}: no best found: {why}.')
             continue
         s = best['search']
         when = ('no action' if best['request_s'] is None else
