@@ -320,7 +320,7 @@ def _figure(scenario: Any, result: dict, trajectories: dict, loop_traj: dict, pa
                    'oracle': 'best found (oracle)'}[label],
             t_s=tr['t_s'], delta_rad=tr['delta_rad'], bus_v_pu=tr['bus_v_pu'], opened_s=run.get('opened_s'),
             survived=run['all_survived'], failed=run.get('simulation_failed'),
-            served_pct=run.get('load_served_pct')))
+            served_pct=run.get('load_served_pct'), request_s=run['request_s'] if label == 'oracle' else None))
     from controlled_islanding.sim.closed_loop import LoopConfig
 
     band = LoopConfig()
