@@ -68,7 +68,9 @@ def gap_lines(results: list[dict]) -> list[str]:
         gaps = '; '.join(f'{label} {_gap(best, r["runs"].get(label))}' for label in RUNS[:3])
         out.append(f'- {r["scenario"]}: best found {served_text(best)}, {when}. Searched {window}, '
                    f'{len(s["groupings"])} groupings, {s["candidates"]} distinct candidates, {s["runs"]} ANDES runs '
-                   f'({s["pruned"]} pruned, {len(s["failed"])} failed), every run to {s["end_s"]:.3f} s, '
+                   f'({s["pruned"]} pruned, {len(s["failed"])} failed'
+                   f'{", repeated at a smaller step" if s.get("remedies") else ", not repeated"}), '
+                   f'every run to {s["end_s"]:.3f} s, '
                    f'{s["wall_s"] / 60:.1f} min wall. Gap to it: {gaps}.')
     return out
 

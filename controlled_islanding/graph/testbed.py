@@ -49,6 +49,7 @@ class TestbedSettings:
         no_baselines: Skip the no-action and MILP runs.
         oracle: Also search offline for the best found (evaluation/oracle.py; long: minutes to hours).
         oracle_step_s: The oracle's largest spacing of request times, s.
+        oracle_remedies: Repeat a failed oracle run at a smaller step (OracleSettings.remedies).
         quiet: Progress at debug level, not info.
 
     """
@@ -66,6 +67,7 @@ class TestbedSettings:
     no_baselines: bool = False
     oracle: bool = False
     oracle_step_s: float = 0.05
+    oracle_remedies: bool = False
     quiet: bool = False
 
 
@@ -303,7 +305,8 @@ def _oracle(scenario: Any, config: Any, args: TestbedSettings, decision: dict | 
     graph = ({b: isl['island'] for isl in decision['islands'] for b in isl['buses']}
              if decision and decision['split'] else None)
     try:
-        found = search(scenario, config, OracleSettings(max_step_s=args.oracle_step_s), graph_islands=graph,
+        found = search(scenario, config, OracleSettings(max_step_s=args.oracle_step_s, remedies=args.oracle_remedies),
+                       graph_islands=graph,
                        no_action=no_action, runs=runs, say=lambda text: _say(args.quiet, text))
     except OracleError as exc:  # the closed loop's result stands; the page says why there is no best found
         log.warning('%s: no oracle: %s', scenario.name, exc)
