@@ -137,6 +137,7 @@ def test_the_progress_bar_is_drawn_on_a_terminal_that_says_it_is_zero_by_zero(mo
     """A CI runner's pseudo-terminal (or `script`) often reports 0 columns and 0 rows; tqdm then drew nothing."""
     import logging
     import os
+    import select
 
     from controlled_islanding.commands import progress_bar
 
@@ -148,9 +149,8 @@ def test_the_progress_bar_is_drawn_on_a_terminal_that_says_it_is_zero_by_zero(mo
             bar.update()
             bar.refresh()
             terminal.flush()
-            os.set_blocking(screen.fileno(), False)
-            try:
-                drawn = os.read(screen.fileno(), 65536).decode(errors='replace')
-            except BlockingIOError:  # nothing drawn
-                drawn = ''
+            # The kernel hands written bytes to the leader side a moment later: a read at once raced it under load.
+            drawn = ''
+            while '1/3' not in drawn and select.select([screen], [], [], 5.0)[0]:
+                drawn += os.read(screen.fileno(), 65536).decode(errors='replace')
     assert '1/3' in drawn and 'bag' in drawn, repr(drawn)
