@@ -1,0 +1,181 @@
+"""The chaos sweep's report (harness/chaos_sweep.py): its tables as text and as a generated section of a page.
+
+The section replaces whatever stands between BEGIN and END in the page (docs/nodes.md), or is added at its end.
+"""
+
+from __future__ import annotations
+
+import statistics
+from collections import Counter
+from datetime import UTC, datetime
+from pathlib import Path
+
+from controlled_islanding import atomic
+
+BEGIN = '<!-- chaos sweep: generated, do not edit by hand -->'
+END = '<!-- end of the chaos sweep -->'
+KIND_NAMES = {'kill': 'kill -9', 'stop': 'SIGSTOP, SIGCONT', 'partition': 'WAN partition', 'clock_step': 'clock step'}
+VERDICTS = ('commanded', 'no split', 'refused', 'unheard', 'none', 'error')
+
+
+def verdict(result: dict) -> str:
+    """Return how a run ended: one of VERDICTS ('error': the run itself could not be carried out)."""
+    return 'error' if 'error' in result else result['answer']['kind']
+
+
+def reason_class(result: dict) -> str:
+    """Return a refusal's reason without its detail, e.g. 'breaker_command stale' or 'partitioning REFUSED_...'."""
+    return result['answer']['reason'].split(':', 1)[0]
+
+
+def _cut(result: dict) -> tuple[str, ...]:
+    return tuple(sorted(result.get('opened') or ()))
+
+
+def _pct(x: float | None) -> str:
+    return '-' if x is None else f'{x:.1f} %'
+
+
+def _served(r: dict) -> str:
+    if 'error' in r:
+        return '-'
+    if r.get('simulation_failed'):
+        return 'simulation failed'
+    return _pct(r['load_served_pct'])
+
+
+def summary_rows(results: list[dict]) -> list[list[str]]:
+    """Return one row per system and fault kind, and one per system in all."""
+    base = {r['scenario']: r for r in results if r['seed'] is None and 'error' not in r}
+    runs = [r for r in results if r['seed'] is not None]
+    rows = []
+    for scenario in sorted({r['scenario'] for r in runs}):
+        mine = [r for r in runs if r['scenario'] == scenario]
+        groups = [(KIND_NAMES[k], [r for r in mine if r['chaos']['fault']['kind'] == k]) for k in KIND_NAMES]
+        for label, group in [*groups, ('all', mine)]:
+            if not group:
+                continue
+            counts = Counter(verdict(r) for r in group)
+            asked = [r for r in group if 'error' not in r and r['chaos']['recovered'] is not None]
+            unfaulted = base.get(scenario)
+            same = [r for r in group if 'error' not in r and unfaulted and _cut(r) == _cut(unfaulted)]
+            served = [r['load_served_pct'] for r in group if 'error' not in r and not r.get('simulation_failed')]
+            rows.append([scenario if label == 'all' else '', label, str(len(group)),
+                         f'{sum(r["chaos"]["recovered"] for r in asked)}/{len(asked)}' if asked else '-',
+                         *(str(counts.get(v, 0)) for v in VERDICTS),
+                         str(sum(len(r.get('unsafe', ())) for r in group)),
+                         f'{len(same)}/{len(group)}',
+                         (f'{statistics.median(served):.1f} % ({min(served):.1f}-{max(served):.1f})' if served
+                          else '-') + f' / {_served(unfaulted) if unfaulted else "-"}'])
+    return rows
+
+
+SUMMARY_HEADER = ('system', 'fault', 'runs', 'recovered', 'commanded', 'no split', 'refused', 'unheard', 'no decision',
+                  'run failed', 'unsafe commands', 'same cut as unfaulted', 'load served: median (range) / unfaulted')
+RUN_HEADER = ('system', 'seed', 'fault', 'fired (s after request)', 'recovered after (s)', 'answer', 'opened',
+              'load served (unfaulted)', 'unsafe', 'wall (s)')
+
+
+def run_rows(results: list[dict]) -> list[list[str]]:
+    """Return one row per faulted run."""
+    base = {r['scenario']: r for r in results if r['seed'] is None and 'error' not in r}
+    rows = []
+    for r in sorted((r for r in results if r['seed'] is not None), key=lambda r: (r['scenario'], r['seed'])):
+        chaos = r['chaos'] or {}
+        if 'error' in r:
+            answer = f'run failed: {r["error"].splitlines()[0][:120]}'
+        else:
+            a = r['answer']
+            answer = a['kind'] if a['kind'] in ('commanded', 'no split') else f'{a["kind"]}: {a["reason"][:120]}'
+            if len(a['answers']) > 1:
+                answer += f' ({len(a["answers"])} decisions for the request)'
+        fired = chaos.get('fired_after_request_s')
+        rec = chaos.get('recovered')
+        unfaulted = base.get(r['scenario'])
+        rows.append([r['scenario'], str(r['seed']), chaos.get('describe', '-'),
+                     '-' if fired is None else f'{fired:+.3f}',
+                     '-' if rec is None else (f'{chaos["recovered_after_s"]:.1f}' if rec else 'NO'),
+                     answer.replace('|', '/'), ', '.join(_cut(r)) or 'none',
+                     f'{_served(r)} ({_served(unfaulted) if unfaulted else "-"})',
+                     str(len(r.get('unsafe', ()))), f'{r.get("wall_s", 0):.0f}'])
+    return rows
+
+
+def _table(header: tuple[str, ...], rows: list[list[str]]) -> list[str]:
+    return ['| ' + ' | '.join(header) + ' |', '|' + '---|' * len(header)] + ['| ' + ' | '.join(r) + ' |' for r in rows]
+
+
+def figures(results: list[dict]) -> dict:
+    """Return the sweep's headline figures: runs, unsafe commands, runs ending reasoned, wall time, load average."""
+    runs = [r for r in results if r['seed'] is not None]
+    ok = [r for r in runs if 'error' not in r and r['answer']['kind'] in ('commanded', 'no split', 'refused')]
+    loads = [x for r in results for x in r.get('load_average', ())]
+    return {'runs': len(runs), 'seeds': sorted({r['seed'] for r in runs}),
+            'systems': sorted({r['scenario'] for r in runs}),
+            'unsafe': sum(len(r.get('unsafe', ())) for r in results), 'reasoned': len(ok),
+            'wall_s': sum(r.get('wall_s', 0.0) for r in results),
+            'load_average': (min(loads), statistics.median(loads), max(loads)) if loads else None}
+
+
+def render(results: list[dict]) -> str:
+    """Return the report as text: the headline, the summary table, the refusal reasons, every run."""
+    f = figures(results)
+    lines = [headline(f), '', *_table(SUMMARY_HEADER, summary_rows(results)), '', *reasons(results), '',
+             *_table(RUN_HEADER, run_rows(results))]
+    return '\n'.join(lines)
+
+
+def _hours(seconds: float) -> str:
+    return f'{seconds / 60:.0f} min' if seconds < 7200 else f'{seconds / 3600:.1f} h'
+
+
+def headline(f: dict) -> str:
+    """Return the sweep's figures in two sentences."""
+    load = f['load_average']
+    seeds = f'seeds {f["seeds"][0]}-{f["seeds"][-1]}' if f['seeds'] else 'no seeds'
+    return (f'{f["runs"]} seeded runs ({seeds}) on {len(f["systems"])} systems, one fault each: '
+            f'{f["unsafe"]} unsafe commands; {f["reasoned"]} of {f["runs"]} ended with a decision or a reasoned '
+            f'refusal. Wall time {_hours(f["wall_s"])} in all (the unfaulted runs included)'
+            + (f', 1-minute load average {load[0]:.1f} to {load[2]:.1f} (median {load[1]:.1f}) when the runs began '
+               'and ended.' if load else '.'))
+
+
+def reasons(results: list[dict]) -> list[str]:
+    """Return the refusal reasons and how many runs ended with each, and the runs that ended otherwise."""
+    runs = [r for r in results if r['seed'] is not None]
+    counts = Counter(reason_class(r) for r in runs if verdict(r) == 'refused')
+    out = ['Refusals by reason:' if counts else 'No refusals.']
+    out += [f'- {reason}: {n}' for reason, n in counts.most_common()]
+    odd = [r for r in runs if verdict(r) in ('unheard', 'none', 'error')]
+    if odd:
+        out += ['', 'Runs that ended without a decision or a reasoned refusal:']
+        out += [f'- {r["scenario"]} seed {r["seed"]} ({(r["chaos"] or {}).get("describe", "-")}): '
+                f'{r.get("error") or r["answer"]["reason"]}' for r in odd]
+    unsafe = [(r, u) for r in results for u in r.get('unsafe', ())]
+    if unsafe:
+        out += ['', 'Unsafe commands:'] + [f'- {r["scenario"]} seed {r["seed"]}: {u}' for r, u in unsafe]
+    return out
+
+
+def section(results: list[dict], cmd: str, settings_text: str) -> str:
+    """Return the generated Markdown section, from BEGIN to END."""
+    f = figures(results)
+    return '\n'.join([
+        BEGIN,
+        f'Generated by `{cmd}` on {datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")} (code: '
+        '`controlled_islanding/harness/chaos_sweep.py`, `controlled_islanding/evaluation/chaos_report.py`).', '',
+        f'**{headline(f)}** {settings_text}', '',
+        *_table(SUMMARY_HEADER, summary_rows(results)), '', *reasons(results), '',
+        '<details><summary>Every run</summary>', '', *_table(RUN_HEADER, run_rows(results)), '', '</details>',
+        END])
+
+
+def write_section(page: Path, text: str) -> None:
+    """Put the section into the page, in place of the one there, else at its end."""
+    old = page.read_text() if page.exists() else ''
+    if BEGIN in old and END in old:
+        head, rest = old.split(BEGIN, 1)
+        new = head + text + rest.split(END, 1)[1]
+    else:
+        new = old.rstrip('\n') + '\n\n' + text + '\n'
+    atomic.write_text(page, new)

@@ -1,0 +1,263 @@
+"""Faults in the loop: closed-loop testbed runs, each with one seeded fault (graph/chaos.py), judged for safety.
+
+Each run reports whether the supervisor recovered, what answered the request (the decision, or the refusal and
+its reason: partitioning's REFUSED_* status, or breaker_command's audited refusal), every unsafe command, and the
+load served against the same scenario's unfaulted closed-loop run (same settings, run once and kept).
+
+An unsafe command breaks a breaker rule of docs/nodes.md, judged from outside the node: the audit log replayed in
+order against rules 3, 4, 7, 9, 10 and 11 (harness/breaker_soak.check_audit: a command for a decision that was not
+a signed split seen on /islanding/decision, a cut other than the boundary of the decision's islands in the network
+at the request, a decision or a breaker commanded twice, a command while disarmed, more than max_breakers, a
+published command missing from the audit log), and rule 6 on the grid's own clock: a command that reached grid_sim
+more than max_decision_age_s + STALE_SLACK_S of sim time after its request.
+
+A sweep runs seeds x scenarios into one folder, one sub-folder per run; a run already finished there is skipped,
+so the same command resumes an interrupted sweep or extends it with more seeds.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import sys
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from controlled_islanding import atomic
+from controlled_islanding.graph import GraphError
+from controlled_islanding.graph.chaos import FaultInjector, plan_fault
+from controlled_islanding.graph.results import running
+from controlled_islanding.graph.testbed import (
+    TestbedSettings,
+    check_scenario,
+    host_roles,
+    on_hosts_main,
+    run_closed_loop,
+    run_on_hosts,
+)
+from controlled_islanding.harness.breaker_soak import check_audit
+from controlled_islanding.locations import config_dir
+
+log = logging.getLogger(__name__)
+
+RESULT = 'chaos.json'
+UNFAULTED = 'unfaulted'
+# A command's transit from breaker_command to grid_sim, in sim time: in lockstep none passes; paced, a few ms times
+# the rate.
+STALE_SLACK_S = 0.5
+CHAOS_TRIGGER = "a fault is timed from the scenario's request: chaos needs --trigger scenario"
+
+
+def _breaker_params() -> dict:
+    return yaml.safe_load((config_dir() / 'breaker_command.yaml').read_text())['/**/breaker_command'][
+        'ros__parameters']
+
+
+def run_dir(base: Path, scenario: str, seed: int | None) -> Path:
+    """Return the folder of one run of a sweep (seed None: the scenario's unfaulted run)."""
+    return base / scenario / (UNFAULTED if seed is None else f'seed-{seed}')
+
+
+def chaos_run(path: Path, seed: int | None, out: Path, settings: TestbedSettings) -> dict:
+    """Run one scenario closed-loop with the fault of `seed` (None: no fault) into `out` (made); return its result.
+
+    With settings.hosts the graph runs on emulated hosts, from a process on the operator's host.
+
+    Raises:
+        GraphError: The scenario or the hosts are not valid, or the run could not be carried out.
+
+    """
+    scenario = check_scenario(path)
+    started, load = time.monotonic(), os.getloadavg()[0]
+    if settings.hosts:
+        hosts = host_roles(settings.hosts)
+        result = run_on_hosts(hosts, settings.link, out / 'wan', __name__, {
+            'path': str(path), 'seed': seed, 'out': str(out), 'settings': asdict(settings)})
+    else:
+        result = _run(path, seed, out, settings, scenario)
+    result['wall_s'] = round(time.monotonic() - started, 1)
+    result['load_average'] = [round(load, 2), round(os.getloadavg()[0], 2)]
+    return result
+
+
+def _on_host(spec: dict) -> dict:
+    from controlled_islanding.graph import wan
+
+    settings = TestbedSettings(**dict(spec['settings'], link=wan.LinkModel(**spec['settings']['link'])))
+    path = Path(spec['path'])
+    return _run(path, spec['seed'], Path(spec['out']), settings, check_scenario(path), hosts=spec['hosts'],
+                netns=spec['netns'], control_file=Path(spec['wan_control']))
+
+
+def _run(path: Path, seed: int | None, out: Path, settings: TestbedSettings, scenario: Any,
+         hosts: dict | None = None, netns: dict | None = None, control_file: Path | None = None) -> dict:
+    from controlled_islanding.graph.replay import namespace_name
+    from controlled_islanding.sim.bag import START_TIME_UNIX_S
+
+    if settings.trigger != 'scenario':
+        raise GraphError(CHAOS_TRIGGER)
+    fault = None if seed is None else plan_fault(seed, hosts)
+    injector = None if fault is None else FaultInjector(fault, scenario.request_s, START_TIME_UNIX_S, hosts,
+                                                        control_file)
+    params = {'breaker_operating_s': settings.breaker_operating_s, 'shed_delay_s': settings.shed_delay_s,
+              'run_after_s': settings.run_after_s, 'trigger': 'scenario'}
+    obs, report = run_closed_loop(path, out, rate=settings.rate, params=params, timeout_s=settings.timeout_s,
+                                  quiet=settings.quiet, namespace=namespace_name(settings.namespace),
+                                  estimator=settings.estimator, hosts=hosts, netns=netns, injector=injector)
+    result = {'scenario': scenario.name, 'path': str(path), 'seed': seed,
+              'chaos': injector.record() if injector else None}
+    result.update(judge(scenario, obs, report, out / 'breaker_audit.jsonl'))
+    return result
+
+
+def _decision_view(msg: Any, key: Any) -> dict:
+    from controlled_islanding.graph.summary import status_name
+    from controlled_islanding.safety import signing
+
+    try:
+        signing.verify(key, signing.decision_payload(msg), msg.signature)
+        signed = True
+    except signing.SigningError:
+        signed = False
+    return {'decision_id': msg.decision_id, 'request_id': msg.request_id, 'status': status_name(msg.status),
+            'split': bool(msg.split), 'detail': msg.status_detail, 'cut_branch_ids': list(msg.cut_branch_ids),
+            'signed': signed, 'request_stamp_s': msg.request_stamp.sec + msg.request_stamp.nanosec * 1e-9,
+            'bus_island': dict(zip((int(b) for b in msg.bus_numbers), (int(k) for k in msg.bus_island),
+                                   strict=True))}
+
+
+def judge(scenario: Any, obs: Any, report: dict, audit_path: Path) -> dict:
+    """Return what answered the request, every unsafe command, the recovery and the load served of one run."""
+    from controlled_islanding.safety import signing
+    from controlled_islanding.sim.andes_sim import prepare_case
+    from controlled_islanding.sim.bag import START_TIME_UNIX_S
+
+    key = signing.load_public_key(signing.key_paths(signing.default_key_dir(), 'partitioning').public)
+    decisions = [_decision_view(msg, key) for _, msg in obs.decision_log]
+    case = prepare_case(scenario)
+    tripped = [bid for t, bid, up in case.scheduled_changes(scenario) if not up and t <= scenario.request_s]
+    grid = case.grid.with_outages(tripped)
+    valid = {}
+    for d in decisions:
+        if d['signed'] and d['status'] == 'SPLIT' and set(d['bus_island']) == set(grid.buses):
+            isl = d['bus_island']
+            valid[d['decision_id']] = {b.breaker for b in grid.branches
+                                       if b.in_service and isl[b.from_bus] != isl[b.to_bus]}
+    records = [json.loads(line) for line in audit_path.read_text().splitlines()] if audit_path.exists() else []
+    params = _breaker_params()
+    unsafe, _ = check_audit(records, valid, [c.command_id for _, c in obs.commands], int(params['max_breakers']))
+    by_id = {d['decision_id']: d for d in decisions}
+    limit_s = float(params['max_decision_age_s']) + STALE_SLACK_S
+    for e in report['events']:
+        d = by_id.get(e.get('decision_id')) if e['what'] == 'command' else None
+        if d is not None and e['received_sim_s'] - (d['request_stamp_s'] - START_TIME_UNIX_S) > limit_s:
+            unsafe.append(f'command {e["command_id"]} reached the grid {e["received_sim_s"]:.3f} s (sim), more '
+                          f'than {limit_s:g} s after its request')
+    unsafe += [f'command {c.command_id} of decision {c.decision_id} never seen on /islanding/decision'
+               for _, c in obs.commands if c.decision_id not in by_id]
+    answer = answer_to(report['request_id'], decisions, records)
+    loop = report['outcome']
+    return {'answer': answer, 'decisions': [{k: v for k, v in d.items() if k != 'bus_island'} for d in decisions],
+            'unsafe': unsafe, 'restarts': [asdict(r) for r in obs.restarts], 'hangs': [asdict(h) for h in obs.hangs],
+            'raised': obs.raised, 'opened': [e['branch_id'] for e in report['events'] if e['what'] == 'opened'],
+            'load_served_mw': loop['load_served_mw'], 'load_served_pct': loop['load_served_pct'],
+            'all_survived': loop['all_survived'], 'simulation_failed': loop['simulation_failed'],
+            'request_to_opening_s': loop['request_to_opening_s'], 'closed_loop': loop,
+            'breaker_audit': [r for r in records if r['event'] not in ('armed', 'disarmed')]}
+
+
+def answer_to(request_id: str, decisions: list[dict], records: list[dict]) -> dict:
+    """Return what answered one request: each decision for it and what breaker_command did with it, then a verdict.
+
+    The verdict ('kind') is 'commanded' (a split's breakers commanded), 'no split', 'refused' (by partitioning,
+    its status and detail, or by breaker_command, its audited reason), 'unheard' (a split decision that
+    breaker_command never audited), or 'none' (no decision at all). A later answer to the same request (from a
+    restarted partitioning) is listed too; the verdict is the first commanded one, else the last.
+    """
+    answers = []
+    for d in (d for d in decisions if d['request_id'] == request_id):
+        mine = [r for r in records if r.get('decision_id') == d['decision_id']]
+        command = next((r for r in mine if r['event'] == 'command'), None)
+        refusal = next((r for r in mine if r['event'] == 'refusal'), None)
+        if command is not None:
+            kind, reason = 'commanded', f'{len(command["commands"])} breakers'
+        elif d['status'] == 'NO_SPLIT':
+            kind, reason = 'no split', 'NO_SPLIT'
+        elif d['status'].startswith('REFUSED'):
+            kind, reason = 'refused', f'partitioning {d["status"]}: {d["detail"]}'
+        elif refusal is not None:
+            kind, reason = 'refused', f'breaker_command {refusal["reason"]}: {refusal.get("detail", "")}'
+        else:
+            kind, reason = 'unheard', 'breaker_command never audited it'
+        answers.append({'decision_id': d['decision_id'], 'status': d['status'], 'kind': kind, 'reason': reason})
+    if not answers:
+        return {'kind': 'none', 'reason': f'no decision for {request_id}', 'answers': []}
+    final = next((a for a in answers if a['kind'] == 'commanded'), answers[-1])
+    return {'kind': final['kind'], 'reason': final['reason'], 'answers': answers}
+
+
+def reasoned(result: dict) -> bool:
+    """Return whether a run ended with a decision or a reasoned refusal (the acceptance of issue 29)."""
+    return 'error' not in result and result['answer']['kind'] in ('commanded', 'no split', 'refused')
+
+
+def sweep(paths: list[Path], seeds: list[int], base: Path, settings: TestbedSettings,
+          done: Any = lambda result, i, n: None) -> list[dict]:
+    """Run every seed on every scenario into `base` (resuming it), after each scenario's unfaulted run.
+
+    Runs go seed by seed (every scenario for one seed, then the next), so a sweep cut short covers the systems
+    alike. `done(result, i, n)` is called after each run (i of n, the unfaulted ones included). A run that fails
+    (GraphError) is a result with its 'error', not the end of the sweep; Ctrl-C or SIGTERM marks the run's folder
+    INTERRUPTED and is raised on.
+
+    Returns:
+        Every result of the sweep, finished earlier or now, unfaulted runs first.
+
+    """
+    if settings.trigger != 'scenario':
+        raise GraphError(CHAOS_TRIGGER)
+    names = [check_scenario(p).name for p in paths]
+    base.mkdir(parents=True, exist_ok=True)
+    plan = [(p, n, None) for p, n in zip(paths, names, strict=True)]
+    plan += [(p, n, s) for s in seeds for p, n in zip(paths, names, strict=True)]
+    results = []
+    for i, (path, name, seed) in enumerate(plan):
+        out = run_dir(base, name, seed)
+        if (out / RESULT).exists():
+            results.append(json.loads((out / RESULT).read_text()))
+            continue
+        if out.exists():
+            shutil.rmtree(out)  # a run interrupted or killed before its result: run again
+        with running(out, scenario=name, seed=seed) as out:
+            try:
+                result = chaos_run(path, seed, out, replace(settings, quiet=True))
+            except GraphError as exc:
+                fault = None if seed is None else plan_fault(seed, _roles(settings))
+                result = {'scenario': name, 'path': str(path), 'seed': seed, 'error': str(exc),
+                          'chaos': fault and {'fault': asdict(fault), 'describe': fault.describe()}}
+            atomic.write_text(out / RESULT, json.dumps(result, indent=1, default=str))
+        results.append(result)
+        done(result, i + 1, len(plan))
+    return results
+
+
+def _roles(settings: TestbedSettings) -> dict | None:
+    from controlled_islanding.graph import wan
+
+    return wan.parse_hosts(settings.hosts) if settings.hosts else None
+
+
+def collect(base: Path) -> list[dict]:
+    """Return every finished run of a sweep folder (for --render), unfaulted runs first."""
+    found = [json.loads(p.read_text()) for p in sorted(base.glob(f'*/*/{RESULT}'))]
+    return sorted(found, key=lambda r: (r['seed'] is not None, r['seed'] or 0, r['scenario']))
+
+
+if __name__ == '__main__':
+    sys.exit(on_hosts_main(sys.argv[1], _on_host))
