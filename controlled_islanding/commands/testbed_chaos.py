@@ -58,9 +58,11 @@ def run(args: argparse.Namespace, paths: list[Path], settings: object) -> int:
     else:
         base = args.results or Path('results') / f'chaos-{datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")}'
         seeds = list(range(args.chaos, args.chaos + args.chaos_runs))
-        with progress_bar(len(paths) * (len(seeds) + 1), 'chaos', 'run') as bar:
+        with progress_bar(len(paths) * (len(seeds) + 1), 'chaos', 'run') as bar, \
+                chaos_sweep.logged(base, _command()) as ran:
             def done(result: dict, i: int, n: int) -> None:
                 bar.update()
+                ran.append(result)
                 log.info('run %d/%d: %s', i, n, _line(result))
 
             try:
@@ -69,13 +71,17 @@ def run(args: argparse.Namespace, paths: list[Path], settings: object) -> int:
                 raise CliError(str(exc)) from exc
     if args.markdown:
         chaos_report.write_section(args.markdown, chaos_report.section(
-            results, 'controlled-islanding testbed ' + ' '.join(sys.argv[2:]), _settings_text(args)))
+            results, _command(), _settings_text(args), chaos_sweep.invocations(base)))
         log.info('report: %s', args.markdown)
     print(json.dumps(results, default=str) if args.json else chaos_report.render(results))
     if not args.json:
         print(f'results: {base}')
     f = chaos_report.figures(results)
     return 0 if f['unsafe'] == 0 and f['reasoned'] == f['runs'] else 1
+
+
+def _command() -> str:
+    return 'controlled-islanding testbed ' + ' '.join(sys.argv[2:])
 
 
 def _line(r: dict) -> str:

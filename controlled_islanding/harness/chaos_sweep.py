@@ -17,13 +17,16 @@ so the same command resumes an interrupted sweep or extends it with more seeds.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import shutil
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, replace
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +50,7 @@ from controlled_islanding.locations import config_dir
 log = logging.getLogger(__name__)
 
 RESULT = 'chaos.json'
+INVOCATIONS = 'invocations.jsonl'
 UNFAULTED = 'unfaulted'
 # A command's transit from breaker_command to grid_sim, in sim time: in lockstep none passes; paced, a few ms times
 # the rate.
@@ -245,6 +249,32 @@ def sweep(paths: list[Path], seeds: list[int], base: Path, settings: TestbedSett
         results.append(result)
         done(result, i + 1, len(plan))
     return results
+
+
+@contextlib.contextmanager
+def logged(base: Path, command: str) -> Iterator[list[dict]]:
+    """Record one invocation of a sweep in base/INVOCATIONS: its command, when, the load, the runs it did.
+
+    Yields the list the caller appends each run's result to.
+    """
+    base.mkdir(parents=True, exist_ok=True)
+    ran: list[dict] = []
+    begun, load = datetime.now(UTC), os.getloadavg()[0]
+    try:
+        yield ran
+    finally:
+        record = {'command': command, 'begun_utc': begun.isoformat(timespec='seconds'),
+                  'ended_utc': datetime.now(UTC).isoformat(timespec='seconds'),
+                  'wall_s': round((datetime.now(UTC) - begun).total_seconds()), 'runs': len(ran),
+                  'load_average': [round(load, 2), round(os.getloadavg()[0], 2)]}
+        with open(base / INVOCATIONS, 'a') as out:
+            out.write(json.dumps(record) + '\n')
+
+
+def invocations(base: Path) -> list[dict]:
+    """Return every invocation recorded in a sweep folder (`logged`)."""
+    path = base / INVOCATIONS
+    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
 
 
 def _roles(settings: TestbedSettings) -> dict | None:
