@@ -34,7 +34,7 @@ import yaml
 
 from controlled_islanding import atomic
 from controlled_islanding.graph import GraphError
-from controlled_islanding.graph.chaos import FaultInjector, plan_fault
+from controlled_islanding.graph.chaos import Fault, FaultInjector, plan_fault
 from controlled_islanding.graph.results import running
 from controlled_islanding.graph.testbed import (
     TestbedSettings,
@@ -68,10 +68,11 @@ def run_dir(base: Path, scenario: str, seed: int | None) -> Path:
     return base / scenario / (UNFAULTED if seed is None else f'seed-{seed}')
 
 
-def chaos_run(path: Path, seed: int | None, out: Path, settings: TestbedSettings) -> dict:
+def chaos_run(path: Path, seed: int | None, out: Path, settings: TestbedSettings, fault: Fault | None = None) -> dict:
     """Run one scenario closed-loop with the fault of `seed` (None: no fault) into `out` (made); return its result.
 
-    With settings.hosts the graph runs on emulated hosts, from a process on the operator's host.
+    `fault` is run instead of the seed's, if given. With settings.hosts the graph runs on emulated hosts, from a
+    process on the operator's host.
 
     Raises:
         GraphError: The scenario or the hosts are not valid, or the run could not be carried out.
@@ -82,9 +83,10 @@ def chaos_run(path: Path, seed: int | None, out: Path, settings: TestbedSettings
     if settings.hosts:
         hosts = host_roles(settings.hosts)
         result = run_on_hosts(hosts, settings.link, out / 'wan', __name__, {
-            'path': str(path), 'seed': seed, 'out': str(out), 'settings': asdict(settings)})
+            'path': str(path), 'seed': seed, 'out': str(out), 'settings': asdict(settings),
+            'fault': fault and asdict(fault)})
     else:
-        result = _run(path, seed, out, settings, scenario)
+        result = _run(path, seed, out, settings, scenario, fault=fault)
     result['wall_s'] = round(time.monotonic() - started, 1)
     result['load_average'] = [round(load, 2), round(os.getloadavg()[0], 2)]
     return result
@@ -96,17 +98,20 @@ def _on_host(spec: dict) -> dict:
     settings = TestbedSettings(**dict(spec['settings'], link=wan.LinkModel(**spec['settings']['link'])))
     path = Path(spec['path'])
     return _run(path, spec['seed'], Path(spec['out']), settings, check_scenario(path), hosts=spec['hosts'],
-                netns=spec['netns'], control_file=Path(spec['wan_control']))
+                netns=spec['netns'], control_file=Path(spec['wan_control']),
+                fault=spec['fault'] and Fault(**spec['fault']))
 
 
 def _run(path: Path, seed: int | None, out: Path, settings: TestbedSettings, scenario: Any,
-         hosts: dict | None = None, netns: dict | None = None, control_file: Path | None = None) -> dict:
+         hosts: dict | None = None, netns: dict | None = None, control_file: Path | None = None,
+         fault: Fault | None = None) -> dict:
     from controlled_islanding.graph.replay import namespace_name
     from controlled_islanding.sim.bag import START_TIME_UNIX_S
 
     if settings.trigger != 'scenario':
         raise GraphError(CHAOS_TRIGGER)
-    fault = None if seed is None else plan_fault(seed, hosts)
+    if fault is None and seed is not None:
+        fault = plan_fault(seed, hosts)
     injector = None if fault is None else FaultInjector(fault, scenario.request_s, START_TIME_UNIX_S, hosts,
                                                         control_file)
     params = {'breaker_operating_s': settings.breaker_operating_s, 'shed_delay_s': settings.shed_delay_s,
@@ -172,7 +177,7 @@ def judge(scenario: Any, obs: Any, report: dict, audit_path: Path) -> dict:
             'raised': obs.raised, 'opened': [e['branch_id'] for e in report['events'] if e['what'] == 'opened'],
             'load_served_mw': loop['load_served_mw'], 'load_served_pct': loop['load_served_pct'],
             'all_survived': loop['all_survived'], 'simulation_failed': loop['simulation_failed'],
-            'request_to_opening_s': loop['request_to_opening_s'], 'closed_loop': loop,
+            'request_to_opening_s': loop['request_to_opening_s'], 'closed_loop': loop, 'events': report['events'],
             'breaker_audit': [r for r in records if r['event'] not in ('armed', 'disarmed')]}
 
 
