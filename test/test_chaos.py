@@ -16,10 +16,11 @@ from types import SimpleNamespace
 
 import pytest
 
+from controlled_islanding.evaluation.chaos_report import reasoned, verdict
 from controlled_islanding.graph import wan
 from controlled_islanding.graph.chaos import KINDS, OFFSET_S, TARGETS, Fault, partition_hosts, plan_fault
 from controlled_islanding.graph.testbed import TestbedSettings
-from controlled_islanding.harness.chaos_sweep import answer_to, chaos_run, judge, reasoned
+from controlled_islanding.harness.chaos_sweep import answer_to, chaos_run, judge
 from controlled_islanding.sim.bag import START_TIME_UNIX_S
 
 REPO = Path(__file__).resolve().parents[1]
@@ -131,8 +132,20 @@ def test_an_answer_is_a_decision_a_reasoned_refusal_or_said_to_be_neither():
     two = answer_to('r', decisions, refused)
     assert (two['kind'], two['reason']) == ('refused', 'breaker_command not_armed: node is disarmed')
     assert len(two['answers']) == 2  # a restarted partitioning's second answer to the request is listed
-    assert answer_to('r', decisions[1:2], [])['kind'] == 'unheard'
+    unheard = answer_to('r', decisions[1:2], [])
+    assert unheard['kind'] == 'unheard'
+    # Unheard with no reason the run can name is neither a decision carried out nor a reasoned refusal; a breaker
+    # node restarted meanwhile, or a partition it reported, is the reason.
+    run = {'answer': unheard, 'restarts': [], 'raised': {}, 'chaos': None}
+    assert (verdict(run), reasoned(run)) == ('unheard', False)
+    restarted = dict(run, restarts=[{'name': 'breaker_command', 'cause': 'hung'}])
+    assert (verdict(restarted), reasoned(restarted)) == ('not delivered', True)
+    assert verdict(dict(run, restarts=[{'name': 'coherency', 'cause': 'exited'}])) == 'unheard'
+    cut = dict(run, chaos={'fault': {'kind': 'partition'}},
+               raised={'/breaker_command warn.control_centre_silent': 'no live decision writer'})
+    assert verdict(cut) == 'not delivered' and verdict(dict(cut, raised={})) == 'unheard'
     assert answer_to('r', [], [])['kind'] == 'none'
+    assert not reasoned({'answer': answer_to('r', [], []), 'restarts': [], 'raised': {}, 'chaos': None})
     commanded = answer_to('r', decisions, [{'event': 'command', 'decision_id': 'd2', 'commands': [{}, {}]}])
     assert (commanded['kind'], commanded['reason']) == ('commanded', '2 breakers')
 

@@ -85,13 +85,13 @@ def _command() -> str:
 
 
 def _line(r: dict) -> str:
-    from controlled_islanding.evaluation.chaos_report import verdict
+    from controlled_islanding.evaluation.chaos_report import reason, verdict
 
     what = 'unfaulted' if r['seed'] is None else f'seed {r["seed"]} ({(r["chaos"] or {}).get("describe")})'
     if 'error' in r:
         return f'{r["scenario"]} {what}: run failed: {r["error"].splitlines()[0]}'
     rec = (r['chaos'] or {}).get('recovered')
-    return (f'{r["scenario"]} {what}: {verdict(r)} ({r["answer"]["reason"][:100]}); '
+    return (f'{r["scenario"]} {what}: {verdict(r)} ({reason(r)[:100]}); '
             f'{"" if rec is None else "recovered; " if rec else "NOT recovered; "}'
             f'{len(r["unsafe"])} unsafe; load served {r["load_served_pct"]:.1f} %; {r["wall_s"]:.0f} s')
 

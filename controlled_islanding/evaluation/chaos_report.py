@@ -15,17 +15,54 @@ from controlled_islanding import atomic
 BEGIN = '<!-- chaos sweep: generated, do not edit by hand -->'
 END = '<!-- end of the chaos sweep -->'
 KIND_NAMES = {'kill': 'kill -9', 'stop': 'SIGSTOP, SIGCONT', 'partition': 'WAN partition', 'clock_step': 'clock step'}
-VERDICTS = ('commanded', 'no split', 'refused', 'unheard', 'none', 'error')
+VERDICTS = ('commanded', 'no split', 'refused', 'not delivered', 'unheard', 'none', 'error')
+REASONED = ('commanded', 'no split', 'refused', 'not delivered')
+
+
+def undelivered_reason(result: dict) -> str | None:
+    """Return why a split decision never reached breaker_command's audit, when the run's facts say it, else None.
+
+    A breaker node the supervisor restarted (killed, or found hung while stopped) never executes a decision made
+    before it started (the decision topic is volatile by design, and it starts disarmed); a WAN cut between control
+    and substation that breaker_command reported as `control_centre_silent` kept the decision from it.
+    """
+    restarts = [r for r in result.get('restarts', ()) if r['name'] == 'breaker_command']
+    if restarts:
+        return (f'breaker_command was restarted ({restarts[0]["cause"]}) while the decision was out: a breaker node '
+                'never executes a decision made before it started')
+    fault = (result.get('chaos') or {}).get('fault') or {}
+    if fault.get('kind') == 'partition' and '/breaker_command warn.control_centre_silent' in result.get('raised', {}):
+        return 'the WAN between control and substation was cut: breaker_command reported control_centre_silent'
+    return None
 
 
 def verdict(result: dict) -> str:
-    """Return how a run ended: one of VERDICTS ('error': the run itself could not be carried out)."""
-    return 'error' if 'error' in result else result['answer']['kind']
+    """Return how a run ended: one of VERDICTS ('error': the run itself could not be carried out).
+
+    'not delivered' is a split decision breaker_command never audited for a reason the run's facts name
+    (undelivered_reason); 'unheard' is one with no such reason.
+    """
+    if 'error' in result:
+        return 'error'
+    kind = result['answer']['kind']
+    return 'not delivered' if kind == 'unheard' and undelivered_reason(result) else kind
+
+
+def reason(result: dict) -> str:
+    """Return the reason of how a run ended (the error, the refusal's, or why a decision was not delivered)."""
+    if 'error' in result:
+        return result['error'].splitlines()[0]
+    return undelivered_reason(result) if verdict(result) == 'not delivered' else result['answer']['reason']
+
+
+def reasoned(result: dict) -> bool:
+    """Return whether a run ended with a decision or a reasoned refusal (the acceptance of issue 29)."""
+    return verdict(result) in REASONED
 
 
 def reason_class(result: dict) -> str:
     """Return a refusal's reason without its detail, e.g. 'breaker_command stale' or 'partitioning REFUSED_...'."""
-    return result['answer']['reason'].split(':', 1)[0]
+    return reason(result).split(':', 1)[0]
 
 
 def _cut(result: dict) -> tuple[str, ...]:
@@ -71,8 +108,9 @@ def summary_rows(results: list[dict]) -> list[list[str]]:
     return rows
 
 
-SUMMARY_HEADER = ('system', 'fault', 'runs', 'recovered', 'commanded', 'no split', 'refused', 'unheard', 'no decision',
-                  'run failed', 'unsafe commands', 'same cut as unfaulted', 'load served: median (range) / unfaulted')
+SUMMARY_HEADER = ('system', 'fault', 'runs', 'recovered', 'commanded', 'no split', 'refused', 'not delivered',
+                  'unheard', 'no decision', 'run failed', 'unsafe commands', 'same cut as unfaulted',
+                  'load served: median (range) / unfaulted')
 RUN_HEADER = ('system', 'seed', 'fault', 'fired (s after request)', 'recovered after (s)', 'answer', 'opened',
               'load served (unfaulted)', 'unsafe', 'wall (s)')
 
@@ -83,11 +121,10 @@ def run_rows(results: list[dict]) -> list[list[str]]:
     rows = []
     for r in sorted((r for r in results if r['seed'] is not None), key=lambda r: (r['scenario'], r['seed'])):
         chaos = r['chaos'] or {}
-        if 'error' in r:
-            answer = f'run failed: {r["error"].splitlines()[0][:120]}'
-        else:
+        v = verdict(r)
+        answer = v if v in ('commanded', 'no split') else f'{v}: {reason(r)[:120]}'
+        if 'error' not in r:
             a = r['answer']
-            answer = a['kind'] if a['kind'] in ('commanded', 'no split') else f'{a["kind"]}: {a["reason"][:120]}'
             if len(a['answers']) > 1:
                 answer += f' ({len(a["answers"])} decisions for the request)'
         fired = chaos.get('fired_after_request_s')
@@ -109,11 +146,12 @@ def _table(header: tuple[str, ...], rows: list[list[str]]) -> list[str]:
 def figures(results: list[dict]) -> dict:
     """Return the sweep's headline figures: runs, unsafe commands, runs ending reasoned, wall time, load average."""
     runs = [r for r in results if r['seed'] is not None]
-    ok = [r for r in runs if 'error' not in r and r['answer']['kind'] in ('commanded', 'no split', 'refused')]
+    ok = [r for r in runs if reasoned(r)]
     loads = [x for r in results for x in r.get('load_average', ())]
     return {'runs': len(runs), 'seeds': sorted({r['seed'] for r in runs}),
             'systems': sorted({r['scenario'] for r in runs}),
             'unsafe': sum(len(r.get('unsafe', ())) for r in results), 'reasoned': len(ok),
+            'not_delivered': sum(verdict(r) == 'not delivered' for r in runs),
             'wall_s': sum(r.get('wall_s', 0.0) for r in results),
             'load_average': (min(loads), statistics.median(loads), max(loads)) if loads else None}
 
@@ -138,7 +176,9 @@ def headline(f: dict) -> str:
              else 'seeds ' + ', '.join(map(str, s)))
     return (f'{f["runs"]} seeded runs ({seeds}) on {len(f["systems"])} systems, one fault each: '
             f'{f["unsafe"]} unsafe commands; {f["reasoned"]} of {f["runs"]} ended with a decision or a reasoned '
-            f'refusal. Wall time {_hours(f["wall_s"])} in all (the unfaulted runs included)'
+            'refusal' + (f' ({f["not_delivered"]} of them a split decision that did not reach breaker_command, '
+                         'for the reason given)' if f['not_delivered'] else '')
+            + f'. Wall time {_hours(f["wall_s"])} in all (the unfaulted runs included)'
             + (f', 1-minute load average {load[0]:.1f} to {load[2]:.1f} (median {load[1]:.1f}) when the runs began '
                'and ended.' if load else '.'))
 
@@ -149,11 +189,12 @@ def reasons(results: list[dict]) -> list[str]:
     counts = Counter(reason_class(r) for r in runs if verdict(r) == 'refused')
     out = ['Refusals by reason:' if counts else 'No refusals.']
     out += [f'- {reason}: {n}' for reason, n in counts.most_common()]
-    odd = [r for r in runs if verdict(r) in ('unheard', 'none', 'error')]
-    if odd:
-        out += ['', 'Runs that ended without a decision or a reasoned refusal:']
-        out += [f'- {r["scenario"]} seed {r["seed"]} ({(r["chaos"] or {}).get("describe", "-")}): '
-                f'{r.get("error") or r["answer"]["reason"]}' for r in odd]
+    for title, kinds in (('Split decisions that did not reach breaker_command:', ('not delivered',)),
+                         ('Runs that ended without a decision or a reasoned refusal:', ('unheard', 'none', 'error'))):
+        odd = [r for r in runs if verdict(r) in kinds]
+        if odd:
+            out += ['', title] + [f'- {r["scenario"]} seed {r["seed"]} ({(r["chaos"] or {}).get("describe", "-")}): '
+                                  f'{reason(r)}' for r in odd]
     unsafe = [(r, u) for r in results for u in r.get('unsafe', ())]
     if unsafe:
         out += ['', 'Unsafe commands:'] + [f'- {r["scenario"]} seed {r["seed"]}: {u}' for r, u in unsafe]

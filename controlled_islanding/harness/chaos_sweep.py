@@ -186,8 +186,9 @@ def answer_to(request_id: str, decisions: list[dict], records: list[dict]) -> di
 
     The verdict ('kind') is 'commanded' (a split's breakers commanded), 'no split', 'refused' (by partitioning,
     its status and detail, or by breaker_command, its audited reason), 'unheard' (a split decision that
-    breaker_command never audited), or 'none' (no decision at all). A later answer to the same request (from a
-    restarted partitioning) is listed too; the verdict is the first commanded one, else the last.
+    breaker_command never audited; evaluation/chaos_report.verdict says when the run's facts tell why), or 'none'
+    (no decision at all). A later answer to the same request (from a restarted partitioning) is listed too; the
+    verdict is the first commanded one, else the last.
     """
     answers = []
     for d in (d for d in decisions if d['request_id'] == request_id):
@@ -209,11 +210,6 @@ def answer_to(request_id: str, decisions: list[dict], records: list[dict]) -> di
         return {'kind': 'none', 'reason': f'no decision for {request_id}', 'answers': []}
     final = next((a for a in answers if a['kind'] == 'commanded'), answers[-1])
     return {'kind': final['kind'], 'reason': final['reason'], 'answers': answers}
-
-
-def reasoned(result: dict) -> bool:
-    """Return whether a run ended with a decision or a reasoned refusal (the acceptance of issue 29)."""
-    return 'error' not in result and result['answer']['kind'] in ('commanded', 'no split', 'refused')
 
 
 def sweep(paths: list[Path], seeds: list[int], base: Path, settings: TestbedSettings,
