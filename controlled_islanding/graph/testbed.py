@@ -290,6 +290,13 @@ def on_hosts_main(spec_file: str, work: Callable[[dict], dict]) -> int:
     """Run `work(spec)` as run_on_hosts's child: its answer, or its GraphError, to the spec's answer file."""
     spec = json.loads(Path(spec_file).read_text())
     spec['hosts'] = {h: tuple(r) for h, r in spec['hosts'].items()}
+    # This process is not the command line's: its progress goes to the same stderr, in the same form.
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter('testbed: %(message)s'))
+    package = logging.getLogger('controlled_islanding')
+    package.handlers[:] = [handler]
+    package.setLevel(logging.INFO)
+    package.propagate = False
     try:
         result = work(spec)
     except GraphError as exc:
