@@ -81,6 +81,10 @@ def _served(r: dict) -> str:
     return _pct(r['load_served_pct'])
 
 
+def _opening(r: dict | None) -> str:
+    return '-' if r is None or r.get('request_to_opening_s') is None else f'{r["request_to_opening_s"]:.2f}'
+
+
 def summary_rows(results: list[dict]) -> list[list[str]]:
     """Return one row per system and fault kind, and one per system in all."""
     base = {r['scenario']: r for r in results if r['seed'] is None and 'error' not in r}
@@ -98,11 +102,14 @@ def summary_rows(results: list[dict]) -> list[list[str]]:
             unfaulted = base.get(scenario)
             same = [r for r in group if 'error' not in r and unfaulted and _cut(r) == _cut(unfaulted)]
             served = [r['load_served_pct'] for r in group if 'error' not in r and not r.get('simulation_failed')]
+            opening = [r['request_to_opening_s'] for r in group if r.get('request_to_opening_s') is not None]
             rows.append([scenario if first else '', label, str(len(group)),
                          f'{sum(r["chaos"]["recovered"] for r in asked)}/{len(asked)}' if asked else '-',
                          *(str(counts.get(v, 0)) for v in VERDICTS),
                          str(sum(len(r.get('unsafe', ())) for r in group)),
                          f'{len(same)}/{len(group)}',
+                         (f'{len(opening)}: {statistics.median(opening):.2f} ({max(opening):.2f})' if opening
+                          else '0') + f' / {_opening(unfaulted)}',
                          (f'{statistics.median(served):.1f} % ({min(served):.1f}-{max(served):.1f})' if served
                           else '-') + f' / {_served(unfaulted) if unfaulted else "-"}'])
     return rows
@@ -110,6 +117,7 @@ def summary_rows(results: list[dict]) -> list[list[str]]:
 
 SUMMARY_HEADER = ('system', 'fault', 'runs', 'recovered', 'commanded', 'no split', 'refused', 'not delivered',
                   'unheard', 'no decision', 'run failed', 'unsafe commands', 'same cut as unfaulted',
+                  'opened: runs, median (max) s after the request / unfaulted',
                   'load served: median (range) / unfaulted')
 RUN_HEADER = ('system', 'seed', 'fault', 'fired (s after request)', 'recovered after (s)', 'answer', 'opened',
               'load served (unfaulted)', 'unsafe', 'wall (s)')
@@ -195,6 +203,10 @@ def reasons(results: list[dict]) -> list[str]:
         if odd:
             out += ['', title] + [f'- {r["scenario"]} seed {r["seed"]} ({(r["chaos"] or {}).get("describe", "-")}): '
                                   f'{reason(r)}' for r in odd]
+    bystanders = [(r, x) for r in results for x in r.get('restarts', ())
+                  if x['name'] != ((r.get('chaos') or {}).get('fault') or {}).get('target')]
+    out += ['', f'Restarts of a node the fault did not touch (the unfaulted runs included): {len(bystanders)}.']
+    out += [f'- {r["scenario"]} seed {r["seed"]}: {x["name"]} ({x["reason"]})' for r, x in bystanders]
     unsafe = [(r, u) for r in results for u in r.get('unsafe', ())]
     if unsafe:
         out += ['', 'Unsafe commands:'] + [f'- {r["scenario"]} seed {r["seed"]}: {u}' for r, u in unsafe]
