@@ -85,7 +85,7 @@ def _command() -> str:
 
 
 def _line(r: dict) -> str:
-    from controlled_islanding.evaluation.chaos_report import reason, verdict
+    from controlled_islanding.evaluation.chaos_report import reason, served, verdict
 
     what = 'unfaulted' if r['seed'] is None else f'seed {r["seed"]} ({(r["chaos"] or {}).get("describe")})'
     if 'error' in r:
@@ -93,7 +93,7 @@ def _line(r: dict) -> str:
     rec = (r['chaos'] or {}).get('recovered')
     return (f'{r["scenario"]} {what}: {verdict(r)} ({reason(r)[:100]}); '
             f'{"" if rec is None else "recovered; " if rec else "NOT recovered; "}'
-            f'{len(r["unsafe"])} unsafe; load served {r["load_served_pct"]:.1f} %; {r["wall_s"]:.0f} s')
+            f'{len(r["unsafe"])} unsafe; load served {served(r)}; {r["wall_s"]:.0f} s')
 
 
 def _settings_text(args: argparse.Namespace) -> str:

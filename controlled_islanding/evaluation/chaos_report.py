@@ -73,7 +73,8 @@ def _pct(x: float | None) -> str:
     return '-' if x is None else f'{x:.1f} %'
 
 
-def _served(r: dict) -> str:
+def served(r: dict) -> str:
+    """Return a run's load served, % of the pre-fault load, or why there is none."""
     if 'error' in r:
         return '-'
     if r.get('simulation_failed'):
@@ -101,7 +102,7 @@ def summary_rows(results: list[dict]) -> list[list[str]]:
             asked = [r for r in group if 'error' not in r and r['chaos']['recovered'] is not None]
             unfaulted = base.get(scenario)
             same = [r for r in group if 'error' not in r and unfaulted and _cut(r) == _cut(unfaulted)]
-            served = [r['load_served_pct'] for r in group if 'error' not in r and not r.get('simulation_failed')]
+            pcts = [r['load_served_pct'] for r in group if 'error' not in r and not r.get('simulation_failed')]
             opening = [r['request_to_opening_s'] for r in group if r.get('request_to_opening_s') is not None]
             rows.append([scenario if first else '', label, str(len(group)),
                          f'{sum(r["chaos"]["recovered"] for r in asked)}/{len(asked)}' if asked else '-',
@@ -110,8 +111,8 @@ def summary_rows(results: list[dict]) -> list[list[str]]:
                          f'{len(same)}/{len(group)}',
                          (f'{len(opening)}: {statistics.median(opening):.2f} ({max(opening):.2f})' if opening
                           else '0') + f' / {_opening(unfaulted)}',
-                         (f'{statistics.median(served):.1f} % ({min(served):.1f}-{max(served):.1f})' if served
-                          else '-') + f' / {_served(unfaulted) if unfaulted else "-"}'])
+                         (f'{statistics.median(pcts):.1f} % ({min(pcts):.1f}-{max(pcts):.1f})' if pcts
+                          else '-') + f' / {served(unfaulted) if unfaulted else "-"}'])
     return rows
 
 
@@ -142,7 +143,7 @@ def run_rows(results: list[dict]) -> list[list[str]]:
                      '-' if fired is None else f'{fired:+.3f}',
                      '-' if rec is None else (f'{chaos["recovered_after_s"]:.1f}' if rec else 'NO'),
                      answer.replace('|', '/'), ', '.join(_cut(r)) or 'none',
-                     f'{_served(r)} ({_served(unfaulted) if unfaulted else "-"})',
+                     f'{served(r)} ({served(unfaulted) if unfaulted else "-"})',
                      str(len(r.get('unsafe', ()))), f'{r.get("wall_s", 0):.0f}'])
     return rows
 
