@@ -14,7 +14,7 @@ from controlled_islanding.commands import CliError, progress_bar
 log = logging.getLogger(__name__)
 
 HELP_TEXT = """\
-Chaos (--chaos SEED [--chaos-runs N]): each scenario runs closed-loop once unfaulted, then once per seed SEED ..
+Chaos (--chaos SEED [--chaos-runs N]): each scenario runs closed-loop 3 times unfaulted, then once per seed SEED ..
 SEED+N-1 with one fault drawn from the seed (graph/chaos.py), fired when the graph's /clock reaches the request's
 time plus a seeded offset within +-1 s: kill -9 of a pipeline node (the supervisor restarts it), SIGSTOP and a
 SIGCONT after a seeded pause (past the watchdog's 10 s hang limit, the supervisor kills and restarts it first),
@@ -22,7 +22,7 @@ a step of one node's sim clock (with --hosts, one host's), back or ahead, or, wi
 emulated WAN between the control and substation hosts for a seeded time. One seed is the same fault on every
 system. Each run reports whether the supervisor recovered, the decision or the refusal and its reason, every
 unsafe command (a breaker rule of docs/nodes.md broken, judged from the audit log, /breaker/commands and the
-grid's clock) and the load served against the unfaulted run. Runs go into --results (default
+grid's clock) and the load served against the unfaulted runs. Runs go into --results (default
 results/chaos-<UTC time>), one folder each; the same command again skips the finished runs, so a sweep resumes
 after Ctrl-C or a kill, or grows with --chaos-runs. Progress on stderr, a line per run. --markdown PAGE puts the
 report into PAGE as a generated section (docs/nodes.md); --render RESULTS only rebuilds it. Exit status 1 if any
@@ -58,7 +58,7 @@ def run(args: argparse.Namespace, paths: list[Path], settings: object) -> int:
     else:
         base = args.results or Path('results') / f'chaos-{datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")}'
         seeds = list(range(args.chaos, args.chaos + args.chaos_runs))
-        with progress_bar(len(paths) * (len(seeds) + 1), 'chaos', 'run') as bar, \
+        with progress_bar(len(paths) * (len(seeds) + chaos_sweep.UNFAULTED_RUNS), 'chaos', 'run') as bar, \
                 chaos_sweep.logged(base, _command()) as ran:
             def done(result: dict, i: int, n: int) -> None:
                 bar.update()
@@ -87,7 +87,8 @@ def _command() -> str:
 def _line(r: dict) -> str:
     from controlled_islanding.evaluation.chaos_report import reason, served, verdict
 
-    what = 'unfaulted' if r['seed'] is None else f'seed {r["seed"]} ({(r["chaos"] or {}).get("describe")})'
+    what = (f'unfaulted {r.get("baseline", 0) + 1}' if r['seed'] is None
+            else f'seed {r["seed"]} ({(r["chaos"] or {}).get("describe")})')
     if 'error' in r:
         return f'{r["scenario"]} {what}: run failed: {r["error"].splitlines()[0]}'
     rec = (r['chaos'] or {}).get('recovered')

@@ -82,13 +82,26 @@ def served(r: dict) -> str:
     return _pct(r['load_served_pct'])
 
 
-def _opening(r: dict | None) -> str:
-    return '-' if r is None or r.get('request_to_opening_s') is None else f'{r["request_to_opening_s"]:.2f}'
+def _opening(r: dict) -> str:
+    return '-' if r.get('request_to_opening_s') is None else f'{r["request_to_opening_s"]:.2f}'
+
+
+def _baselines(results: list[dict]) -> dict[str, list[dict]]:
+    """Return each scenario's unfaulted runs."""
+    out: dict[str, list[dict]] = {}
+    for r in results:
+        if r['seed'] is None and 'error' not in r:
+            out.setdefault(r['scenario'], []).append(r)
+    return out
+
+
+def _each(runs: list[dict], text: object) -> str:
+    return ', '.join(text(r) for r in runs) or '-'
 
 
 def summary_rows(results: list[dict]) -> list[list[str]]:
     """Return one row per system and fault kind, and one per system in all."""
-    base = {r['scenario']: r for r in results if r['seed'] is None and 'error' not in r}
+    base = _baselines(results)
     runs = [r for r in results if r['seed'] is not None]
     rows = []
     for scenario in sorted({r['scenario'] for r in runs}):
@@ -100,8 +113,8 @@ def summary_rows(results: list[dict]) -> list[list[str]]:
             first = not rows or rows[-1][1] == 'all'
             counts = Counter(verdict(r) for r in group)
             asked = [r for r in group if 'error' not in r and r['chaos']['recovered'] is not None]
-            unfaulted = base.get(scenario)
-            same = [r for r in group if 'error' not in r and unfaulted and _cut(r) == _cut(unfaulted)]
+            unfaulted = base.get(scenario, [])
+            same = [r for r in group if 'error' not in r and _cut(r) in {_cut(u) for u in unfaulted}]
             pcts = [r['load_served_pct'] for r in group if 'error' not in r and not r.get('simulation_failed')]
             opening = [r['request_to_opening_s'] for r in group if r.get('request_to_opening_s') is not None]
             rows.append([scenario if first else '', label, str(len(group)),
@@ -110,23 +123,23 @@ def summary_rows(results: list[dict]) -> list[list[str]]:
                          str(sum(len(r.get('unsafe', ())) for r in group)),
                          f'{len(same)}/{len(group)}',
                          (f'{len(opening)}: {statistics.median(opening):.2f} ({max(opening):.2f})' if opening
-                          else '0') + f' / {_opening(unfaulted)}',
+                          else '0') + f' / {_each(unfaulted, _opening)}',
                          (f'{statistics.median(pcts):.1f} % ({min(pcts):.1f}-{max(pcts):.1f})' if pcts
-                          else '-') + f' / {served(unfaulted) if unfaulted else "-"}'])
+                          else '-') + f' / {_each(unfaulted, served)}'])
     return rows
 
 
 SUMMARY_HEADER = ('system', 'fault', 'runs', 'recovered', 'commanded', 'no split', 'refused', 'not delivered',
-                  'unheard', 'no decision', 'run failed', 'unsafe commands', 'same cut as unfaulted',
-                  'opened: runs, median (max) s after the request / unfaulted',
-                  'load served: median (range) / unfaulted')
+                  'unheard', 'no decision', 'run failed', 'unsafe commands', 'same cut as an unfaulted run',
+                  'opened: runs, median (max) s after the request / unfaulted runs',
+                  'load served: median (range) / unfaulted runs')
 RUN_HEADER = ('system', 'seed', 'fault', 'fired (s after request)', 'recovered after (s)', 'answer', 'opened',
               'load served (unfaulted)', 'unsafe', 'wall (s)')
 
 
 def run_rows(results: list[dict]) -> list[list[str]]:
     """Return one row per faulted run."""
-    base = {r['scenario']: r for r in results if r['seed'] is None and 'error' not in r}
+    base = _baselines(results)
     rows = []
     for r in sorted((r for r in results if r['seed'] is not None), key=lambda r: (r['scenario'], r['seed'])):
         chaos = r['chaos'] or {}
@@ -138,12 +151,12 @@ def run_rows(results: list[dict]) -> list[list[str]]:
                 answer += f' ({len(a["answers"])} decisions for the request)'
         fired = chaos.get('fired_after_request_s')
         rec = chaos.get('recovered')
-        unfaulted = base.get(r['scenario'])
+        unfaulted = base.get(r['scenario'], [])
         rows.append([r['scenario'], str(r['seed']), chaos.get('describe', '-'),
                      '-' if fired is None else f'{fired:+.3f}',
                      '-' if rec is None else (f'{chaos["recovered_after_s"]:.1f}' if rec else 'NO'),
                      answer.replace('|', '/'), ', '.join(_cut(r)) or 'none',
-                     f'{served(r)} ({served(unfaulted) if unfaulted else "-"})',
+                     f'{served(r)} ({_each(unfaulted, served)})',
                      str(len(r.get('unsafe', ()))), f'{r.get("wall_s", 0):.0f}'])
     return rows
 
