@@ -70,8 +70,11 @@ def run(args: argparse.Namespace, paths: list[Path], settings: object) -> int:
             except GraphError as exc:
                 raise CliError(str(exc)) from exc
     if args.markdown:
+        held = chaos_sweep.settings_of(base)
+        if held is None:
+            raise CliError(f'{base}: no {chaos_sweep.SETTINGS}, so the settings of its runs are not known')
         chaos_report.write_section(args.markdown, chaos_report.section(
-            results, _command(), _settings_text(args), chaos_sweep.invocations(base)))
+            results, _command(), _settings_text(held), chaos_sweep.invocations(base)))
         log.info('report: %s', args.markdown)
     print(json.dumps(results, default=str) if args.json else chaos_report.render(results))
     if not args.json:
@@ -97,10 +100,11 @@ def _line(r: dict) -> str:
             f'{len(r["unsafe"])} unsafe; load served {served(r)}; {r["wall_s"]:.0f} s')
 
 
-def _settings_text(args: argparse.Namespace) -> str:
-    mode = 'lockstep (sim time stands at the request while the graph works)' if not args.rate else \
-        f'paced at {args.rate:g}x real time'
-    hosts = (f'on emulated hosts {args.hosts} (WAN delay {args.wan_delay_ms:g} ms, jitter {args.wan_jitter_ms:g} '
-             f'ms, loss {args.wan_loss_pct:g} %)' if args.hosts else 'on one host')
-    return (f'Closed loop {mode}, {hosts}; breaker operating time {args.breaker_operating_s:g} s, simulated '
-            f'{args.run_after_s:g} s past the request.')
+def _settings_text(settings: dict) -> str:
+    mode = ('lockstep (sim time stands at the request while the graph works)' if not settings['rate'] else
+            f'paced at {settings["rate"]:g}x real time')
+    link = settings['link']
+    hosts = (f'on emulated hosts {settings["hosts"]} (WAN delay {link["delay_ms"]:g} ms, jitter {link["jitter_ms"]:g} '
+             f'ms, loss {link["loss_pct"]:g} %)' if settings['hosts'] else 'on one host')
+    return (f'Closed loop {mode}, {hosts}; breaker operating time {settings["breaker_operating_s"]:g} s, simulated '
+            f'{settings["run_after_s"]:g} s past the request.')

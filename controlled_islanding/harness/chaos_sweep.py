@@ -51,6 +51,7 @@ log = logging.getLogger(__name__)
 
 RESULT = 'chaos.json'
 INVOCATIONS = 'invocations.jsonl'
+SETTINGS = 'settings.json'
 UNFAULTED = 'unfaulted'
 # A closed loop's outcome varies from run to run (the graph's latency is charged to sim time in lockstep: Kundur's
 # unfaulted cut opened 0.12 to 0.17 s after the request and served 42 % or nothing), so the faulted runs are
@@ -235,6 +236,13 @@ def sweep(paths: list[Path], seeds: list[int], base: Path, settings: TestbedSett
         raise GraphError(CHAOS_TRIGGER)
     names = [check_scenario(p).name for p in paths]
     base.mkdir(parents=True, exist_ok=True)
+    # Resumed with other settings, the folder would mix two experiments in one table.
+    mine = {k: v for k, v in json.loads(json.dumps(asdict(settings), default=str)).items() if k != 'quiet'}
+    held = settings_of(base)
+    if held is not None and held != mine:
+        changed = ', '.join(f'{k} {held.get(k)!r} -> {v!r}' for k, v in mine.items() if held.get(k) != v)
+        raise GraphError(f'{base} holds a sweep with other settings ({changed}); name another --results')
+    atomic.write_text(base / SETTINGS, json.dumps(mine, indent=1) + '\n')
     plan = [(p, n, None, k) for k in range(UNFAULTED_RUNS) for p, n in zip(paths, names, strict=True)]
     plan += [(p, n, s, 0) for s in seeds for p, n in zip(paths, names, strict=True)]
     results = []
@@ -278,6 +286,12 @@ def logged(base: Path, command: str) -> Iterator[list[dict]]:
                   'load_average': [round(load, 2), round(os.getloadavg()[0], 2)]}
         with open(base / INVOCATIONS, 'a') as out:
             out.write(json.dumps(record) + '\n')
+
+
+def settings_of(base: Path) -> dict | None:
+    """Return the settings a sweep folder was run with (TestbedSettings as JSON, quiet left out), None if none."""
+    path = base / SETTINGS
+    return json.loads(path.read_text()) if path.exists() else None
 
 
 def invocations(base: Path) -> list[dict]:
