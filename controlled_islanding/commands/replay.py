@@ -107,6 +107,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--estimator', choices=('steady_state', 'dse'), default=None,
                         help="pmu_ingestion's rotor angle estimator: steady_state, or dse (a Kalman filter on each "
                              "machine's model from the snapshot's machine data); default: config/pmu_ingestion.yaml")
+    add_wan_arguments(parser)
+    parser.add_argument('--junit-xml', type=Path, default=None, metavar='FILE',
+                        help='also write the run as a JUnit XML report, a test case per bag with its reason on '
+                             'failure, as pytest --junit-xml does (a regression run, even of one bag)')
+
+def add_wan_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add --hosts and the WAN's options (replay and testbed)."""
     parser.add_argument('--hosts', default=None, metavar='H1,H2,...',
                         help='run the graph on emulated hosts joined by an emulated WAN (needs root): comma-separated '
                              'hosts, each a role (pdc, control, substation) or roles joined by +')
@@ -116,11 +123,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--wan-loss-pct', type=float, default=0.0,
                         help='with --hosts: probability that a packet between hosts is lost, %%')
     parser.add_argument('--wan-seed', type=int, default=0, help='with --hosts: seed of the loss and jitter draws')
-    parser.add_argument('--junit-xml', type=Path, default=None, metavar='FILE',
-                        help='also write the run as a JUnit XML report, a test case per bag with its reason on '
-                             'failure, as pytest --junit-xml does (a regression run, even of one bag)')
 
-def _link(args: argparse.Namespace) -> wan.LinkModel | None:
+
+def wan_link(args: argparse.Namespace) -> wan.LinkModel | None:
+    """Return the WAN of --hosts and its options, None without --hosts."""
     wan_set = args.wan_delay_ms or args.wan_jitter_ms or args.wan_loss_pct
     if not args.hosts:
         if wan_set:
@@ -135,7 +141,7 @@ def _link(args: argparse.Namespace) -> wan.LinkModel | None:
 def _options(args: argparse.Namespace) -> dict:
     return {'fast': args.fast, 'rate': args.rate, 'probe_hz': args.probe_hz, 'timeout_s': args.timeout,
             'arm': not args.disarmed, 'record': not args.no_record, 'isolate': args.isolate,
-            'namespace': args.namespace, 'estimator': args.estimator, 'hosts': args.hosts, 'link': _link(args)}
+            'namespace': args.namespace, 'estimator': args.estimator, 'hosts': args.hosts, 'link': wan_link(args)}
 
 
 def run(args: argparse.Namespace) -> int:

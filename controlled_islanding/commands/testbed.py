@@ -8,7 +8,8 @@ import sys
 from datetime import UTC, datetime
 from pathlib import Path
 
-from controlled_islanding.commands import CliError, progress_bar
+from controlled_islanding.commands import CliError, progress_bar, testbed_chaos
+from controlled_islanding.commands.replay import add_wan_arguments, wan_link
 from controlled_islanding.evaluation.testbed_report import publish, render
 from controlled_islanding.graph import GraphError
 from controlled_islanding.graph.processes import sigterm_as_interrupt
@@ -57,14 +58,20 @@ Lockstep (default): the simulation does not step past the request until the deci
 (bounded waits); the graph's wall-clock latency is then charged to sim time. --rate R paces the simulation at R
 times real time instead (ANDES may be slower than that on a busy machine).
 
+Hosts: with --hosts pdc,control,substation the four nodes and grid_sim run on emulated hosts joined by an
+emulated WAN, as with `replay --hosts` (grid_sim on the PDC's host, as the PMUs feed it); needs root.
+
+{chaos}
 Examples:
   controlled-islanding testbed bags/ieee14_g1_unstable.yaml
+  controlled-islanding testbed bags/ieee14_g1_unstable.yaml --hosts pdc,control,substation --wan-delay-ms 10
   controlled-islanding testbed bags/ieee39_g6g7_unstable.yaml --json
   controlled-islanding testbed bags/kundur_bus9_unstable.yaml --oracle   the best found too: 84 candidates,
                                       10 min on a loaded 2-core machine (IEEE 39 G6-G7: 72, 76 min)
   controlled-islanding testbed --all-unstable --markdown docs/testbed.md --figures-dir docs/testbed
                                       every manifest scenario whose expected decision splits (long: minutes each)
 """
+DESCRIPTION = DESCRIPTION.replace('{chaos}', testbed_chaos.HELP_TEXT)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -112,6 +119,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--estimator', choices=('steady_state', 'dse'), default=None,
                         help="pmu_ingestion's rotor angle estimator, as replay --estimator (default: "
                              'config/pmu_ingestion.yaml)')
+    add_wan_arguments(parser)
+    testbed_chaos.add_arguments(parser)
 
 
 def _unstable() -> list[Path]:
@@ -128,20 +137,9 @@ def _publish(results: list[dict], args: argparse.Namespace, missing: list[str]) 
             figure_scenarios=args.figure_scenarios, cmd='controlled-islanding testbed ' + ' '.join(sys.argv[2:]))
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run the testbed subcommand."""
-    if args.render is not None:
-        done = sorted(args.render.glob('*/result.json'))
-        if not done:
-            raise CliError(f'{args.render}: no */result.json; is it a testbed results folder?')
-        results = [json.loads(p.read_text()) for p in done]
-        wanted = [p.stem for p in (list(args.scenarios) + (_unstable() if args.all_unstable else []))]
-        missing = [n for n in wanted if n not in {r['scenario'] for r in results}]
-        _publish(results, args, missing)
-        print(json.dumps(results, default=str) if args.json else render(results))
-        return 0
-    paths = list(args.scenarios) + (_unstable() if args.all_unstable else [])
-    if not paths:
+def _settings(args: argparse.Namespace, paths: list[Path], progress: bool) -> TestbedSettings:
+    """Return the settings of the options, checked with the scenarios they run."""
+    if not paths and args.render is None:
         raise CliError('name at least one scenario YAML, or --all-unstable')
     for p in paths:
         if not p.exists():
@@ -150,14 +148,34 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f'--oracle-step-s {args.oracle_step_s} must be positive')
     if args.rate < 0:
         raise CliError(f'--rate {args.rate} must be 0 (lockstep) or positive')
+    link = wan_link(args)
+    # Progress on stderr, --json or not; a chaos sweep says a line per run instead.
+    return TestbedSettings(rate=args.rate, breaker_operating_s=args.breaker_operating_s,
+                           shed_delay_s=args.shed_delay_s, run_after_s=args.run_after_s, trigger=args.trigger,
+                           timeout_s=args.timeout, namespace=args.namespace, estimator=args.estimator,
+                           no_baselines=args.no_baselines, oracle=args.oracle, oracle_step_s=args.oracle_step_s,
+                           oracle_remedies=args.oracle_remedies, quiet=not progress, hosts=args.hosts,
+                           **({'link': link} if link else {}))
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the testbed subcommand."""
+    paths = list(args.scenarios) + (_unstable() if args.all_unstable else [])
+    if args.chaos is not None:
+        return testbed_chaos.run(args, paths, _settings(args, paths, progress=False))
+    if args.render is not None:
+        done = sorted(args.render.glob('*/result.json'))
+        if not done:
+            raise CliError(f'{args.render}: no */result.json; is it a testbed results folder?')
+        results = [json.loads(p.read_text()) for p in done]
+        wanted = [p.stem for p in paths]
+        missing = [n for n in wanted if n not in {r['scenario'] for r in results}]
+        _publish(results, args, missing)
+        print(json.dumps(results, default=str) if args.json else render(results))
+        return 0
+    settings = _settings(args, paths, progress=True)
     stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
     results_dir = args.results or Path('results') / f'testbed-{stamp}'
-    settings = TestbedSettings(rate=args.rate, breaker_operating_s=args.breaker_operating_s,
-                               shed_delay_s=args.shed_delay_s, run_after_s=args.run_after_s, trigger=args.trigger,
-                               timeout_s=args.timeout, namespace=args.namespace, estimator=args.estimator,
-                               no_baselines=args.no_baselines, oracle=args.oracle,
-                               oracle_step_s=args.oracle_step_s, oracle_remedies=args.oracle_remedies,
-                               quiet=False)  # progress on stderr, --json or not
 
     def after_each(results: list[dict], missing: list[str]) -> None:
         bar.update()

@@ -162,20 +162,23 @@ class ComposedGraph:
         return node
 
     def start(self, spec: NodeSpec, overrides: Mapping[str, object] | None = None, name: str | None = None,
-              namespace: str | None = None, prefix: Sequence[str] = ()) -> _Thread | None:
+              namespace: str | None = None, prefix: Sequence[str] = (),
+              remaps: Mapping[str, str] | None = None) -> _Thread | None:
         """Make one node: a pipeline node joins the shared executor, the player or the recorder gets a thread.
 
         Returns the player's or recorder's thread (poll, returncode, as a process), None for a pipeline node.
 
         Raises:
             GraphError: A pipeline node could not be made (its parameters, say), or the options ask for what a
-                composed graph cannot do (another namespace per node, a prefix such as an emulated host).
+                composed graph cannot do (another namespace per node, a prefix such as an emulated host, remaps
+                of one node's own).
 
         """
         from rclpy.executors import SingleThreadedExecutor
 
-        if prefix or (namespace is not None and namespace != self.namespace) or name not in (None, spec.executable):
-            raise GraphError('a composed graph runs every node in this process, in one namespace')
+        if (prefix or remaps or (namespace is not None and namespace != self.namespace)
+                or name not in (None, spec.executable)):
+            raise GraphError('a composed graph runs every node in this process, in one namespace, remapped alike')
         self._started.add(spec.executable)
         if spec.executable in _PIPELINE:
             try:

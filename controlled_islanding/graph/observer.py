@@ -23,10 +23,12 @@ class Observation:
 
     requests: dict[str, float] = field(default_factory=dict)
     decisions: dict[str, tuple[float, object]] = field(default_factory=dict)  # request id -> (t, msg)
+    decision_log: list[tuple[float, object]] = field(default_factory=list)  # every decision, a request's again too
     commands: list[tuple[float, object]] = field(default_factory=list)
     groups: list = field(default_factory=list)
     diagnostics: dict[str, dict[str, str]] = field(default_factory=dict)
     heartbeats_s: dict[str, float] = field(default_factory=dict)  # node -> arrival of its newest diagnostics
+    raised: dict[str, str] = field(default_factory=dict)  # '<node> <warn.|fault.key>' -> its text when first seen
     restarts: list = field(default_factory=list)  # supervisor.RestartRecord, as the supervisor records them
     hangs: list = field(default_factory=list)  # supervisor.HangRecord
     wan: dict = field(default_factory=dict)  # with hosts: the emulated network, its namespaces and its statistics
@@ -98,14 +100,21 @@ class Observer:
                 name = status.name[len(ns):]
                 obs.diagnostics[name] = {kv.key: kv.value for kv in status.values}
                 obs.heartbeats_s[name] = time.monotonic()
+                for key, value in obs.diagnostics[name].items():
+                    if key.startswith(('warn.', 'fault.')):
+                        obs.raised.setdefault(f'{name} {key}', value)
 
         def subscribe(msg_type: type, topic: str, callback: Callable[[object], None]) -> None:
             self.node.create_subscription(msg_type, topics.relative(topic), callback, qos_for(topic))
 
         subscribe(IslandingRequest, topics.ISLANDING_REQUEST,
                   lambda m: obs.requests.setdefault(m.request_id, time.monotonic()))
-        subscribe(IslandingDecision, topics.ISLANDING_DECISION,
-                  lambda m: obs.decisions.setdefault(m.request_id, (time.monotonic(), m)))
+        def on_decision(msg: IslandingDecision) -> None:
+            seen = (time.monotonic(), msg)
+            obs.decisions.setdefault(msg.request_id, seen)
+            obs.decision_log.append(seen)
+
+        subscribe(IslandingDecision, topics.ISLANDING_DECISION, on_decision)
         subscribe(BreakerCommand, topics.BREAKER_COMMANDS, lambda m: obs.commands.append((time.monotonic(), m)))
         subscribe(CoherentGroups, topics.COHERENT_GROUPS, obs.groups.append)
         subscribe(DiagnosticArray, topics.DIAGNOSTICS, on_diag)
@@ -196,8 +205,12 @@ INTERNAL_TOPICS = (topics.ROTOR_ANGLES, topics.COHERENT_GROUPS, topics.ISLANDING
 
 
 def start_pipeline(sup: object, results: object, key_dir: object, estimator: str | None,
-                   prefix: Callable[[str], list[str]] = lambda executable: []) -> None:
-    """Start the four pipeline nodes under a supervisor on sim time, the breaker node's audit log in `results`."""
+                   prefix: Callable[[str], list[str]] = lambda executable: [],
+                   remaps: Callable[[str], dict[str, str]] = lambda executable: {}) -> None:
+    """Start the four pipeline nodes under a supervisor on sim time, the breaker node's audit log in `results`.
+
+    `prefix(executable)` runs a node on its host; `remaps(executable)` gives a node remappings of its own.
+    """
     from controlled_islanding.graph.supervisor import GRAPH
 
     sim = {'use_sim_time': True}
@@ -206,4 +219,5 @@ def start_pipeline(sup: object, results: object, key_dir: object, estimator: str
     if estimator is not None:
         extra['pmu_ingestion'] = {'estimator': estimator}
     for spec in GRAPH:
-        sup.start(spec, {**sim, **extra.get(spec.executable, {})}, prefix=prefix(spec.executable))
+        sup.start(spec, {**sim, **extra.get(spec.executable, {})}, prefix=prefix(spec.executable),
+                  remaps=remaps(spec.executable) or None)

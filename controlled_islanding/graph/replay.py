@@ -9,11 +9,9 @@ With hosts, the graph runs on emulated hosts joined by an emulated WAN (graph.wa
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import math
-import signal
 import statistics
 import subprocess
 import sys
@@ -441,33 +439,12 @@ def _write_summary(results: Path, summary: dict) -> None:
 
 def _replay_on_hosts(bag: Path, results: Path, hosts: dict[str, tuple[str, ...]], link: wan.LinkModel,
                      options: ReplayOptions) -> dict:
-    """Build the emulated WAN, run the replay from a fresh process on the operator's host, add the WAN to it.
-
-    The observer runs in a process of its own started in the operator's namespace: a DDS participant takes its
-    network from the process it lives in, and one made earlier in this process (a test suite's, or a loopback
-    replay's) left Fast DDS sending the new one's traffic to loopback only.
-    """
+    """Build the emulated WAN, run the replay from a fresh process on the operator's host, add the WAN to it."""
     spec = results / 'replay_on_hosts.json'
     with wan.EmulatedWan(list(hosts), link, results) as net:
         spec.write_text(json.dumps({'bag': str(bag), 'results': str(results), 'options': asdict(options),
                                     'hosts': hosts, 'netns': net.namespaces}))
-        child = subprocess.Popen([*net.prefix(wan.OPERATOR), sys.executable, '-m', __name__, str(spec)],
-                                 stdin=subprocess.DEVNULL)
-        try:
-            while child.poll() is None:
-                net.check_alive()
-                time.sleep(0.2)
-            status = child.returncode
-        finally:
-            # Interrupted: a terminal's Ctrl-C reached the child too, and a second SIGINT could cut its clean-up
-            # short, so it gets a moment first; a SIGTERM or an emulator failure reached only us.
-            for action in (None, signal.SIGINT, signal.SIGKILL):
-                if child.poll() is not None:
-                    break
-                if action is not None:
-                    child.send_signal(action)
-                with contextlib.suppress(subprocess.TimeoutExpired):
-                    child.wait(timeout=2.0 if action is None else 20.0)
+        status = net.run_on_operator([sys.executable, '-m', __name__, str(spec)])
         info = {'hosts': {h: list(r) for h, r in hosts.items()}, 'link': asdict(link),
                 'addresses': net.addresses, 'namespaces': net.namespaces, 'views': net.views}
         net_stats = net.stats  # filled when the network is taken down, below

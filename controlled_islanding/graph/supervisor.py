@@ -165,7 +165,7 @@ class Supervisor:
         self.watchdog = Watchdog(policy) if policy is not None else None
         self.restarts: list[RestartRecord] = []
         self.hangs: list[HangRecord] = []
-        self._launch: dict[str, tuple[NodeSpec, dict[str, object], str, list[str]]] = {}
+        self._launch: dict[str, tuple[NodeSpec, dict[str, object], str, list[str], dict[str, str]]] = {}
         self.cpu_s: dict[str, float] = {}  # CPU time (user + system) of each child that ran to stop_all, s
         self._t0_s = time.monotonic()
 
@@ -181,7 +181,8 @@ class Supervisor:
             self._sigterm.__exit__(None, None, None)
 
     def start(self, spec: NodeSpec, overrides: Mapping[str, object] | None = None, name: str | None = None,
-              namespace: str | None = None, prefix: Sequence[str] = ()) -> subprocess.Popen:
+              namespace: str | None = None, prefix: Sequence[str] = (),
+              remaps: Mapping[str, str] | None = None) -> subprocess.Popen:
         """Start one executable as its own process (own session, so a terminal Ctrl-C reaches only us).
 
         Args:
@@ -191,6 +192,7 @@ class Supervisor:
             namespace: The node's namespace; default the supervisor's.
             prefix: Command that runs the node, e.g. `ip netns exec <netns>` to put it on an emulated host
                 (controlled_islanding.graph.wan); a restart uses it again.
+            remaps: This child's own remapping rules, over the supervisor's; a restart keeps them.
 
         Raises:
             SupervisorError: A child of that name is already running.
@@ -200,13 +202,13 @@ class Supervisor:
         if name in self.children and self.children[name].poll() is None:
             raise SupervisorError(f'{name} is already running (pid {self.children[name].pid})')
         self._launch[name] = (spec, dict(overrides or {}), self.namespace if namespace is None else namespace,
-                              list(prefix))
+                              list(prefix), {**self.remaps, **dict(remaps or {})})
         return self._spawn(name)
 
     def _spawn(self, name: str) -> subprocess.Popen:
-        spec, overrides, namespace, prefix = self._launch[name]
+        spec, overrides, namespace, prefix, remaps = self._launch[name]
         with open(self.log_dir / f'{name}.log', 'ab') as log:
-            child = subprocess.Popen([*prefix, *node_command(spec, overrides, namespace, self.remaps)], env=self.env,
+            child = subprocess.Popen([*prefix, *node_command(spec, overrides, namespace, remaps)], env=self.env,
                                      stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                      start_new_session=True, preexec_fn=die_with_parent)
         self.children[name] = child

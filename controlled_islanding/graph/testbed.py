@@ -14,15 +14,17 @@ from __future__ import annotations
 
 import json
 import logging
+import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from controlled_islanding import atomic
-from controlled_islanding.graph import GraphError
+from controlled_islanding.graph import GraphError, wan
+from controlled_islanding.graph.chaos import FaultInjector
 from controlled_islanding.graph.observer import INTERNAL_TOPICS, Observation, Observer, start_pipeline
 from controlled_islanding.graph.replay import namespace_name
 from controlled_islanding.graph.results import INTERRUPTED
@@ -51,6 +53,9 @@ class TestbedSettings:
         oracle_step_s: The oracle's largest spacing of request times, s.
         oracle_remedies: Repeat a failed oracle run at a smaller step (OracleSettings.remedies).
         quiet: Progress at debug level, not info.
+        hosts: Run the graph on emulated hosts joined by an emulated WAN, e.g. 'pdc,control,substation'
+            (graph/wan.parse_hosts); None: all on this host.
+        link: With hosts, what the WAN does to each packet.
 
     """
 
@@ -69,6 +74,8 @@ class TestbedSettings:
     oracle_step_s: float = 0.05
     oracle_remedies: bool = False
     quiet: bool = False
+    hosts: str | None = None
+    link: wan.LinkModel = wan.LinkModel()
 
 
 def _say(quiet: bool, text: str) -> None:
@@ -76,11 +83,16 @@ def _say(quiet: bool, text: str) -> None:
 
 
 def run_closed_loop(scenario: Path, results: Path, *, rate: float, params: dict[str, float], timeout_s: float,
-                    quiet: bool, namespace: str = '', estimator: str | None = None) -> tuple[Observation, dict]:
+                    quiet: bool, namespace: str = '', estimator: str | None = None,
+                    hosts: dict[str, tuple[str, ...]] | None = None, netns: dict[str, str] | None = None,
+                    injector: FaultInjector | None = None) -> tuple[Observation, dict]:
     """Run the four nodes and grid_sim on one scenario; return what the observer saw and grid_sim's report.
 
     The graph runs in `namespace` ('' = the root one, else e.g. '/area1'), its clock on <namespace>/clock.
-    `estimator` overrides pmu_ingestion's (None: its parameter file's).
+    `estimator` overrides pmu_ingestion's (None: its parameter file's). With `hosts` (wan.parse_hosts), each host's
+    nodes start in its network namespace `netns[host]` of an emulated WAN (grid_sim on the PDC's host, as the PMUs
+    feed it), and this process must be on the operator's (run_on_hosts). `injector` carries out one fault
+    (graph/chaos.py); after grid_sim ends, the run waits (at most RECOVERY_WAIT_S) for the graph to recover from it.
 
     Raises:
         GraphError: A node died, or grid_sim gave no report within timeout_s.
@@ -97,33 +109,69 @@ def run_closed_loop(scenario: Path, results: Path, *, rate: float, params: dict[
     logs = results / 'logs'
     report_file = results / 'grid_sim.json'
     remaps = {topics.CLOCK: f'{namespace}{topics.CLOCK}'} if namespace else {}
-    with graph_environment(results / 'ros_log', True) as env, Observer(env, 'testbed_observer', namespace, obs) as \
-            observer, Supervisor(env, logs, PIPELINE_POLICY, namespace=namespace, remaps=remaps) as sup:
-        obs.restarts, obs.hangs = sup.restarts, sup.hangs
-        start_pipeline(sup, results, key_dir, estimator)
-        _say(quiet, f'started {len(GRAPH)} nodes (logs in {logs})')
-        observer.arm(operator_key, True, 30.0, sup.check_alive)
-        played = (topics.PMU_FRAMES, topics.NETWORK_SNAPSHOT, topics.BRANCH_STATUS, topics.ISLANDING_REQUEST,
-                  topics.CLOCK)
-        counts = observer.wait_until_wired(played, INTERNAL_TOPICS, 30.0,
-                                           lambda t: remaps.get(t, topics.in_namespace(t, namespace)))
-        # grid_sim's own subscriptions (decision, commands, angles) add one subscriber to none of these.
-        grid = sup.start(NodeSpec('grid_sim', 'grid_sim.yaml'), {
-            'use_sim_time': False, 'scenario': scenario.resolve(), 'rate': rate, 'report_file': report_file,
-            'progress': not quiet, **params, 'min_subscribers': str([f'{t}={n}' for t, n in counts.items()])})
-        _say(quiet, f'breaker_command armed; grid_sim simulating {scenario.name}')
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            observer.spin_for(0.05)
-            sup.supervise(obs.heartbeats_s)
-            if grid.poll() is not None:
-                observer.spin_for(0.3)
-                break
-        else:
-            raise GraphError(f'grid_sim did not finish within --timeout {timeout_s} s; logs in {logs}')
-        if grid.returncode != 0 or not report_file.exists():
-            raise GraphError(f'grid_sim failed (exit {grid.returncode}):\n{sup.log_tail("grid_sim")}')
+    own_remaps = injector.remaps(namespace) if injector else {}
+
+    def on_host(executable: str) -> list[str]:
+        return wan.prefix(netns[wan.host_of(hosts, executable)]) if hosts else []
+
+    with graph_environment(results / 'ros_log', True) as env:
+        if hosts:
+            env.update(wan.DDS_ENVIRONMENT)
+        with Observer(env, 'testbed_observer', namespace, obs) as observer, \
+                Supervisor(env, logs, PIPELINE_POLICY, namespace=namespace, remaps=remaps) as sup:
+            obs.restarts, obs.hangs = sup.restarts, sup.hangs
+            start_pipeline(sup, results, key_dir, estimator, on_host, lambda executable: own_remaps.get(executable, {}))
+            _say(quiet, f'started {len(GRAPH)} nodes (logs in {logs})')
+            if injector:
+                injector.attach(observer, sup, remaps.get(topics.CLOCK, topics.CLOCK))
+            observer.arm(operator_key, True, 30.0, sup.check_alive)
+            played = (topics.PMU_FRAMES, topics.NETWORK_SNAPSHOT, topics.BRANCH_STATUS, topics.ISLANDING_REQUEST,
+                      topics.CLOCK)
+            counts = observer.wait_until_wired(played, INTERNAL_TOPICS, 30.0,
+                                               lambda t: remaps.get(t, topics.in_namespace(t, namespace)),
+                                               ready=injector.ready if injector else lambda: True)
+            # grid_sim's own subscriptions (decision, commands, angles) add one subscriber to none of these.
+            grid = sup.start(NodeSpec('grid_sim', 'grid_sim.yaml'), {
+                'use_sim_time': False, 'scenario': scenario.resolve(), 'rate': rate, 'report_file': report_file,
+                'progress': not quiet, **params, 'min_subscribers': str([f'{t}={n}' for t, n in counts.items()])},
+                prefix=on_host('grid_sim'))
+            _say(quiet, f'breaker_command armed; grid_sim simulating {scenario.name}'
+                        + (f'; chaos: {injector.fault.describe()}' if injector else ''))
+            try:
+                _follow(observer, sup, grid, injector, timeout_s, logs)
+            finally:
+                if injector:
+                    injector.release()
+            if grid.returncode != 0 or not report_file.exists():
+                raise GraphError(f'grid_sim failed (exit {grid.returncode}):\n{sup.log_tail("grid_sim")}')
     return obs, json.loads(report_file.read_text())
+
+
+RECOVERY_WAIT_S = 150.0  # a node's start-up took 14-60 s under load (supervisor.PIPELINE_POLICY); ample beyond it
+
+
+def _follow(observer: Observer, sup: object, grid: object, injector: FaultInjector | None, timeout_s: float,
+            logs: Path) -> None:
+    """Supervise until grid_sim ends, then, with a fault, until the graph recovered from it (or it cannot)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        observer.spin_for(0.05)
+        sup.supervise(observer.obs.heartbeats_s)
+        if injector:
+            injector.step()
+        if grid.poll() is not None:
+            observer.spin_for(0.3)
+            break
+    else:
+        raise GraphError(f'grid_sim did not finish within --timeout {timeout_s} s; logs in {logs}')
+    if injector is None:
+        return
+    deadline = time.monotonic() + RECOVERY_WAIT_S
+    while not injector.settled() and time.monotonic() < deadline:
+        observer.spin_for(0.05)
+        sup.supervise(observer.obs.heartbeats_s)
+        injector.step()
+    observer.spin_for(1.5)  # every node's /diagnostics once more, the breaker's view after the fault included
 
 
 def _decision(obs: Observation, request_id: str) -> dict | None:
@@ -208,12 +256,97 @@ def run_scenario(path: Path, results: Path, args: TestbedSettings, cache: dict) 
     from controlled_islanding.sim.closed_loop import ClosedLoopError
 
     try:
+        if args.hosts:
+            return _on_hosts(path, results, args)
         return _run_scenario(path, results, args, cache)
     except ClosedLoopError as exc:
         raise GraphError(f'{path}: {exc}') from exc
 
 
-def _run_scenario(path: Path, results: Path, args: TestbedSettings, cache: dict) -> dict:
+def host_roles(hosts: str) -> dict[str, tuple[str, ...]]:
+    """Return host name -> roles of a --hosts value, if emulated hosts can be built here.
+
+    Raises:
+        GraphError: The value is not valid, or the emulated WAN cannot be built here (it needs root).
+
+    """
+    try:
+        roles = wan.parse_hosts(hosts)
+    except ValueError as exc:
+        raise GraphError(str(exc)) from exc
+    why = wan.unavailable_reason()
+    if why:
+        raise GraphError(why)
+    return roles
+
+
+def run_on_hosts(hosts: dict[str, tuple[str, ...]], link: wan.LinkModel, work_dir: Path, module: str,
+                 spec: dict) -> dict:
+    """Build the emulated WAN and run `python -m module SPEC` on the operator's host; return its JSON answer.
+
+    The child gets `spec` plus 'hosts', 'netns' and 'wan_control' (the partition file), and writes its answer
+    (or {'error': ...}) to spec['answer'], a file in `work_dir`. The answer gains 'wan': the network and its
+    statistics.
+
+    Raises:
+        GraphError: The WAN could not be built, or the child failed (its error).
+
+    """
+    answer = work_dir / 'on_hosts_answer.json'
+    spec_file = work_dir / 'on_hosts.json'
+    work_dir.mkdir(parents=True, exist_ok=True)
+    with wan.EmulatedWan(list(hosts), link, work_dir) as net:
+        atomic.write_text(spec_file, json.dumps({**spec, 'hosts': hosts, 'netns': net.namespaces,
+                                                 'wan_control': str(net.control_file), 'answer': str(answer)},
+                                                default=str))
+        status = net.run_on_operator([sys.executable, '-m', module, str(spec_file)])
+        info = {'hosts': {h: list(r) for h, r in hosts.items()}, 'link': asdict(link), 'addresses': net.addresses,
+                'namespaces': net.namespaces}
+    result = json.loads(answer.read_text()) if answer.exists() else {
+        'error': f'{module} on the operator host exited with {status} and no answer'}
+    if 'error' in result:
+        raise GraphError(result['error'])
+    result['wan'] = {**info, 'stats': net.stats}
+    return result
+
+
+def on_hosts_main(spec_file: str, work: Callable[[dict], dict]) -> int:
+    """Run `work(spec)` as run_on_hosts's child: its answer, or its GraphError, to the spec's answer file."""
+    spec = json.loads(Path(spec_file).read_text())
+    spec['hosts'] = {h: tuple(r) for h, r in spec['hosts'].items()}
+    # This process is not the command line's: its progress goes to the same stderr, in the same form.
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter('testbed: %(message)s'))
+    package = logging.getLogger('controlled_islanding')
+    package.handlers[:] = [handler]
+    package.setLevel(logging.INFO)
+    package.propagate = False
+    try:
+        result = work(spec)
+    except GraphError as exc:
+        result = {'error': str(exc)}
+    except KeyboardInterrupt:
+        return 130
+    atomic.write_text(Path(spec['answer']), json.dumps(result, indent=1, default=str))
+    return 0 if 'error' not in result else 2
+
+
+def _on_hosts(path: Path, results: Path, args: TestbedSettings) -> dict:
+    scenario = check_scenario(path)
+    result = run_on_hosts(host_roles(args.hosts), args.link, results / scenario.name / 'wan', __name__,
+                          {'path': str(path), 'results': str(results), 'settings': asdict(args)})
+    atomic.write_text(results / scenario.name / 'result.json', json.dumps(result, indent=1, default=str))
+    return result
+
+
+def _scenario_on_host(spec: dict) -> dict:
+    settings = dict(spec['settings'], link=wan.LinkModel(**spec['settings']['link']))
+    return _run_scenario(Path(spec['path']), Path(spec['results']), TestbedSettings(**settings), {},
+                         hosts=spec['hosts'], netns=spec['netns'])
+
+
+def _run_scenario(path: Path, results: Path, args: TestbedSettings, cache: dict,
+                  hosts: dict[str, tuple[str, ...]] | None = None, netns: dict[str, str] | None = None) -> dict:
     import numpy as np
 
     from controlled_islanding.sim.closed_loop import LoopConfig, run_offline
@@ -221,14 +354,15 @@ def _run_scenario(path: Path, results: Path, args: TestbedSettings, cache: dict)
     quiet = args.quiet
     scenario = check_scenario(path)
     out = results / scenario.name
-    out.mkdir(parents=True)
+    out.mkdir(parents=True, exist_ok=hosts is not None)  # on hosts, the WAN's folder is in it already
     config = LoopConfig(breaker_operating_s=args.breaker_operating_s, shed_delay_s=args.shed_delay_s,
                         run_after_s=args.run_after_s)
     params = {'breaker_operating_s': args.breaker_operating_s, 'shed_delay_s': args.shed_delay_s,
               'run_after_s': args.run_after_s, 'trigger': args.trigger.replace('-', '_')}
     _say(quiet, f'{scenario.name}: closed loop')
     obs, report = run_closed_loop(path, out, rate=args.rate, params=params, timeout_s=args.timeout_s, quiet=quiet,
-                                  namespace=namespace_name(args.namespace), estimator=args.estimator)
+                                  namespace=namespace_name(args.namespace), estimator=args.estimator, hosts=hosts,
+                                  netns=netns)
     decision = _decision(obs, report['request_id'])
     loop = report['outcome']
     if args.trigger != 'scenario':
@@ -381,3 +515,7 @@ def run_all(paths: list[Path], results_dir: Path, settings: TestbedSettings,
         after_each(results, [p.stem for p in paths[i + 1:]] + failures)
     atomic.write_text(results_dir / 'testbed.json', json.dumps(results, indent=1, default=str))
     return results, failures
+
+
+if __name__ == '__main__':
+    sys.exit(on_hosts_main(sys.argv[1], _scenario_on_host))

@@ -5,7 +5,9 @@ other end of every `wan0` is one emulator process (`python -m controlled_islandi
 reads each IPv4 packet a host sends and writes it into the destination host's `wan0` after a one-way delay with
 jitter, or drops it (seeded Bernoulli loss per packet and destination). A packet to a multicast or broadcast
 address (DDS discovery uses 239.255.0.1) is copied to every other host. This replaces `tc netem` on veth links,
-which the kernel here does not offer (no sch_netem: "Specified qdisc kind is unknown").
+which the kernel here does not offer (no sch_netem: "Specified qdisc kind is unknown"). A partition
+(`set_partitions`, from any process: a file the emulator watches) drops every packet between two hosts, both
+ways, until it is healed.
 
 One host, `operator`, holds the replay's observer and recorder. What it sends (arming, probe requests) crosses the
 WAN like any host's traffic, but what it receives is a monitoring tap: no delay and no loss, so that the latency
@@ -237,6 +239,7 @@ class EmulatedWan:
         self.addresses = {h: f'{SUBNET}.{i + 1}' for i, h in enumerate(self.hosts)}
         self.views: dict[str, dict[str, list[str]]] = {}
         self.stats: dict = {}
+        self.control_file = self.work_dir / 'wan_partitions.json'
         self._emulator: subprocess.Popen | None = None
         self._made: list[str] = []
         self._sigterm: contextlib.AbstractContextManager | None = None
@@ -268,7 +271,9 @@ class EmulatedWan:
     def _start_emulator(self) -> None:
         config = {'hosts': [{'name': h, 'netns': self.namespaces[h], 'address': self.addresses[h],
                              'tap': h == OPERATOR} for h in self.hosts],
-                  'link': asdict(self.link), 'stats_file': str(self.work_dir / 'wan_stats.json')}
+                  'link': asdict(self.link), 'stats_file': str(self.work_dir / 'wan_stats.json'),
+                  'control_file': str(self.control_file)}
+        set_partitions(self.control_file, [])
         log = open(self.work_dir / 'wan_emulator.log', 'ab')
         self._emulator = subprocess.Popen(
             [sys.executable, '-m', 'controlled_islanding.graph.wan', json.dumps(config)], stdout=subprocess.PIPE,
@@ -292,6 +297,34 @@ class EmulatedWan:
         """Return the argv prefix that runs a command on a host (in its namespace)."""
         return prefix(self.namespaces[host])
 
+    def run_on_operator(self, argv: Sequence[str]) -> int:
+        """Run a command on the operator's host until it ends, the emulator fails, or we are interrupted.
+
+        The command is a fresh process: a DDS participant takes its network from the process it lives in, and one
+        made earlier in this process (a test suite's, or a loopback run's) left Fast DDS sending the new one's
+        traffic to loopback only. Returns its exit status.
+
+        Raises:
+            WanError: The emulator ended first (the command is stopped).
+
+        """
+        child = subprocess.Popen([*self.prefix(OPERATOR), *argv], stdin=subprocess.DEVNULL)
+        try:
+            while child.poll() is None:
+                self.check_alive()
+                time.sleep(0.2)
+            return child.returncode
+        finally:
+            # Interrupted: a terminal's Ctrl-C reached the child too, and a second SIGINT could cut its clean-up
+            # short, so it gets a moment first; a SIGTERM or an emulator failure reached only us.
+            for action in (None, signal.SIGINT, signal.SIGKILL):
+                if child.poll() is not None:
+                    break
+                if action is not None:
+                    child.send_signal(action)
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    child.wait(timeout=2.0 if action is None else 20.0)
+
     def __exit__(self, *exc_info: object) -> None:
         if self._emulator is not None:
             if self._emulator.poll() is None:
@@ -312,6 +345,14 @@ class EmulatedWan:
         if self._sigterm is not None:
             self._sigterm.__exit__(None, None, None)
             self._sigterm = None
+
+
+def set_partitions(control_file: Path, pairs: Sequence[tuple[str, str]]) -> None:
+    """Cut the WAN between each pair of hosts (both ways), and heal every pair not named; [] heals them all.
+
+    `control_file` is EmulatedWan.control_file; the emulator takes a change within about 50 ms.
+    """
+    atomic.write_text(Path(control_file), json.dumps({'partitions': [sorted(p) for p in pairs]}) + '\n')
 
 
 # ----- the emulator process -----------------------------------------------------------------------------------
@@ -354,11 +395,31 @@ class _Emulator:
         self.seq = 0
         self.pairs: dict[str, dict[str, int]] = {}
         self.other = {'not_ipv4': 0, 'unroutable': 0, 'write_failed': 0}
+        self.control_file = Path(config['control_file']) if config.get('control_file') else None
+        self.control_mtime_ns = -1
+        self.control_read_s = -1.0
+        self.partitioned: set[frozenset[str]] = set()
         self.late_ms: list[float] = []
         self.stop = False
 
     def _pair(self, src: str, dst: str) -> dict[str, int]:
-        return self.pairs.setdefault(f'{src}->{dst}', {'packets': 0, 'bytes': 0, 'dropped': 0})
+        return self.pairs.setdefault(f'{src}->{dst}', {'packets': 0, 'bytes': 0, 'dropped': 0, 'partitioned': 0})
+
+    def read_control(self) -> None:
+        """Take the partitions of the control file if it changed (a file replaced whole: atomic.write_text)."""
+        now = time.monotonic()
+        if self.control_file is None or now - self.control_read_s < 0.02:
+            return
+        self.control_read_s = now
+        try:
+            mtime_ns = self.control_file.stat().st_mtime_ns
+            if mtime_ns == self.control_mtime_ns:
+                return
+            pairs = json.loads(self.control_file.read_text())['partitions']
+        except (OSError, ValueError, KeyError):
+            return
+        self.control_mtime_ns = mtime_ns
+        self.partitioned = {frozenset(p) for p in pairs}
 
     def receive(self, src: str, packet: bytes, now: float) -> None:
         if len(packet) < 20 or packet[0] >> 4 != 4:
@@ -375,6 +436,9 @@ class _Emulator:
         link = self.link
         for dst in targets:
             pair = self._pair(src, dst)
+            if frozenset((src, dst)) in self.partitioned:
+                pair['partitioned'] += 1
+                continue
             if dst in self.tap:
                 due = now  # the operator's tap sees a packet as it leaves its sender
             else:
@@ -410,6 +474,7 @@ class _Emulator:
             except InterruptedError:
                 continue
             now = time.monotonic()
+            self.read_control()
             for fd in readable:
                 src = self.host_of_fd[fd]
                 for _ in range(64):  # drain a burst without starving the other hosts
@@ -464,7 +529,7 @@ def run_emulator(config: dict) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the emulator process (started by EmulatedWan)."""
     parser = argparse.ArgumentParser(description='the emulated WAN between the host namespaces (internal)')
-    parser.add_argument('config', help='JSON: hosts [{name, netns, address, tap}], link, stats_file')
+    parser.add_argument('config', help='JSON: hosts [{name, netns, address, tap}], link, stats_file, control_file')
     return run_emulator(json.loads(parser.parse_args(argv).config))
 
 

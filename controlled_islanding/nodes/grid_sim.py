@@ -17,12 +17,13 @@ trajectories to `<report_file>.npz`, and exits.
 Time. Stamps are sim time plus sim/bag.START_TIME_UNIX_S, as in the bags, and /clock carries it.
 - `rate: 0` (default), lockstep: the simulation runs as fast as it can, but before it publishes the request it
   waits until /rotor_angles has caught up with the newest frame (at most `angles_wait_s` wall), and then it does
-  not step past the request until the decision for it has come (at most `decision_timeout_s` wall) and, for a
-  split, its breaker commands (at most `command_wait_s` wall after the decision; fewer than the cut's branches
-  is reported). Frames tagged at or before the request but delivered after it (delay impairments) are sent
-  while it waits. Sim time is frozen while the graph works, so the wall time from publishing the request to
-  receiving the command is charged to sim time: the branch opens at request + that latency +
-  breaker_operating_s.
+  not step past the request until the decision for it has come (at most `decision_timeout_s` wall; after each
+  third of it without one, the request is sent again with its id, as bag_player does) and, for a split, its
+  breaker commands (at most `command_wait_s` wall after the decision; fewer than the cut's branches is
+  reported). Frames tagged at or before the request but delivered after it (delay impairments) are sent while it
+  waits, and /clock is published again every 50 ms (wall), for a node restarted meanwhile. Sim time is frozen
+  while the graph works, so the wall time from publishing the request to receiving the command is charged to
+  sim time: the branch opens at request + that latency + breaker_operating_s.
 - `trigger: out_of_step` (default `scenario`): the request is not the scenario's but published at the first step
   where the measured rotor angles (/rotor_angles, against the first ones received) show two machines more than
   90 deg apart while no delivered PMU voltage is below 0.5 pu (sim/closed_loop.out_of_step); the run is then
@@ -89,6 +90,8 @@ from controlled_islanding.wire import topics
 from controlled_islanding.wire.messages import dynamic_data_fields
 
 ASSESSMENT_TOPIC = '/grid/assessment'
+_CLOCK_HEARTBEAT_S = 0.05
+_REQUEST_ATTEMPTS = 3
 _START_NS = START_TIME_UNIX_S * 1_000_000_000
 
 
@@ -196,6 +199,8 @@ class GridSimNode(Node):
             (topics.BRANCH_STATUS, BranchStatus), (topics.ISLANDING_REQUEST, IslandingRequest))}
         self.pubs = pub
         self.clock_pub = self.create_publisher(Clock, topics.CLOCK, qos_for(topics.CLOCK))
+        self.clock_s: float | None = None  # the last /clock published, sim s, and when (wall, monotonic s)
+        self.clock_wall_s = 0.0
         self.assessment_pub = self.create_publisher(DiagnosticArray, topics.relative(ASSESSMENT_TOPIC),
                                                     qos_for(topics.DIAGNOSTICS))
         self.create_subscription(BreakerCommand, topics.relative(topics.BREAKER_COMMANDS), self._on_command,
@@ -250,8 +255,13 @@ class GridSimNode(Node):
             self._exec.spin_once(timeout_sec=0.0 if seconds <= 0 else min(0.02, max(0.0, end - time.monotonic())))
             if done() or time.monotonic() >= end:
                 return done()
+            # While it waits, /clock is said again: a node started meanwhile (restarted by the supervisor) has no
+            # clock until it hears one, and rclpy reads /clock best effort (bag_player's clock_heartbeat_s).
+            if self.clock_s is not None and time.monotonic() - self.clock_wall_s >= _CLOCK_HEARTBEAT_S:
+                self._publish_clock(self.clock_s)
 
     def _publish_clock(self, t_s: float) -> None:
+        self.clock_s, self.clock_wall_s = t_s, time.monotonic()
         self.clock_pub.publish(Clock(clock=_stamp(t_s)))
 
     def _status(self, t_s: float, branch_id: str, in_service: bool) -> None:
@@ -414,8 +424,19 @@ class GridSimNode(Node):
         # Lockstep: hold the simulation at the request; frames already tagged go out while we wait.
         self._deliver(request_s, tags_up_to_s=request_s)
         t0 = time.monotonic()
-        got = self._spin(float(self.get_parameter('decision_timeout_s').value),
-                         lambda: self.request_id in self.decisions)
+        # In thirds, the request sent again with its id after each, as bag_player does: a partitioning node the
+        # supervisor restarted lost the volatile request; one that has it answers each id once.
+        for attempt in range(_REQUEST_ATTEMPTS):
+            if attempt:
+                self.get_logger().warning(f'lockstep: re-sending the islanding request ({attempt} of '
+                                          f'{_REQUEST_ATTEMPTS - 1})')
+                self.events.append({'what': 'request sent again', 'request_id': self.request_id,
+                                    'after_wall_s': time.monotonic() - t0})
+                self.pubs[topics.ISLANDING_REQUEST].publish(msg)
+            got = self._spin(float(self.get_parameter('decision_timeout_s').value) / _REQUEST_ATTEMPTS,
+                             lambda: self.request_id in self.decisions)
+            if got:
+                break
         decision = self.decisions.get(self.request_id)
         if not got or decision is None:
             self.get_logger().warning('lockstep: no decision for the request within decision_timeout_s')
