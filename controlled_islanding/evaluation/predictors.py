@@ -25,7 +25,6 @@ import numpy as np
 from controlled_islanding.core.stability import TIME_TO_ACT_S
 
 _FIELDS = ('v_mag_pu', 'v_angle_rad', 'i_mag_pu', 'i_angle_rad', 'frequency_hz', 'rocof_hz_per_s')
-_NOMINALS_HZ = (50.0, 60.0)
 
 
 class PredictionStudyError(ValueError):
@@ -81,16 +80,6 @@ class MonitorInputs:
         return len(set(self.truth.values()))
 
 
-def nominal_hz(frequency_hz: np.ndarray) -> float:
-    """Return the standard nominal frequency (50 or 60 Hz) nearest the PMUs' median reported frequency."""
-    f = np.asarray(frequency_hz, dtype=float)
-    f = f[np.isfinite(f)]
-    if not f.size:
-        raise PredictionStudyError('no PMU reported a frequency: the nominal frequency is unknown')
-    median = float(np.median(f))
-    return min(_NOMINALS_HZ, key=lambda f0: abs(f0 - median))
-
-
 def _columns(station_ids: Sequence[str], buses, generators) -> list[int]:
     """Each generator's PMU channel: its own ('<station>/<name>') if it has one, else its bus's."""
     buses = np.asarray(buses)
@@ -143,13 +132,13 @@ def monitor_inputs(run: ScenarioRun) -> MonitorInputs:
     interpolated). The rows returned are those answers, sorted by time tag, late duplicates of a tag dropped.
     """
     from controlled_islanding.core.bad_data import BadDataDetector
-    from controlled_islanding.core.dse import MachineData, StreamingDSE
+    from controlled_islanding.core.dse import DSEError, MachineData, StreamingDSE, nominal_hz
 
     channels, gens = run.channels, run.grid.generators
     try:
         cols = _columns(channels.station_ids, channels.buses, gens)
         f0 = nominal_hz(channels.frequency_hz)
-    except PredictionStudyError as exc:
+    except (PredictionStudyError, DSEError) as exc:
         raise PredictionStudyError(f'{run.source}: {exc}; a predictor needs every generator') from None
     stream = StreamingDSE(MachineData.of_generators(gens), run.rate_fps, 0.1, history_s=1.0, freq_hz=f0)
     detector = BadDataDetector()

@@ -86,7 +86,7 @@ from controlled_islanding.sim.closed_loop import (
 from controlled_islanding.sim.pmu import Frame, PmuStream
 from controlled_islanding.sim.scenario import ScenarioError, load_scenario
 from controlled_islanding.wire import topics
-from controlled_islanding.wire.messages import dynamic_data_fields
+from controlled_islanding.wire.messages import dynamic_data_fields, nominal_frequency_hz
 
 ASSESSMENT_TOPIC = '/grid/assessment'
 _START_NS = START_TIME_UNIX_S * 1_000_000_000
@@ -104,7 +104,8 @@ def _sim_s(stamp: Any) -> float:
 def snapshot_msg(grid: Grid) -> NetworkSnapshot:
     """Return the NetworkSnapshot of a grid, stamped at sim time 0 (as sim/bag.py writes it)."""
     msg = NetworkSnapshot(
-        case_name=grid.name, base_mva=float(grid.base_mva), bus_numbers=[int(b) for b in grid.buses],
+        case_name=grid.name, base_mva=float(grid.base_mva), nominal_frequency_hz=nominal_frequency_hz(grid),
+        bus_numbers=[int(b) for b in grid.buses],
         branch_ids=[b.branch_id for b in grid.branches], branch_breaker_ids=[b.breaker for b in grid.branches],
         branch_from_bus=[b.from_bus for b in grid.branches], branch_to_bus=[b.to_bus for b in grid.branches],
         branch_in_service=[b.in_service for b in grid.branches],
