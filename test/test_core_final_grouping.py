@@ -88,3 +88,15 @@ def test_a_late_or_incomplete_frame_is_skipped_not_fatal() -> None:
     assert watch.update(t - 0.5, np.array(d), np.array(w), np.array(pe), np.array(v)) is None
     assert watch.update(t + 0.1, np.array([d[0], math.nan]), np.array(w), np.array(pe), np.array(v)) is None
     assert watch.skipped_ == 2 and watch.frames_ == len(frames)
+
+
+def test_a_new_swing_asks_again_only_for_a_separation_inside_a_group_already_asked_for() -> None:
+    """After the islanding (a switching) the islands drift apart along the cut asked for: no second request."""
+    frames = smib(1.1 * T_CR_S, end_s=2.5)
+    watch = SwingWatch(machines())
+    t_first, _ = feed(watch, [f for f in frames if f[0] <= 1.9])[0]
+    # The cut opens: every terminal voltage steps, a switching no measurement error explains.
+    opened = [(t, d, w, pe, [x * 0.9 for x in v]) for t, d, w, pe, v in frames if t > 1.9]
+    assert feed(watch, opened) == []
+    assert watch.alarm_ is not None and watch.alarm_.raised_s > t_first, 'the new swing did predict the separation'
+    assert watch.raised_groups_.tolist() == [0, 1]

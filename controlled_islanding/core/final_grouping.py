@@ -16,7 +16,10 @@ is raised at the first frame at which the chosen predictor (SIME, docs/predictio
 the grid separates, once per swing; a later confident prediction in the same swing updates the groups that stand
 (a later request is answered with what is known then) but raises nothing, and while the swing returns nothing is
 raised at all. A new switching (a second fault, a trip, the islanding itself) starts a new swing, which must
-alarm on its own.
+alarm on its own; and its alarm is raised only when it splits a group of the last alarm raised further (a new
+separation inside a group already asked for). After the islanding the islands drift apart, and the predictor
+rightly sees them separate along the cut already asked for: asking again would only repeat the decision, its load
+sheds included (a Kundur closed loop shed bus 8's 175 MW twice).
 
 Which splits come back: the DTW rule splits pairs it sees heading for a pole slip, by their drift over the window
 or their run from rest. The watch's own verdict on the same split (the OMIB of one group against the rest, on the
@@ -80,6 +83,7 @@ class SwingWatch:
     Attributes:
         predictor: The SIMEPredictor, as after the latest frame taken.
         alarm_: The alarm standing after the latest frame (None: none in the present swing).
+        raised_groups_: The groups of the last alarm raised (None before the first).
         frames_: Frames taken (usable ones, in time-tag order).
         skipped_: Frames not taken: a time tag not after the latest one taken, or a machine without angle or speed.
 
@@ -90,6 +94,7 @@ class SwingWatch:
         self.predictor = SIMEPredictor(machines, **settings)
         self.keep_s = float(keep_s)
         self.alarm_: Alarm | None = None
+        self.raised_groups_: np.ndarray | None = None
         self.frames_ = 0
         self.skipped_ = 0
         self._times: deque[float] = deque()
@@ -122,7 +127,9 @@ class SwingWatch:
             first = self.alarm_ is None
             self.alarm_ = Alarm(t, p.groups_.copy(), float(p.first_slip_s_), float(p.confidence_), float(swing),
                                 t if first else self.alarm_.raised_s)
-            raised = self.alarm_ if first else None
+            if first and _refines(self.alarm_.groups, self.raised_groups_):
+                raised = self.alarm_
+                self.raised_groups_ = self.alarm_.groups
         self._times.append(t)
         self._states.append(self.alarm_)
         while self._times and self._times[0] < t - self.keep_s:
@@ -174,6 +181,13 @@ def warm_up(z_alarm: float = 3.0) -> None:
     breaker_command older than max_decision_age_s.
     """
     _chi2_bound(z_alarm, 10)
+
+
+def _refines(groups: np.ndarray, before: np.ndarray | None) -> bool:
+    """Whether groups split some group of `before` (always, when nothing was raised before)."""
+    if before is None:
+        return True
+    return any(len(np.unique(groups[before == g])) > 1 for g in np.unique(before))
 
 
 def _centre(x: np.ndarray, members: np.ndarray, m: np.ndarray) -> float:
