@@ -81,9 +81,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='run nothing: rebuild the table, --markdown and --figures-dir from a results folder of an '
                              'earlier (or still running) testbed run; scenarios not finished yet are listed as missing')
     parser.add_argument('--no-baselines', action='store_true', help='skip the no-action and MILP runs')
-    parser.add_argument('--trigger', choices=('scenario', 'out-of-step'), default='scenario',
-                        help="where the islanding request comes from: the scenario's time (default), or grid_sim's "
-                             'out-of-step trigger on the measured rotor angles (sim/closed_loop.out_of_step)')
+    parser.add_argument('--trigger', choices=('scenario', 'out-of-step', 'monitor'), default='scenario',
+                        help="where the islanding request comes from: the scenario's time (default, the paper's "
+                             "operator), grid_sim's out-of-step trigger on the measured rotor angles "
+                             '(sim/closed_loop.out_of_step), or the stability monitor alone '
+                             '(nodes/stability_monitor.py: a request only for a swing predicted to separate, with its '
+                             'groups; none for one '
+                             "predicted to return, the run then judged from the scenario's request time as no action)")
     parser.add_argument('--timeout', type=float, default=900.0, help='give up on one closed-loop run after this, s')
     parser.add_argument('--namespace', default='', metavar='NS',
                         help='run the graph and grid_sim in this ROS namespace, e.g. /area1 (default: the root one)')
