@@ -26,7 +26,8 @@ or their run from rest. The watch's own verdict on the same split (the OMIB of o
 present swing) overrules it when it is confident that the split returns (z at or below -z_alarm: the equal-area
 margin is positive by as many standard errors as an alarm needs, or no unstable equilibrium lies ahead), and so
 does the measured motion when the pair is already heading back (the groups' inertia-weighted centres approach
-each other, by the filter's speeds) without having slipped a pole: a separation not under way is no separation.
+each other, by the filter's speeds): a separation not under way is no separation. Neither overrules a pair that
+has already slipped a pole (pi rad from where it rested): that separation is measured, not predicted.
 A verdict in doubt leaves the rule's split standing: a split the rule sees and nothing contradicts is not
 thrown away.
 """
@@ -145,9 +146,10 @@ class SwingWatch:
     def returning(self, labels: np.ndarray) -> np.ndarray:
         """Return, for each two groups of labels, whether their split is predicted or seen to come back now.
 
-        The split of groups a and b comes back when the predictor's verdict on the OMIB of a against b (present
-        swing) is confidently stable (z <= -z_alarm), or when a and b are heading back towards each other by the
-        filter's speeds, less than a pole slip (pi rad) from where they rested. Judged on the latest frame taken.
+        The split of groups a and b comes back when they are less than a pole slip (pi rad) from where they rested
+        and the predictor's verdict on the OMIB of a against b (present swing) is confidently stable
+        (z <= -z_alarm), or they are heading back towards each other by the filter's speeds. Judged on the latest
+        frame taken.
 
         Returns:
             Symmetric (k, k) bool matrix; False on the diagonal and wherever nothing is known.
@@ -167,9 +169,10 @@ class SwingWatch:
                 lead, lag = np.flatnonzero(labels == a), np.flatnonzero(labels == b)
                 sep = _centre(delta - self._rest, lead, m) - _centre(delta - self._rest, lag, m)
                 speed = _centre(omega, lead, m) - _centre(omega, lag, m)
-                back = abs(sep) < POLE_SLIP_RAD and sep * speed < 0
+                if abs(sep) >= POLE_SLIP_RAD:
+                    continue  # a pole already slipped: a separation measured, whatever comes next
                 verdict = self.predictor.verdict(lead, lag)
-                out[a, b] = out[b, a] = back or verdict.z <= -z_bar
+                out[a, b] = out[b, a] = sep * speed < 0 or verdict.z <= -z_bar
         return out
 
 
