@@ -49,6 +49,7 @@ class MonitorRun:
 
     Attributes:
         name, source, system: Scenario name, where it came from, its case file.
+        scenario_path: The scenario YAML (a bag's from its manifest entry), to find its closed loop.
         truth: Generator name -> final group; first_pole_slip_s: s, None if never.
         requests: Every request raised, in order.
         clearings_s: When the scenario's faults clear, s.
@@ -66,6 +67,13 @@ class MonitorRun:
     requests: list[Request]
     clearings_s: tuple[float, ...] = ()
     cpu_ms_per_frame: float = math.nan
+    scenario_path: Path | None = None
+
+    def loop(self, loops: dict[str, ClosedLoop]) -> ClosedLoop | None:
+        """Return this scenario's closed loop: by its scenario file, else by name (a bag and a file may share one)."""
+        if self.scenario_path is not None and str(self.scenario_path.resolve()) in loops:
+            return loops[str(self.scenario_path.resolve())]
+        return loops.get(self.name)
 
     @property
     def stable(self) -> bool:
@@ -107,7 +115,18 @@ def watch_run(run) -> MonitorRun:
                                     float(alarm.first_slip_s)))
     return MonitorRun(inputs.name, inputs.source, str(run.grid.name), inputs.freq_hz, len(inputs.generator_names),
                       inputs.truth, inputs.first_pole_slip_s, requests, inputs.clearings_s,
-                      1e3 * cpu / max(len(inputs.t_s), 1))
+                      1e3 * cpu / max(len(inputs.t_s), 1), _scenario_path(inputs.source, inputs.name))
+
+
+def _scenario_path(source: str, name: str) -> Path | None:
+    """Return the scenario YAML of a run: the --andes file, or the bag's from bags/index.yaml beside it."""
+    from controlled_islanding.sim.manifest import entry_for_bag
+
+    if source.startswith('ANDES '):
+        return Path(source.removeprefix('ANDES '))
+    entry = entry_for_bag(Path(source)) or {}
+    path = Path(source).parent / str(entry.get('scenario', f'{name}.yaml'))
+    return path if path.is_file() else None
 
 
 @dataclass
@@ -137,7 +156,10 @@ class ClosedLoop:
 
 
 def read_testbed(folders: Sequence[Path]) -> dict[str, ClosedLoop]:
-    """Return each scenario's closed loop from `testbed --trigger monitor` results folders (*/result.json)."""
+    """Return each scenario's closed loop from `testbed --trigger monitor` results folders (*/result.json).
+
+    Keyed by the scenario file's resolved path, and by the scenario's name.
+    """
     out: dict[str, ClosedLoop] = {}
     for folder in folders:
         for path in sorted(Path(folder).glob('*/result.json')):
@@ -153,6 +175,8 @@ def read_testbed(folders: Sequence[Path]) -> dict[str, ClosedLoop]:
             if asks and not from_monitor:
                 item.notes.append(f'{path.parent}: a request not from the monitor (not a --trigger monitor run)')
             out[r['scenario']] = item
+            if r.get('path'):
+                out[str(Path(r['path']).resolve())] = item
     return out
 
 
@@ -208,10 +232,10 @@ def report(runs: Sequence[MonitorRun], loops: dict[str, ClosedLoop], run_note: s
              + (f'{np.median(leads):.2f} ({min(leads):.2f})' if leads else '-') + ' |',
              f'| CPU per frame, ms: median (most) | {np.median([r.cpu_ms_per_frame for r in runs]):.2f} '
              f'({max(r.cpu_ms_per_frame for r in runs):.1f}) |']
-    looped = [r for r in runs if r.name in loops]
+    looped = [r.loop(loops) for r in runs if r.loop(loops) is not None]
     if looped:
         lines.append(f'| closed loop with the monitor as trigger | {len(looped)} scenarios; oracle for '
-                     f'{sum(loops[r.name].oracle_mw is not None for r in looped)} |')
+                     f'{sum(loop.oracle_mw is not None for loop in looped)} |')
     lines += ['', '| scenario | system, f0 | machines | final k | first slip, s | requests: time, s (lead), k | '
               'groups | closed loop MW | no action MW | oracle MW | acceptance |',
               '|---|---|---:|---:|---:|---|---|---:|---:|---:|---|']
@@ -221,7 +245,7 @@ def report(runs: Sequence[MonitorRun], loops: dict[str, ClosedLoop], run_note: s
                                                   if r.first_pole_slip_s is not None else '')
                          + f' k={len(set(q.groups.values()))}' for q in r.requests) or 'none'
         groups = '-' if not r.requests else ('right' if r.groups_right else 'WRONG')
-        loop = loops.get(r.name)
+        loop = r.loop(loops)
         met, why = verdict(r, loop)
         mark = {True: 'met', False: 'NOT MET', None: 'open'}[met]
         lines.append(f'| {r.name} | {r.system}, {r.freq_hz:g} Hz | {r.n_machines} | {len(set(r.truth.values()))} | '
@@ -256,7 +280,7 @@ def write_page(runs: Sequence[MonitorRun], loops: dict[str, ClosedLoop], path: P
     """Write the page (docs/monitor.md)."""
     from controlled_islanding.atomic import write_text
 
-    notes = [n for loop in loops.values() for n in loop.notes]
+    notes = list(dict.fromkeys(n for loop in loops.values() for n in loop.notes))
     missed = []
     for r in runs:
         if not r.stable and (r.lead_s or 0) <= 0:
