@@ -26,6 +26,7 @@ from controlled_islanding.core.grid import Grid
 from controlled_islanding.core.remedial import bus_load_mw, remedial_actions
 from controlled_islanding.graph.supervisor import GRAPH
 from controlled_islanding.harness import breaker_soak
+from controlled_islanding.ros.diagnostics import DECISIONS_HANDLED
 from controlled_islanding.safety import signing
 from controlled_islanding.wire import topics
 
@@ -248,7 +249,10 @@ def test_breaker_rules_on_a_real_process(tmp_path):
         send(probe, suspect)
         # Decisions: 5 above, the refused actions, the forged one and the NO_SPLIT with actions, 2 after the
         # reclosure; branch statuses: one per cut branch; then the bad ones and the 3 not to act on.
-        assert handled(probe, base + 5 + len(bad_actions) + 2 + 2 + len(cut) + len(bad) + 3)
+        decisions = 5 + len(bad_actions) + 2 + 2 + len(bad) + 3
+        assert handled(probe, base + decisions + len(cut))
+        # Every decision it finished with, refused or not, is counted (a replay's player waits on this count).
+        assert probe.wait_counter(NODE, DECISIONS_HANDLED, decisions) == decisions
         probe.spin_for(0.3)
         assert len(commands) == n_commands, 'a refused decision produced a command'
 

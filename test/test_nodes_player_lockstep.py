@@ -150,3 +150,74 @@ def test_a_request_lost_by_a_restarted_partitioning_is_sent_again_with_the_same_
         log = sup.log_tail('bag_player')
     assert requests == ['req-1', 'req-1'], (requests, log)
     assert 're-sending the islanding request (1 of 2)' in log and '(2 of 2)' not in log, log
+
+
+HANDLE_S = 1.0  # how long the stand-in breaker_command takes to handle the decision, wall s
+
+
+def test_clock_stays_at_the_request_until_breaker_command_says_it_handled_the_decision():
+    """/clock moves past a request only once breaker_command has handled its decision, however long it takes.
+
+    breaker_command refuses a decision older than max_decision_age_s on its clock; it says at once in its
+    /diagnostics (decisions_handled) that it has handled one.
+    """
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    from controlled_islanding.ros.diagnostics import DECISIONS_HANDLED
+
+    run, bag = fresh_bag('handled')
+    with graph('test_nodes_player_handled', []) as (sup, probe):
+        node = probe.node
+        angles_pub, groups_pub, decision_pub = pipeline_publishers(node)
+        breaker = rclpy_node('breaker_command', probe)  # a stand-in, named as the player expects
+        diag_pub = breaker.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos_for(topics.DIAGNOSTICS))
+        seen: dict[str, float] = {}
+        clocks: list[tuple[float, int]] = []
+
+        def on_frame(frame: PmuFrame) -> None:
+            angles_pub.publish(RotorAngles(header=frame.header, generator_names=['G1', 'G2'],
+                                           generator_buses=[1, 2], angle_rad=[0.0, 0.0], valid=[True, True]))
+            groups = CoherentGroups(generator_names=['G1', 'G2'], group=[0, 1], k=2, method='dtw')
+            groups.header.stamp.sec, groups.header.stamp.nanosec = split_stamp(stamp_s(frame.header.stamp))
+            groups_pub.publish(groups)
+
+        def on_request(msg: IslandingRequest) -> None:
+            seen.setdefault('decision', time.monotonic())
+            decision_pub.publish(IslandingDecision(request_id=msg.request_id, request_stamp=msg.header.stamp,
+                                                   status=IslandingDecision.STATUS_NO_SPLIT))
+
+        def handle() -> bool:
+            if 'decision' in seen and 'handled' not in seen and time.monotonic() >= seen['decision'] + HANDLE_S:
+                status = DiagnosticStatus(name='/breaker_command', values=[KeyValue(key=DECISIONS_HANDLED, value='1')])
+                diag_pub.publish(DiagnosticArray(status=[status]))
+                seen['handled'] = time.monotonic()
+            return player.poll() is not None
+
+        node.create_subscription(PmuFrame, topics.PMU_FRAMES, on_frame, qos_for(topics.PMU_FRAMES))
+        node.create_subscription(IslandingRequest, topics.ISLANDING_REQUEST, on_request,
+                                 qos_for(topics.ISLANDING_REQUEST))
+        breaker.create_subscription(IslandingDecision, topics.ISLANDING_DECISION, lambda m: None,
+                                    qos_for(topics.ISLANDING_DECISION))
+        node.create_subscription(Clock, topics.CLOCK, lambda m: clocks.append(
+            (time.monotonic(), m.clock.sec * 1_000_000_000 + m.clock.nanosec)), qos_for(topics.CLOCK))
+        player = sup.start(PLAYER, {'bag': bag, 'as_fast_as_possible': True, 'report_file': run / 'report.json',
+                                    'lockstep_timeout_s': 5.0, 'clock_min_step_s': 0.05})
+        assert probe.spin_until(handle, 30.0), 'player did not finish'
+        assert player.returncode == 0, sup.log_tail('bag_player')
+        breaker.destroy_node()
+    assert 'handled' in seen, sup.log_tail('bag_player')
+    moved = [t for t, ns in clocks if ns > frame_ns(REQUEST_AT)]
+    assert moved and moved[0] >= seen['handled'], (
+        f'/clock moved past the request {seen["handled"] - moved[0]:.2f} s before breaker_command had handled the '
+        'decision')
+    held = [ns for t, ns in clocks if seen['decision'] + 0.2 <= t <= seen['handled']]
+    assert len(held) >= 5 and set(held) == {frame_ns(REQUEST_AT)}, held
+
+
+def rclpy_node(name: str, probe: object) -> object:
+    """Return another rclpy node in the probe's Context, spun by the probe's executor."""
+    import rclpy
+
+    node = rclpy.create_node(name, context=probe.context)
+    probe.executor.add_node(node)
+    return node

@@ -23,7 +23,7 @@ def test_phases_follow_the_marks_in_order_and_add_up_to_the_total():
                                                                 'total': 1.0}
 
 
-def test_a_bag_that_cannot_be_replayed_is_a_failed_row_and_two_bags_of_one_name_are_refused(tmp_path):
+def test_a_bag_that_cannot_be_replayed_is_a_failed_row_and_a_bag_given_twice_is_refused(tmp_path):
     not_a_bag = tmp_path / 'not_a_bag'
     not_a_bag.mkdir()
     (not_a_bag / 'metadata.yaml').write_text('this is not rosbag2 metadata\n')
@@ -35,8 +35,20 @@ def test_a_bag_that_cannot_be_replayed_is_a_failed_row_and_two_bags_of_one_name_
     parser = argparse.ArgumentParser()
     replay.add_arguments(parser)
     args = parser.parse_args([str(not_a_bag), str(not_a_bag), '--results', str(tmp_path / 'cli')])
-    with pytest.raises(replay.CliError, match='same name'):
+    with pytest.raises(replay.CliError, match='given twice'):
         replay.run(args)
+
+
+def test_bags_of_one_name_in_different_folders_or_linked_under_other_names_each_get_a_folder_of_their_own():
+    from pathlib import Path
+
+    from controlled_islanding.graph.suite import run_names
+
+    # A user's run lists bags as they are laid out: the same recording name at two sites, copies made as links.
+    bags = [Path('bags/x/'), Path('/data/site_a/run1'), Path('/data/site_b/run1'), Path('/old/site_a/run1'),
+            Path('links/kundur_copy1'), Path('links/kundur_copy2')]
+    assert run_names(bags) == ['x', 'data__site_a__run1', 'site_b__run1', 'old__site_a__run1', 'kundur_copy1',
+                               'kundur_copy2']
 
 
 def _row(name: str, **fields: object) -> dict:
@@ -96,3 +108,49 @@ def test_replay_junit_xml_writes_the_report_of_bags_that_cannot_be_replayed(tmp_
     assert (suite.get('tests'), suite.get('errors')) == ('2', '2')
     for case in suite.findall('testcase'):
         assert 'cannot read the bag' in case.find('error').get('message'), ET.tostring(case)
+
+
+def test_a_replay_ends_once_the_breaker_log_holds_every_decision_and_each_command_recorded_was_seen(tmp_path):
+    import json
+    from types import SimpleNamespace
+
+    from controlled_islanding.graph.observer import Observation
+    from controlled_islanding.graph.replay import breaker_done
+
+    obs = Observation()
+    obs.decisions = {f'req-{i}': (float(i), SimpleNamespace(decision_id=f'd{i}')) for i in (1, 2)}
+    log = tmp_path / 'breaker_audit.jsonl'
+    assert not breaker_done(log, obs)  # no log yet
+    records = [{'event': 'start'}, {'event': 'command', 'decision_id': 'd1', 'authenticated': True,
+                                    'commands': [{'command_id': 'd1/CB-1'}, {'command_id': 'd1/CB-2'}]}]
+    log.write_text(''.join(json.dumps(r) + '\n' for r in records))
+    assert not breaker_done(log, obs)  # d2 not handled yet
+    log.write_text(log.read_text() + json.dumps({'event': 'no_split', 'decision_id': 'd2'}) + '\n{"event": "ref')
+    assert not breaker_done(log, obs)  # handled, but d1's commands not seen; a half-written last line is skipped
+    obs.commands = [(3.0, SimpleNamespace(command_id='d1/CB-1'))]
+    assert not breaker_done(log, obs)
+    obs.commands.append((3.1, SimpleNamespace(command_id='d1/CB-2')))
+    assert breaker_done(log, obs)
+
+
+def test_the_progress_bar_is_drawn_on_a_terminal_that_says_it_is_zero_by_zero(monkeypatch, caplog):
+    """A CI runner's pseudo-terminal (or `script`) often reports 0 columns and 0 rows; tqdm then drew nothing."""
+    import logging
+    import os
+
+    from controlled_islanding.commands import progress_bar
+
+    leader, follower = os.openpty()  # a new pseudo-terminal is 0 x 0
+    with open(follower, 'w', closefd=True) as terminal, open(leader, 'rb', closefd=True) as screen:
+        monkeypatch.setattr('sys.stderr', terminal)
+        caplog.set_level(logging.INFO, logger='controlled_islanding')  # as the command line sets it
+        with progress_bar(3, 'replay', 'bag') as bar:
+            bar.update()
+            bar.refresh()
+            terminal.flush()
+            os.set_blocking(screen.fileno(), False)
+            try:
+                drawn = os.read(screen.fileno(), 65536).decode(errors='replace')
+            except BlockingIOError:  # nothing drawn
+                drawn = ''
+    assert '1/3' in drawn and 'bag' in drawn, repr(drawn)

@@ -11,9 +11,11 @@ from pathlib import Path
 
 import pytest
 
+from controlled_islanding.graph.replay import bag_topics
 from controlled_islanding.graph.suite import SuiteRun, replay_suite
 from controlled_islanding.graph.worker import replay_options
 from controlled_islanding.sim.manifest import manifest_entries
+from controlled_islanding.wire import topics
 
 REPO = Path(__file__).resolve().parents[1]
 BAGS = {e['name']: REPO / 'bags' / e['bag'] for e in manifest_entries() if (REPO / 'bags' / e['bag']).exists()}
@@ -68,15 +70,21 @@ def test_bag_after_bag_in_one_worker_decides_and_commands_as_each_bag_alone_and_
     killer.start()
     try:
         # One worker at a time: the first dies in 'killed'; its successor replays a, b and c, one after the other.
+        not_a_bag = tmp_path / 'not_a_bag'
+        not_a_bag.mkdir()
+        (not_a_bag / 'metadata.yaml').write_text('this is not rosbag2 metadata\n')
         report = replay_suite([SuiteRun('killed', ieee14, FAST), SuiteRun('a', ieee14, FAST),
-                               SuiteRun('b', kundur, FAST), SuiteRun('c', kundur, FAST)], tmp_path / 'run', jobs=1,
-                              warm=True)
+                               SuiteRun('b', kundur, FAST), SuiteRun('c', kundur, FAST),
+                               SuiteRun('broken', not_a_bag, FAST)], tmp_path / 'run', jobs=1, warm=True)
     finally:
         stop.set()
     alone = replay_suite([SuiteRun('alone', kundur, FAST)], tmp_path / 'alone', jobs=1, warm=True)
     rows = {r['name']: r for r in report['rows']}
     assert not rows['killed']['ok'] and 'warm worker replaying it died (exit status -9)' in rows['killed']['error']
     assert all(rows[n]['ok'] for n in 'abc'), [rows[n]['error'] for n in 'abc']
+    # A bag the player cannot read is a failed row that says so in one line, and the worker goes on.
+    assert not rows['broken']['ok'] and 'bag_player failed: bag_player could not start: cannot read the bag: ' in \
+        rows['broken']['error'] and 'Traceback' not in rows['broken']['error'], rows['broken']['error']
     worker_logs = {p.name: p.read_text() for p in (tmp_path / 'run').glob('worker-*.log')}
     assert len(worker_logs) == 2 and all(f'replaying {n}' in worker_logs['worker-1.log'] for n in 'abc')
 
@@ -93,3 +101,9 @@ def test_bag_after_bag_in_one_worker_decides_and_commands_as_each_bag_alone_and_
         assert {d['request_id'] for d in summaries[name]['decisions']} == {
             d['request_id'] for d in by_itself['decisions']}
     assert summaries['b']['breaker_commands'][0]['command_id'] != summaries['c']['breaker_commands'][0]['command_id']
+    # A composed graph's summary holds what each node counted once it had taken every message of the bag (read
+    # from the nodes after the play, not their last /diagnostics): every frame and the snapshot, nothing lost.
+    for name, bag in (('a', ieee14), ('b', kundur), ('c', kundur)):
+        ingestion = summaries[name]['diagnostics']['/pmu_ingestion']
+        assert int(ingestion['received']) == bag_topics(bag)[topics.PMU_FRAMES] + 1, (name, ingestion)
+        assert ingestion['lost./pmu/frames'] == '0' and ingestion['missing_frames'] == '0', (name, ingestion)

@@ -7,6 +7,7 @@ CliError, which cli.py prints as one line with exit status 2.
 from __future__ import annotations
 
 import logging
+import shutil
 import sys
 
 
@@ -19,4 +20,8 @@ def progress_bar(total: int, desc: str, unit: str = 'it'):
     from tqdm import tqdm
 
     shown = logging.getLogger('controlled_islanding').isEnabledFor(logging.INFO)
-    return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, leave=False, disable=None if shown else True)
+    # A terminal that says it is 0 x 0 (a CI runner's pseudo-terminal, `script`) made tqdm draw nothing: no width
+    # for the bar, no row to put it on. shutil falls back to 80 x 24 there.
+    size = shutil.get_terminal_size()
+    return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, leave=False, disable=None if shown else True,
+                ncols=size.columns, nrows=size.lines)

@@ -13,7 +13,7 @@ from controlled_islanding.commands import CliError, progress_bar
 from controlled_islanding.graph import GraphError, wan
 from controlled_islanding.graph.replay import replay, replay_repeatedly
 from controlled_islanding.graph.results import running
-from controlled_islanding.graph.suite import SuiteRun, junit_xml, render_suite, replay_suite
+from controlled_islanding.graph.suite import SuiteRun, junit_xml, render_suite, replay_suite, run_names
 from controlled_islanding.graph.summary import graph_failure, refused, render
 
 HELP = 'replay a bag through the ROS 2 node graph and print its islanding decision'
@@ -61,8 +61,9 @@ bag must not inherit: the breaker node's commanded breakers, the time of the las
 domain, in a child process, --jobs of them at once (default 2: a graph's start-up is mostly one process's
 imports at a time, so two graphs keep two cores busier; 17 bags took 211 s instead of 331 s). One report with
 a row per bag (decision, agreement with bags/index.yaml, speed, wall time), the overall speed against real
-time, start-up included, with the load average, and each failed bag with why. --junit-xml FILE writes the same
-as a JUnit XML report for CI. Exit status 1 if any bag went wrong.
+time, start-up included, with the load average, and each failed bag with why. Each bag's results are in a folder
+named as the bag (with its parent folders when two bags share a name: site_a__run1, site_b__run1). --junit-xml
+FILE writes the same as a JUnit XML report for CI. Exit status 1 if any bag went wrong.
 
 Examples (bag names from bags/index.yaml):
   controlled-islanding replay bags/ieee39_g6g7_unstable            real time
@@ -215,9 +216,10 @@ def _run_suite(args: argparse.Namespace) -> int:
         options += ['--estimator', args.estimator]
     if args.trigger != 'bag':
         options += ['--trigger', args.trigger]
-    names = [b.resolve().name for b in args.bag]
-    if len(set(names)) != len(names):
-        raise CliError('two bags have the same name; each needs a results folder of its own')
+    try:
+        names = run_names(args.bag)
+    except ValueError as exc:
+        raise CliError(str(exc)) from exc
     stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
     base = args.results or Path('results') / f'replay-suite-{stamp}'
     with running(base, args.force) as base, progress_bar(len(names), 'replay', 'bag') as bar:

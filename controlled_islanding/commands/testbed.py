@@ -37,8 +37,18 @@ and % of the pre-fault load, in the islands that survived, net of every shed), i
 frequency nadir and peak, lowest voltage, request-to-opening time. --json prints per scenario the coherent groups,
 the decision, the commanded actions and every run (load_served_mw, load_served_pct, all_survived,
 simulation_failed, islands with their reasons in full); progress goes to stderr.
+With --oracle, the best found (evaluation/oracle.py) comes last, searched offline with no graph and the same
+remedial-action rules: every request time from the clearing of the first fault to the no-action run's first
+pole slip, at most --oracle-step-s apart, each with every candidate cut: the exact MILP cut of the true grouping
+(from the simulator's own rotor angles) and of its neighbours (two groups merged, one machine moved to the
+nearest other group, one machine alone), the spectral cut of the true grouping, and the graph's own cut. Each
+candidate is one ANDES run of the whole scenario: identical ones run once, and one whose planned shed leaves it
+unable to beat the best so far is not run. It reports the most load served, when and with which cut (row
+'oracle', and under `oracle` in --json: load_served_mw, request_s, cut_branch_ids, the search), and the gap of
+the closed loop to it. A candidate whose ANDES run fails is listed as failed, not repeated at a smaller step
+(--oracle-remedies repeats it, as the closed loop's runs are, at several times the cost). Progress goes to stderr.
 A figure per scenario shows the rotor angles coloured by the decision's islands and the bus voltages, for no
-action and for the closed loop (as the paper's Figs. 6 and 11).
+action, the closed loop, the MILP cut and the best found (as the paper's Figs. 6 and 11).
 
 With --namespace /area1 the four nodes and grid_sim run in /area1 (/area1/pmu/frames, ..., /area1/clock), as
 with `replay --namespace`; each result lists the graph's topic names.
@@ -50,6 +60,8 @@ times real time instead (ANDES may be slower than that on a busy machine).
 Examples:
   controlled-islanding testbed bags/ieee14_g1_unstable.yaml
   controlled-islanding testbed bags/ieee39_g6g7_unstable.yaml --json
+  controlled-islanding testbed bags/kundur_bus9_unstable.yaml --oracle   the best found too: 84 candidates,
+                                      10 min on a loaded 2-core machine (IEEE 39 G6-G7: 72, 76 min)
   controlled-islanding testbed --all-unstable --markdown docs/testbed.md --figures-dir docs/testbed
                                       every manifest scenario whose expected decision splits (long: minutes each)
 """
@@ -81,6 +93,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='run nothing: rebuild the table, --markdown and --figures-dir from a results folder of an '
                              'earlier (or still running) testbed run; scenarios not finished yet are listed as missing')
     parser.add_argument('--no-baselines', action='store_true', help='skip the no-action and MILP runs')
+    parser.add_argument('--oracle', action='store_true',
+                        help='also search offline for the best found: the most load served over request times and '
+                             'cuts (long: minutes to hours per scenario; see below)')
+    parser.add_argument('--oracle-step-s', type=float, default=0.05,
+                        help="the oracle's largest spacing of request times, s (default 0.05; a coarser grid is "
+                             'allowed on the largest systems, and the report states the step used)')
+    parser.add_argument('--oracle-remedies', action='store_true',
+                        help="repeat an oracle candidate whose ANDES run failed at 1/4, then 1/16, of the step, as the "
+                             "closed loop's runs are (off by default: it multiplies the search's time, 3x on IEEE 39; "
+                             'the failures are listed either way)')
     parser.add_argument('--trigger', choices=('scenario', 'out-of-step', 'monitor'), default='scenario',
                         help="where the islanding request comes from: the scenario's time (default, the paper's "
                              "operator), grid_sim's out-of-step trigger on the measured rotor angles "
@@ -128,6 +150,8 @@ def run(args: argparse.Namespace) -> int:
     for p in paths:
         if not p.exists():
             raise CliError(f'scenario {p} does not exist')
+    if not args.oracle_step_s > 0:
+        raise CliError(f'--oracle-step-s {args.oracle_step_s} must be positive')
     if args.rate < 0:
         raise CliError(f'--rate {args.rate} must be 0 (lockstep) or positive')
     stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
@@ -135,7 +159,9 @@ def run(args: argparse.Namespace) -> int:
     settings = TestbedSettings(rate=args.rate, breaker_operating_s=args.breaker_operating_s,
                                shed_delay_s=args.shed_delay_s, run_after_s=args.run_after_s, trigger=args.trigger,
                                timeout_s=args.timeout, namespace=args.namespace, estimator=args.estimator,
-                               no_baselines=args.no_baselines, quiet=False)  # progress on stderr, --json or not
+                               no_baselines=args.no_baselines, oracle=args.oracle,
+                               oracle_step_s=args.oracle_step_s, oracle_remedies=args.oracle_remedies,
+                               quiet=False)  # progress on stderr, --json or not
 
     def after_each(results: list[dict], missing: list[str]) -> None:
         bar.update()

@@ -60,9 +60,9 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from statistics import NormalDist
 
 import numpy as np
-from scipy.stats import chi2, norm
 
 __all__ = ['BadDataDetector', 'BadDataError', 'REASONS', 'StationVerdict']
 
@@ -136,12 +136,12 @@ class BadDataDetector:
                                f'history_s={history_s}, clean_s={clean_s}, angle_floor_pu={angle_floor_pu}, '
                                f'innovation_false_alarm={innovation_false_alarm}, '
                                f'schedule_tolerance={schedule_tolerance}')
-        self.nis_bound = float(chi2.isf(innovation_false_alarm, 2))
+        self.nis_bound = -2.0 * math.log(innovation_false_alarm)  # chi-square(2) is exponential of mean 2
         self.schedule_tolerance = schedule_tolerance
         self.t_first = math.nan  # the first frame judged, s
         self.at_rest = True  # no frame since the first has shown an event (see _schedule_test)
         self.noise_tve, self.frequency_error_hz, self.window_s = noise_tve, frequency_error_hz, window_s
-        self.z = float(norm.isf(false_alarm / 2))
+        self.z = -NormalDist().inv_cdf(false_alarm / 2)
         self.frozen_frames, self.history_s, self.clean_s = frozen_frames, history_s, clean_s
         self.angle_floor_pu = angle_floor_pu
         self.period_s = math.inf  # the commonest spacing of the stations' recent time tags, s

@@ -335,6 +335,8 @@ class ClosedLoopPanel:
         survived: Whether every island survived (shown in the row title); None: undetermined.
         failed: "simulation failed at t s: reason" (a black line where the trajectories end), or None.
         served_pct: Load served at the end, % of the pre-fault load (shown in the row title), or None.
+        request_s: This run's own islanding request time, s (the dashed line), when not the figure's (the best
+            found's).
 
     """
 
@@ -346,6 +348,7 @@ class ClosedLoopPanel:
     survived: bool | None
     failed: str | None = None
     served_pct: float | None = None
+    request_s: float | None = None
 
 
 def plot_closed_loop(panels: Sequence[ClosedLoopPanel], names: Sequence[str], islands: Sequence[int],
@@ -389,7 +392,8 @@ def plot_closed_loop(panels: Sequence[ClosedLoopPanel], names: Sequence[str], is
         for lim in v_limits_pu:
             ax_v.axhline(lim, color='tab:red', linestyle=':', linewidth=0.8)
         for ax in (ax_a, ax_v):
-            ax.axvline(request_s, color='0.3', linestyle='--', linewidth=0.9)
+            ax.axvline(request_s if panel.request_s is None else panel.request_s, color='0.3', linestyle='--',
+                       linewidth=0.9)
             if panel.opened_s is not None:
                 ax.axvline(panel.opened_s, color='tab:red', linestyle='-', linewidth=0.9)
             if panel.failed is not None and t.size:

@@ -33,11 +33,53 @@ def served_text(run: dict) -> str:
     return f'{run["load_served_mw"]:.0f} ({run["load_served_pct"]:.1f} %)'
 
 
+RUNS = ('no action', 'dtw', 'milp', 'oracle')  # the rows of a scenario, in order; 'oracle' is the best found
+
+
+def _gap(best: dict, run: dict | None) -> str:
+    if run is None:
+        return 'not run'
+    if run.get('simulation_failed') or run.get('load_served_mw') is None:
+        return 'undetermined (its simulation failed)'
+    gap = best['load_served_mw'] - run['load_served_mw']
+    pp = 100.0 * gap / best['pre_fault_load_mw'] if best['pre_fault_load_mw'] > 0 else 0.0
+    if gap < -0.5:
+        return f'none, it serves {-gap:.0f} MW more than the search found'
+    return f'{max(gap, 0.0):.0f} MW ({max(pp, 0.0):.1f} % of the pre-fault load)'
+
+
+def gap_lines(results: list[dict]) -> list[str]:
+    """Return a line per scenario with an oracle run: the best found, how it was searched, each run's gap to it."""
+    out = []
+    for r in results:
+        best = r['runs'].get('oracle')
+        if best is None:
+            if 'oracle_search' in r:
+                why = r['oracle_search'].get('error') or "every run failed, no action's too"
+                out.append(f'- {r["scenario"]}: no best found: {why}.')
+            continue
+        s = best['search']
+        when = ('no action' if best['request_s'] is None else
+                f'cut {", ".join(best["cut_branch_ids"])} at request {best["request_s"]:.3f} s '
+                f'({"; ".join(best["sources"])})')
+        window = (f'{s["request_times"]} request times {s["window_s"][0]:.3f} .. {s["window_s"][1]:.3f} s'
+                  + (f' every {1000 * s["step_s"]:.0f} ms' if s['request_times'] > 1 else '')
+                  if s['first_pole_slip_s'] is not None else 'no request time (no pole slip without action)')
+        gaps = '; '.join(f'{label} {_gap(best, r["runs"].get(label))}' for label in RUNS[:3])
+        out.append(f'- {r["scenario"]}: best found {served_text(best)}, {when}. Searched {window}, '
+                   f'{len(s["groupings"])} groupings, {s["candidates"]} distinct candidates, {s["runs"]} ANDES runs '
+                   f'({s["pruned"]} pruned, {len(s["failed"])} failed'
+                   f'{", repeated at a smaller step" if s.get("remedies") else ", not repeated"}), '
+                   f'every run to {s["end_s"]:.3f} s, '
+                   f'{s["wall_s"] / 60:.1f} min wall. Gap to it: {gaps}.')
+    return out
+
+
 def table_rows(results: list[dict], reason_width: int | None = 80) -> list[list[str]]:
     """Return one row per scenario and run: the comparison table (reasons clipped at a word, or in full)."""
     rows = []
     for r in results:
-        for label in ('no action', 'dtw', 'milp'):
+        for label in RUNS:
             run = r['runs'].get(label)
             if run is None:
                 continue
@@ -49,7 +91,10 @@ def table_rows(results: list[dict], reason_width: int | None = 80) -> list[list[
             else:
                 verdict = f'{ok}/{len(isl)}' + ('' if ok == len(isl) else f' ({why})')
             lost = run['load_lost_mw']
-            rows.append([r['scenario'], label, ', '.join(run['cut_branch_ids']) or 'none', served_text(run),
+            cut = ', '.join(run['cut_branch_ids']) or 'none'
+            if label == 'oracle':
+                cut = 'none (no action)' if run['request_s'] is None else f'{cut} at request {run["request_s"]:.3f} s'
+            rows.append([r['scenario'], label, cut, served_text(run),
                          verdict if reason_width is None else clip(verdict, reason_width),
                          f'{"-" if lost is None else format(lost, ".0f")} ({run["shed_mw"]:.0f} shed)',
                          f'{run.get("rejected_mw", 0.0):.0f}',
@@ -87,7 +132,7 @@ def failure_lines(results: list[dict]) -> list[str]:
     """Return a line per lost island of every closed-loop run, and of a MILP run whose cut differs."""
     out = []
     for r in results:
-        for label in ('dtw', 'milp'):
+        for label in ('dtw', 'milp', 'oracle'):
             run = r['runs'].get(label)
             if run is None or (label == 'milp' and run.get('label', '').startswith('milp (same cut')):
                 continue
@@ -139,6 +184,9 @@ def render(results: list[dict]) -> str:
     lines.append('  '.join(h.ljust(w) for h, w in zip(HEADER, widths, strict=True)))
     for row in table_rows(results):
         lines.append('  '.join(c.ljust(w) for c, w in zip(row, widths, strict=True)))
+    gaps = gap_lines(results)
+    if gaps:
+        lines += ['', 'The best found (oracle) and the gap to it:'] + gaps
     return '\n'.join(lines)
 
 # Notes under the table: (scenario name prefixes they are about, none = every page; text). A page carries only
@@ -189,6 +237,7 @@ def markdown(results: list[dict], args: Any, figures: list[Path], page: Path, cm
 
     """
     names = {r['scenario'] for r in results}
+    gaps = gap_lines(results)
     out = ['# Closed-loop testbed results', '',
            f'Generated by `{cmd}` on {datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")}; do not edit by hand.', '',
            'Each scenario ran three times in ANDES: `dtw` is the closed loop (grid_sim and the four nodes, the '
@@ -239,13 +288,25 @@ def markdown(results: list[dict], args: Any, figures: list[Path], page: Path, cm
            'the figure (a black line where it stopped), never counted as load lost or served; first the run is '
            'repeated offline with the same actions at 1/4, then 1/16, of the step, and the remedy that worked is '
            'named.', '',
-           '| ' + ' | '.join(HEADER) + ' |', '|' + '---|' * len(HEADER)]
+           *([] if not gaps else [
+               '- The best found (`oracle`, testbed --oracle, controlled_islanding/evaluation/oracle.py): searched '
+               'offline with no graph and the same remedial actions, shed and judge, at every request time from the '
+               "clearing of the first fault to the no-action run's first pole slip (at most 50 ms apart unless "
+               "stated below), with the exact MILP cut of the true grouping (from the simulator's own rotor angles) "
+               'and of its neighbours (every two groups merged, the single-machine moves to the nearest other '
+               'group, the loosest machines each alone: the module says how many), the spectral cut of the true '
+               "grouping, the graph's own cut, and no action; the cut opens the breaker operating time "
+               f'({args.breaker_operating_s} s) after the request, with no graph latency. Every run of a search ends '
+               f'at the same time, at least {args.run_after_s} s after its cut.']),
+           '', '| ' + ' | '.join(HEADER) + ' |', '|' + '---|' * len(HEADER)]
     out += ['| ' + ' | '.join(row) + ' |' for row in table_rows(results)]
     notes = [note for tags, note in NOTES if not tags or any(n.startswith(t) for t in tags for n in names)]
     out += ['', 'Reading the table:'] + [f'- {note}' for note in notes]
     out += ['', "What failed, island by island (times in s after the cut; 'already out at the cut' means the "
             "island's machines left PRC-024's continuous frequency band before the cut):", '']
     out += failure_lines(results) or ['- nothing: every island of every closed-loop run survived.']
+    if gaps:
+        out += ['', 'The best found (`oracle`) and the gap of each run to it:', ''] + gaps
     out += ['']
     for r in results:
         fired = [e for e in r['events'] if e['what'] == 'out-of-step trigger']

@@ -9,6 +9,13 @@ compiled kernels: no node object, no subscription, no audit log and no DDS parti
 `ComposedGraph` offers what graph/replay.py's run_graph uses of a Supervisor (start, supervise, check_alive,
 log_tail, restarts, hangs, cpu_s), so one replay code path drives either. Nothing is restarted: a node that
 raises ends the replay with its traceback, and the process that ran it goes on with the next bag.
+
+Being one process is also what lets a replay wait for exact conditions instead of fixed times. Every node (and an
+observer that joins the Context) is one DDS participant, whose endpoints match the moment they are made, so the
+graph is wired exactly when every writer has matched every reader of its topic among the nodes made (`unmatched`),
+not after discovery stood still for a while. And delivery between them is synchronous (intra-process), so once
+the player is done, the pipeline run until nothing is ready (`settle`) has taken every message, and each node's
+diagnostics can then be read from the node itself (`diagnostics`) instead of waiting for its next publication.
 """
 
 from __future__ import annotations
@@ -19,6 +26,7 @@ import os
 import threading
 import time
 import traceback
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -32,6 +40,7 @@ NODE_CLASSES = {'pmu_ingestion': 'PmuIngestionNode', 'coherency': 'CoherencyNode
                 'stability_monitor': 'StabilityMonitorNode'}
 _PIPELINE = frozenset(spec.executable for spec in (*GRAPH, MONITOR))
 _JOIN_S = 10.0  # longest wait for a thread to end at exit, s
+_INFRASTRUCTURE = frozenset({'/rosout', '/parameter_events'})
 
 
 class _Thread:
@@ -46,6 +55,9 @@ class _Thread:
         try:
             target()
             self.returncode = 0
+        except GraphError as exc:  # a node that refused to start says why; no traceback
+            self.error = str(exc)
+            self.returncode = 1
         except Exception:
             self.error = traceback.format_exc()
             self.returncode = 1
@@ -77,6 +89,7 @@ class ComposedGraph:
         self.hangs: list = []
         self.cpu_s: dict[str, float] = {}
         self._nodes: dict[str, object] = {}
+        self._started: set[str] = set()  # every node asked for, made or still being made in its thread
         self._threads: dict[str, _Thread] = {}
         self._stopping = threading.Event()
 
@@ -114,7 +127,7 @@ class ComposedGraph:
         self._stack.callback(restore)
 
     def __exit__(self, *exc_info: object) -> None:
-        self._stopping.set()
+        self._stop_pipeline()
         try:
             for thread in self._threads.values():
                 thread.join(_JOIN_S)
@@ -137,9 +150,15 @@ class ComposedGraph:
             self._stack.close()
 
     def _make(self, spec: NodeSpec, overrides: Mapping[str, object] | None) -> object:
+        """Make one node in this graph's Context; GraphError with the node's own words if it refuses to start."""
+        from controlled_islanding.ros.params import NodeSetupError
+
         module = importlib.import_module(f'controlled_islanding.nodes.{spec.executable}')
-        node = getattr(module, NODE_CLASSES[spec.executable])(
-            context=self.context, cli_args=ros_arguments(spec, overrides, self.namespace, self.remaps))
+        try:
+            node = getattr(module, NODE_CLASSES[spec.executable])(
+                context=self.context, cli_args=ros_arguments(spec, overrides, self.namespace, self.remaps))
+        except NodeSetupError as exc:
+            raise GraphError(f'{spec.executable} could not start: {exc}') from exc
         self._nodes[spec.executable] = node
         return node
 
@@ -158,9 +177,12 @@ class ComposedGraph:
 
         if prefix or (namespace is not None and namespace != self.namespace) or name not in (None, spec.executable):
             raise GraphError('a composed graph runs every node in this process, in one namespace')
+        self._started.add(spec.executable)
         if spec.executable in _PIPELINE:
             try:
                 self.executor.add_node(self._make(spec, overrides))
+            except GraphError:
+                raise
             except Exception as exc:
                 raise GraphError(f'{spec.executable} could not start: {type(exc).__name__}: {exc}') from exc
             if 'pipeline' not in self._threads:
@@ -188,8 +210,94 @@ class ComposedGraph:
         return thread
 
     def _spin_pipeline(self) -> None:
+        # No timeout: rclpy makes a timer for every wait that has one. Stopping wakes the executor.
         while not self._stopping.is_set():
-            self.executor.spin_once(timeout_sec=0.05)
+            self.executor.spin_once()
+
+    def _stop_pipeline(self) -> None:
+        self._stopping.set()
+        if 'pipeline' in self._threads:
+            self.executor.wake()
+            self._threads['pipeline'].join(_JOIN_S)
+
+    def unmatched(self, *others: object) -> list[str]:
+        """Return every endpoint not yet matched with all its peers among the nodes (and `others`); [] = wired.
+
+        A node still being made (the player loading its bag) counts as unmatched.
+        """
+        missing = [f'{name} (not made yet)' for name in sorted(self._started - set(self._nodes))]
+        nodes = [*self._nodes.values(), *others]
+        readers: Counter[str] = Counter(s.topic_name for n in nodes for s in n.subscriptions)
+        writers: Counter[str] = Counter(p.topic_name for n in nodes for p in n.publishers)
+        for node in nodes:
+            name = node.get_fully_qualified_name()
+            missing += [f'{name} writer on {p.topic_name} ({p.get_subscription_count()} of {readers[p.topic_name]} '
+                        'readers)' for p in node.publishers if p.topic_name not in _INFRASTRUCTURE
+                        and p.get_subscription_count() < readers[p.topic_name]]
+            missing += [f'{name} reader on {s.topic_name} ({s.get_publisher_count()} of {writers[s.topic_name]} '
+                        'writers)' for s in node.subscriptions if s.get_publisher_count() < writers[s.topic_name]]
+        return missing
+
+    def made(self) -> bool:
+        """Whether every node started is made (the player has loaded its bag)."""
+        return self._started <= set(self._nodes)
+
+    def node(self, name: str) -> object:
+        """Return the node made for an executable (the player once it has loaded its bag).
+
+        Raises:
+            GraphError: It was not started, or is not made yet.
+
+        """
+        if name not in self._nodes:
+            raise GraphError(f'{name} is not in the composed graph{" yet" if name in self._started else ""}')
+        return self._nodes[name]
+
+    def readers(self, topic: str, *others: object) -> int:
+        """Return how many readers of `topic` (a full name) the nodes (and `others`) have."""
+        return sum(s.topic_name == topic for n in [*self._nodes.values(), *others] for s in n.subscriptions)
+
+    def settle(self, limit_s: float = 5.0) -> None:
+        """Stop the pipeline's thread, then run its callbacks here until none is ready (at most limit_s).
+
+        Call once the player is done: delivery in one participant is synchronous, so every message sent is
+        then in a reader's queue, and a pipeline with nothing ready has taken them all.
+        """
+        from rclpy.executors import ShutdownException, TimeoutException
+
+        self._stop_pipeline()
+        pipeline = self._threads.get('pipeline')
+        if pipeline is not None and pipeline.returncode:
+            raise GraphError(f'pipeline failed in the composed graph:\n{self.log_tail("pipeline")}')
+        deadline = time.monotonic() + limit_s
+        idle = False
+        while time.monotonic() < deadline:
+            try:
+                handler, _, _ = self.executor.wait_for_ready_callbacks(timeout_sec=0.0)
+            except TimeoutException:
+                # With a zero timeout rclpy raises this also when resumed after the wait that found work: only
+                # two in a row mean that nothing is ready.
+                if idle:
+                    return
+                idle = True
+                continue
+            except ShutdownException:
+                return
+            idle = False
+            handler()
+            if handler.exception() is not None:
+                raise GraphError(f'a pipeline callback failed after the play: {handler.exception()!r}')
+
+    def diagnostics(self) -> dict[str, dict[str, str]]:
+        """Return each pipeline node's diagnostics now, named as an observer of /diagnostics names them.
+
+        Only after `settle`: the pipeline's callbacks must not run meanwhile.
+        """
+        out = {}
+        for name in _PIPELINE & set(self._nodes):
+            for status in self._nodes[name].diag.statuses():
+                out[status.name[len(self.namespace):]] = {kv.key: kv.value for kv in status.values}
+        return out
 
     def _log(self, text: str) -> None:
         with open(self.log_dir / 'graph.log', 'a') as log:

@@ -60,11 +60,15 @@ class Observer:
         name: The observer node's name.
         namespace: The graph's namespace ('' = the root one, else e.g. '/area1').
         obs: Where what is seen goes.
+        context: The Context of a graph in this process (graph.composed) to join instead: one DDS participant
+            for the graph and its observer, whose endpoints match the moment they are made.
 
     """
 
-    def __init__(self, env: Mapping[str, str], name: str, namespace: str, obs: Observation) -> None:
+    def __init__(self, env: Mapping[str, str], name: str, namespace: str, obs: Observation,
+                 context: object | None = None) -> None:
         self.env, self.name, self.namespace, self.obs = dict(env), name, namespace, obs
+        self.context = context
         self._stack = contextlib.ExitStack()
 
     def __enter__(self) -> Observer:
@@ -76,12 +80,14 @@ class Observer:
         from controlled_islanding.ros.endpoints import qos_for
 
         self._stack.enter_context(process_environment(self.env))
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context, signal_handler_options=SignalHandlerOptions.NO)
-        self._stack.callback(self.context.try_shutdown)
+        if self.context is None:
+            self.context = rclpy.Context()
+            rclpy.init(context=self.context, signal_handler_options=SignalHandlerOptions.NO)
+            self._stack.callback(self.context.try_shutdown)
         self.node = rclpy.create_node(self.name, context=self.context, namespace=self.namespace or None)
         self._stack.callback(self.node.destroy_node)
         self.executor = rclpy.executors.SingleThreadedExecutor(context=self.context)
+        self._stack.callback(self.executor.shutdown, 1.0)
         self.executor.add_node(self.node)
         obs, ns = self.obs, self.namespace
 
@@ -138,7 +144,8 @@ class Observer:
 
         target = f'{self.namespace}/breaker_command'
         client = self.node.create_client(SetArmed, 'breaker_command/set_armed')
-        if not client.wait_for_service(timeout_sec=service_wait_s):
+        # Client.wait_for_service looks every 0.25 s; spinning looks as soon as anything arrives, and often.
+        if not self.spin_for(service_wait_s, client.service_is_ready):
             check()
             raise GraphError(f'breaker_command did not offer {target}/set_armed within {service_wait_s:g} s')
         # The service can be discovered before it has matched our reply reader; Fast DDS then drops the response

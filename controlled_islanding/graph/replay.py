@@ -19,6 +19,8 @@ import statistics
 import subprocess
 import sys
 import time
+from collections import Counter
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -39,6 +41,9 @@ SETTLE_S = 8.0
 # With the monitor as the trigger, nothing in the bag says a request is coming: after the bag ends, the graph gets this
 # long (wall, s) for the last frames to reach the monitor and its request to appear; real time, a frame takes ms.
 MONITOR_SETTLE_S = 1.0
+# Once every request is decided, how long breaker_command may take to handle the decisions (wall, s); it takes
+# milliseconds, so only a node without its audit log, or a dead one, reaches this.
+BREAKER_WAIT_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -150,10 +155,11 @@ def run_graph(bag: Path, results: Path, options: ReplayOptions, hosts: dict[str,
     key_dir = signing.default_key_dir()
     signing.init_keys(key_dir)
     operator_key = signing.load_private_key(signing.key_paths(key_dir, 'operator').private)
-    in_bag = bag_topics(bag)
     withheld = [topics.ISLANDING_REQUEST] if options.monitor else []
-    played = [t for t in in_bag if t not in topics.TRUTH_TOPICS and t not in withheld] + [topics.CLOCK]
     nodes = (*GRAPH, MONITOR) if options.monitor else GRAPH
+    # A composed graph's player has read the bag by the time the graph is wired; reading it here too would cost
+    # as much CPU again (rosbags parses each topic's QoS from YAML).
+    in_bag = {} if options.in_process else bag_topics(bag)
     ns = namespace_name(options.namespace)
     # Two replays on one domain have two bag clocks: each graph's /clock is its own.
     remaps = {topics.CLOCK: f'{ns}{topics.CLOCK}'} if ns else {}
@@ -168,9 +174,14 @@ def run_graph(bag: Path, results: Path, options: ReplayOptions, hosts: dict[str,
     with graph_environment(results / 'ros_log', options.isolate) as env:
         if hosts:
             env.update(wan.DDS_ENVIRONMENT)
-        graph = (ComposedGraph(env, logs, namespace=ns, remaps=remaps) if options.in_process
-                 else Supervisor(env, logs, PIPELINE_POLICY, namespace=ns, remaps=remaps))
-        with Observer(env, 'replay_observer', ns, obs) as observer, graph as sup:
+        with contextlib.ExitStack() as stack:
+            if options.in_process:
+                # The observer joins the graph's Context: one participant, so wiring is exact, not waited out.
+                sup = stack.enter_context(ComposedGraph(env, logs, namespace=ns, remaps=remaps))
+                observer = stack.enter_context(Observer(env, 'replay_observer', ns, obs, context=sup.context))
+            else:
+                observer = stack.enter_context(Observer(env, 'replay_observer', ns, obs))
+                sup = stack.enter_context(Supervisor(env, logs, PIPELINE_POLICY, namespace=ns, remaps=remaps))
             obs.restarts, obs.hangs = sup.restarts, sup.hangs
             start_pipeline(sup, results, key_dir, options.estimator, on_host, monitor=options.monitor)
             if options.record:
@@ -192,32 +203,94 @@ def run_graph(bag: Path, results: Path, options: ReplayOptions, hosts: dict[str,
 
             def player_alive() -> None:
                 if player.poll() is not None:
-                    raise GraphError(f'bag_player failed:\n{sup.log_tail("bag_player")}')
+                    tail = sup.log_tail('bag_player')
+                    separator = '\n' if '\n' in tail else ' '  # a refusal to start is one line, a traceback many
+                    raise GraphError(f'bag_player failed:{separator}{tail}')
 
-            # The player starts once every subscriber now in the graph (this observer included) matches it.
-            # Kundur at load 9 lost the rotor angles before its request without the writers' match (writers_matched).
-            counts = observer.wait_until_wired(
-                played, INTERNAL_TOPICS, 20.0, lambda t: remaps.get(t, topics.in_namespace(t, ns)),
-                ready=lambda: all(writers_matched(obs.diagnostics.get(f'/{spec.executable}', {}),
-                                                  observer.node.count_subscribers) for spec in nodes),
-                check=player_alive)
+            def topic_name(t: str) -> str:
+                return remaps.get(t, topics.in_namespace(t, ns))
+
+            if options.in_process:
+                _await_matched(observer, sup, player_alive, options.timeout_s)
+                player_node = sup.node(PLAYER.executable)
+                in_bag = Counter(t for t, _, _ in player_node.messages)
+                counts = {t: sup.readers(topic_name(t), observer.node) for t in [*player_node.pubs, topics.CLOCK]}
+            else:
+                played = [t for t in in_bag if t not in topics.TRUTH_TOPICS and t not in withheld] + [topics.CLOCK]
+                # The player starts once every subscriber now in the graph (this observer included) matches it.
+                # Kundur at load 9 lost the rotor angles before its request without the writers' match
+                # (writers_matched).
+                counts = observer.wait_until_wired(
+                    played, INTERNAL_TOPICS, 20.0, topic_name,
+                    ready=lambda: all(writers_matched(obs.diagnostics.get(f'/{spec.executable}', {}),
+                                                      observer.node.count_subscribers) for spec in nodes),
+                    check=player_alive)
             obs.phases_unix['wired'] = time.time()
             atomic.write_text(go_file, json.dumps({'min_subscribers': [f'{t}={n}' for t, n in counts.items()]}))
             settle_heap()  # this observer's timestamps must not wait on a full garbage collection either
             _watch(observer, sup, player, options, 0 if options.monitor else in_bag.get(topics.ISLANDING_REQUEST, 0),
-                   logs, nodes)
+                   logs, results / 'breaker_audit.jsonl', nodes)
+            if options.in_process and 'decided' in obs.phases_unix:
+                # What each node counted once it has taken everything, read from the node itself.
+                sup.settle()
+                obs.diagnostics.update(sup.diagnostics())
             obs.phases_unix['stopped'] = time.time()
             obs.cpu_s = sup.cpu_s
     report = json.loads(report_file.read_text()) if report_file.exists() else {}
     return obs, report
 
 
+def _await_matched(observer: Observer, graph: object, check: Callable[[], None], made_s: float,
+                   timeout_s: float = 20.0) -> None:
+    """Wait until a composed graph's nodes are made, then until its endpoints and its observer's are matched.
+
+    Making may take up to made_s (the player reads its bag meanwhile). In one participant endpoints match as they
+    are made (graph.unmatched), so only endpoints whose QoS cannot match reach timeout_s, which is logged.
+
+    Raises:
+        GraphError: A node failed (from check), or was not made within made_s.
+
+    """
+    def made() -> bool:
+        check()
+        return graph.made()
+
+    def wired() -> bool:
+        check()
+        return not graph.unmatched(observer.node)
+
+    if not observer.spin_for(made_s, made):
+        raise GraphError(f'not made within {made_s:g} s: {"; ".join(graph.unmatched(observer.node))}')
+    if not observer.spin_for(timeout_s, wired):
+        log.warning('playing although not wired after %g s: %s', timeout_s, '; '.join(graph.unmatched(observer.node)))
+
+
+def breaker_done(audit_log: Path, obs: Observation) -> bool:
+    """Whether breaker_command has handled every decision seen, and every command it recorded for one was seen.
+
+    Its audit log has a record for each decision it handles (a command, a refusal, no split), on disk before any
+    command of it is published: the exact end of a decision's consequences, where a fixed wait only guesses it.
+    """
+    wanted = {msg.decision_id for _, msg in obs.decisions.values()}
+    handled, commanded = set(), set()
+    with contextlib.suppress(OSError):
+        for line in audit_log.read_text().splitlines():
+            try:
+                record = json.loads(line)
+            except ValueError:  # the line being written
+                continue
+            if record.get('decision_id') in wanted:
+                handled.add(record['decision_id'])
+                commanded.update(c['command_id'] for c in record.get('commands', []))
+    return handled == wanted and commanded <= {c.command_id for _, c in obs.commands}
+
+
 def _watch(observer: Observer, sup: object, player: subprocess.Popen, options: ReplayOptions, n_requests: int,
-           logs: Path, nodes: tuple = ()) -> None:
+           logs: Path, audit_log: Path, nodes: tuple = ()) -> None:
     """Follow the play until every request is answered (or the bag ended SETTLE_S ago); send probe requests.
 
-    With the monitor as the trigger, the play is over only once every node (`nodes`) has sent /diagnostics after the
-    bag ended and a second has passed: the monitor's request for the last frames may still be on its way.
+    With the monitor as the trigger, the play is over no sooner than MONITOR_SETTLE_S after the bag ended: the
+    monitor's request for the last frames may still be on its way. `nodes`: the graph's, whose diagnostics are awaited.
     """
     from controlled_islanding_msgs.msg import IslandingRequest
 
@@ -232,7 +305,8 @@ def _watch(observer: Observer, sup: object, player: subprocess.Popen, options: R
     done_at = None
     exited_at = math.inf  # when the player was seen to have exited, monotonic s
     while time.monotonic() < deadline:
-        observer.spin_for(0.01)
+        # Messages wake the spin at once; the period only bounds how late the player's exit or a probe is seen.
+        observer.spin_for(0.01 if probe_period else 0.05)
         sup.supervise(obs.heartbeats_s)
         bag_done = player.poll() is not None
         if bag_done and 'player_exited' not in obs.phases_unix:
@@ -254,10 +328,12 @@ def _watch(observer: Observer, sup: object, player: subprocess.Popen, options: R
                 next_probe += probe_period
         settled = not options.monitor or time.monotonic() - exited_at >= MONITOR_SETTLE_S
         if bag_done and settled and answered >= n_requests and all(r in obs.decisions for r in obs.requests):
-            observer.spin_for(0.3)  # let the last commands arrive
+            if not observer.spin_for(BREAKER_WAIT_S, lambda: breaker_done(audit_log, obs)):
+                options.say('breaker_command handled not every decision within %g s', BREAKER_WAIT_S)
             # The summary gives each node's last /diagnostics (sent every second): wait, at most 1.5 s, for one
-            # sent after the play, or a short bag's counts can predate its frames.
-            limit = time.monotonic() + 1.5
+            # sent after the play, or a short bag's counts can predate its frames. A composed graph's are read
+            # from its nodes instead (run_graph).
+            limit = time.monotonic() + (0.0 if options.in_process else 1.5)
             while time.monotonic() < limit and any(
                     obs.heartbeats_s.get(f'/{spec.executable}', -math.inf) < exited_at for spec in nodes):
                 observer.spin_for(0.05)

@@ -144,10 +144,11 @@ def phases(marks_unix: dict[str, float], report: dict) -> dict[str, float]:
     marks = dict(marks_unix)
     marks.update({k: report[f'{k}_unix'] for k in ('play_begun', 'play_ended') if f'{k}_unix' in report})
     order = [('nodes_started', 'set-up and node processes spawned'), ('armed', 'breaker_command up and armed'),
-             ('wired', 'every node up, discovery unchanged for 1 s, every writer matched'),
+             ('wired', 'every node up and wired (every writer matched)'),
              ('play_begun', 'player told to go, waited for its subscribers'),
              ('play_ended', 'play, lockstep waits included'),
-             ('decided', 'linger, last decisions and diagnostics'), ('stopped', 'every process stopped')]
+             ('decided', 'last decisions, breaker commands and diagnostics'),
+             ('stopped', 'nodes settled and stopped')]
     out, last = {}, marks.get('begun')
     for key, what in order:
         if key in marks and last is not None:

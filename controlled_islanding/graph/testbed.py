@@ -49,6 +49,9 @@ class TestbedSettings:
         namespace: The graph's and grid_sim's namespace ('' = the root one).
         estimator: pmu_ingestion's rotor angle estimator; None: its parameter file's.
         no_baselines: Skip the no-action and MILP runs.
+        oracle: Also search offline for the best found (evaluation/oracle.py; long: minutes to hours).
+        oracle_step_s: The oracle's largest spacing of request times, s.
+        oracle_remedies: Repeat a failed oracle run at a smaller step (OracleSettings.remedies).
         quiet: Progress at debug level, not info.
 
     """
@@ -64,6 +67,9 @@ class TestbedSettings:
     namespace: str = ''
     estimator: str | None = None
     no_baselines: bool = False
+    oracle: bool = False
+    oracle_step_s: float = 0.05
+    oracle_remedies: bool = False
     quiet: bool = False
 
 
@@ -195,7 +201,8 @@ def check_scenario(path: Path) -> Any:
 def run_scenario(path: Path, results: Path, args: TestbedSettings, cache: dict) -> dict:
     """Run one scenario closed-loop, then the baselines; return its result (figures go under results).
 
-    `cache` keeps the no-action runs of the scenarios seen so far, by their simulation (variants share one).
+    `cache` keeps the no-action runs of the scenarios seen so far, by their simulation (variants share one), and
+    the oracle's runs.
 
     Raises:
         GraphError: The scenario is unreadable, a node died, grid_sim gave no report in time, or an in-process
@@ -284,9 +291,40 @@ def _run_scenario(path: Path, results: Path, args: TestbedSettings, cache: dict)
                                 opened_s=loop['opened_s'], config=config, progress=not quiet)
                 result['runs']['milp'] = m.summary()
                 trajectories['milp'] = {'t_s': m.t_s, 'delta_rad': m.delta_rad, 'bus_v_pu': m.bus_v_pu}
+    if args.oracle:
+        _oracle(scenario, config, args, decision, cache.get((scenario.simulation_key(), args.run_after_s)),
+                cache.setdefault('oracle runs', {}), result, trajectories)
     result['figure'] = str(_figure(scenario, result, trajectories, traj, out / f'{scenario.name}_closed_loop.png'))
     atomic.write_text(out / 'result.json', json.dumps(result, indent=1, default=str))
     return result
+
+
+def _oracle(scenario: Any, config: Any, args: TestbedSettings, decision: dict | None, no_action: Any, runs: dict,
+            result: dict, trajectories: dict) -> None:
+    """Search for the best found (evaluation/oracle.py) and add it to the result as the run 'oracle'.
+
+    `runs` keeps the searches' runs across scenarios: variants of one simulation share all but the graph's cut.
+    """
+    from controlled_islanding.evaluation.oracle import OracleError, OracleSettings, search
+
+    _say(args.quiet, f'{scenario.name}: oracle, the best found (ANDES in-process, one run per candidate: long)')
+    graph = ({b: isl['island'] for isl in decision['islands'] for b in isl['buses']}
+             if decision and decision['split'] else None)
+    try:
+        found = search(scenario, config, OracleSettings(max_step_s=args.oracle_step_s, remedies=args.oracle_remedies),
+                       graph_islands=graph,
+                       no_action=no_action, runs=runs, say=lambda text: _say(args.quiet, text))
+    except OracleError as exc:  # the closed loop's result stands; the page says why there is no best found
+        log.warning('%s: no oracle: %s', scenario.name, exc)
+        result['oracle_search'] = {'error': str(exc)}
+        return
+    best = found.summary()
+    if best is None:  # no action's run failed too, and every candidate's
+        result['oracle_search'] = found.search_summary()
+        return
+    result['runs']['oracle'] = best
+    run = found.best.outcome
+    trajectories['oracle'] = {'t_s': run.t_s, 'delta_rad': run.delta_rad, 'bus_v_pu': run.bus_v_pu}
 
 
 def _figure(scenario: Any, result: dict, trajectories: dict, loop_traj: dict, path: Path) -> Path:
@@ -297,16 +335,17 @@ def _figure(scenario: Any, result: dict, trajectories: dict, loop_traj: dict, pa
     names = [str(n) for n in loop_traj['generator_names']]
     gen_island = [bus_island.get(int(b), 0) for b in loop_traj['generator_buses']]
     panels = []
-    for label in ('no action', 'dtw', 'milp'):
+    for label in ('no action', 'dtw', 'milp', 'oracle'):
         if label not in trajectories or (label == 'milp' and 'milp' not in result['runs']):
             continue
         run = result['runs'][label]
         tr = trajectories[label]
         panels.append(plots.ClosedLoopPanel(
-            label={'dtw': 'closed loop (DTW decision)', 'milp': 'exact MILP cut', 'no action': 'no action'}[label],
+            label={'dtw': 'closed loop (DTW decision)', 'milp': 'exact MILP cut', 'no action': 'no action',
+                   'oracle': 'best found (oracle)'}[label],
             t_s=tr['t_s'], delta_rad=tr['delta_rad'], bus_v_pu=tr['bus_v_pu'], opened_s=run.get('opened_s'),
             survived=run['all_survived'], failed=run.get('simulation_failed'),
-            served_pct=run.get('load_served_pct')))
+            served_pct=run.get('load_served_pct'), request_s=run['request_s'] if label == 'oracle' else None))
     from controlled_islanding.sim.closed_loop import LoopConfig
 
     band = LoopConfig()

@@ -12,15 +12,29 @@ frame played, and then until /coherent_groups has (coherency has taken every sam
 coherency node still working through a backlog, or through its first, slow computation, would otherwise get
 the request seconds late and partitioning refuse it as stale, which real time never sees); after it, data
 keeps flowing in bag order (frames delayed past the request still arrive after it, as in real time, up to
-`lockstep_lead_s` of bag time past it) but /clock stays at the request time until a decision is out, plus
-`lockstep_settle_s` for its consumers to handle it. A wait for the decision lasts at most `lockstep_timeout_s`,
-after which the request is sent again with its id (twice at most: a restarted partitioning node lost it);
-a wait for rotor angles or groups lasts until they stop moving towards the newest frame for that long, since
-under load each stage can take longer than any fixed time while it still catches up. So the decision
+`lockstep_lead_s` of bag time past it) but /clock stays at the request time until a decision is out and
+`decision_consumer` (breaker_command, which refuses a decision more than max_decision_age_s older than its
+clock) has handled it, as its /diagnostics say at once (`decisions_handled`). A graph whose decision readers
+include no such node (a test's probe) gets `lockstep_settle_s` of wall time instead: no fixed time is right for
+a loaded breaker_command, which once took longer than the 0.1 s it had and refused GBnetwork's cut as stale. A
+wait for the decision lasts at most `lockstep_timeout_s`, after which the request is sent again with its id
+(twice at most: a restarted partitioning node lost it); a wait for rotor angles, groups or the consumer lasts
+until they stop moving towards what is awaited for that long, since under load each stage can take longer than
+any fixed time while it still catches up. So the decision
 sees the data a real-time replay would, and no node sees it as stale on the replayed clock, however loaded the
 machine is.
 
-While it waits (lockstep, or between messages), the player publishes the current /clock again every
+Elsewhere, as fast as possible, flow control holds at most `flow_window_frames` PMU frames unanswered: frame n
+goes out only once /rotor_angles has answered frame n - W (pmu_ingestion publishes one RotorAngles per frame it
+uses, stamped with the frame's time tag, and takes its frames in the order they were sent, so an answer to a
+later frame means every earlier one was taken, used or refused). Without it the whole bag went out at once and
+waited in the readers' queues, which keep the last 1000 frames (wire/qos.py): a bag longer than that would lose
+its oldest frames at a reader that lags, and no fixed pace could say how much is too much on a loaded machine.
+With no /rotor_angles publisher matched (a graph without pmu_ingestion), or once no answer has come for
+`flow_stall_s` (frames refused one after another, say), the player stops waiting for answers, says so in its log
+and report, and plays on as fast as it can.
+
+While it waits (lockstep, flow control, or between messages), the player publishes the current /clock again every
 `clock_heartbeat_s` of wall time: rclpy's time source reads /clock best effort, so a node can lose the last
 /clock sample before a wait, and its clock would then stand still for the whole wait, holding every stamp more
 than its `future_tolerance_s` ahead (a lockstep wait for data held that way could only time out).
@@ -40,10 +54,12 @@ import json
 import struct
 import sys
 import time
+from collections import deque
 from pathlib import Path
 
 from builtin_interfaces.msg import Time
 from controlled_islanding_msgs.msg import CoherentGroups, IslandingDecision, RotorAngles
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -52,7 +68,7 @@ from rosbags.highlevel import AnyReader
 from rosgraph_msgs.msg import Clock
 
 from controlled_islanding import atomic
-from controlled_islanding.ros.diagnostics import Diagnostics
+from controlled_islanding.ros.diagnostics import DECISIONS_HANDLED, Diagnostics
 from controlled_islanding.ros.endpoints import qos_for
 from controlled_islanding.ros.params import NodeSetupError, message_class
 from controlled_islanding.ros.spin import spin_node
@@ -62,6 +78,8 @@ from controlled_islanding.wire.interfaces import typestore
 
 _STAMP_ROUNDING_NS = 1_000
 _POLL_S = 0.02  # longest spin between two looks at a wait's condition, s
+
+_UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'  # rmw_dds_common's name of an endpoint whose node is not yet known
 
 
 class BagPlayerNode(Node):
@@ -80,11 +98,14 @@ class BagPlayerNode(Node):
         self.declare_parameter('lockstep_on_requests', True)
         self.declare_parameter('lockstep_timeout_s', 20.0)
         self.declare_parameter('lockstep_settle_s', 0.1)
+        self.declare_parameter('decision_consumer', 'breaker_command')
         self.declare_parameter('lockstep_lead_s', 0.5)
         self.declare_parameter('report_file', '')
         self.declare_parameter('clock_min_step_s', 0.0)
         self.declare_parameter('clock_heartbeat_s', 0.05)
         self.declare_parameter('latched_ack_timeout_s', 5.0)
+        self.declare_parameter('flow_window_frames', 30)
+        self.declare_parameter('flow_stall_s', 2.0)
         # A file whose appearance starts the play (JSON {"min_subscribers": [...]}, which then replaces the
         # parameter): a replay starts the player with the graph, so loading the bag and being discovered overlap
         # the nodes' start-up, and tells it to go once the graph is wired.
@@ -102,6 +123,7 @@ class BagPlayerNode(Node):
         self.lockstep = self.afap and bool(self.get_parameter('lockstep_on_requests').value)
         self.lockstep_timeout_s = float(self.get_parameter('lockstep_timeout_s').value)
         self.lockstep_settle_s = float(self.get_parameter('lockstep_settle_s').value)
+        self.decision_consumer = str(self.get_parameter('decision_consumer').value)
         self.lockstep_lead_ns = int(float(self.get_parameter('lockstep_lead_s').value) * 1e9)
         self.report_file = self.get_parameter('report_file').value
         self.clock_step_ns = int(float(self.get_parameter('clock_min_step_s').value) * 1e9)
@@ -109,6 +131,11 @@ class BagPlayerNode(Node):
         if self.clock_heartbeat_s <= 0.0:
             raise NodeSetupError(f'parameter clock_heartbeat_s={self.clock_heartbeat_s} must be positive')
         self.latched_ack_timeout_s = float(self.get_parameter('latched_ack_timeout_s').value)
+        self.flow_window = int(self.get_parameter('flow_window_frames').value) if self.afap else 0
+        self.flow_stall_s = float(self.get_parameter('flow_stall_s').value)
+        if self.flow_window < 0 or self.flow_stall_s <= 0.0:
+            raise NodeSetupError(f'parameters flow_window_frames={self.flow_window} must be >= 0 (0: no flow control) '
+                                 f'and flow_stall_s={self.flow_stall_s} positive')
         publish_truth = bool(self.get_parameter('publish_truth').value)
         self.messages: list[tuple[str, int, bytes]] = []
         self.pubs = {}
@@ -143,17 +170,28 @@ class BagPlayerNode(Node):
                         if qos_for(t).durability == DurabilityPolicy.TRANSIENT_LOCAL}
         self.newest_angle_ns = -1
         self.newest_groups_ns = -1
+        self.consumer_handled = 0  # decisions decision_consumer said it has handled
+        self.frames_sent = 0  # PMU frames published so far
+        self.answered_upto = -1  # the latest frame (by publication index) answered on /rotor_angles
+        self.unanswered: dict[int, deque[int]] = {}  # frame time tag, ns -> indices of its unanswered frames
+        self.flow_stalled_at: int | None = None  # the frame at which flow control gave up waiting
         self.clock_ns: int | None = None  # the bag time last published on /clock
         self.clock_sent_at = 0.0  # wall (monotonic) time it was last published, s
         self.lockstep_subs = []
+        self.angles_sub = None
+        if self.lockstep or self.flow_window:
+            self.angles_sub = self.create_subscription(RotorAngles, topics.relative(topics.ROTOR_ANGLES),
+                                                       self._on_angles, qos_for(topics.ROTOR_ANGLES))
         if self.lockstep:
             self.lockstep_subs = [
                 self.create_subscription(IslandingDecision, topics.relative(topics.ISLANDING_DECISION),
                                          self._on_decision, qos_for(topics.ISLANDING_DECISION)),
-                self.create_subscription(RotorAngles, topics.relative(topics.ROTOR_ANGLES), self._on_angles,
-                                         qos_for(topics.ROTOR_ANGLES)),
+                self.angles_sub,
                 self.create_subscription(CoherentGroups, topics.relative(topics.COHERENT_GROUPS), self._on_groups,
                                          qos_for(topics.COHERENT_GROUPS))]
+            self.consumer_status = f'{self.get_namespace().rstrip("/")}/{self.decision_consumer}'
+            self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diagnostics,
+                                     qos_for(topics.DIAGNOSTICS))
         self.diag = Diagnostics(self)
         self.loaded_unix = time.time()
         self.get_logger().info(f'{len(self.messages)} messages on {len(self.pubs)} topics from {bag}')
@@ -164,6 +202,37 @@ class BagPlayerNode(Node):
     def _on_angles(self, msg: RotorAngles) -> None:
         stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         self.newest_angle_ns = max(self.newest_angle_ns, stamp_ns)
+        waiting = self.unanswered.get(stamp_ns)
+        if waiting:
+            self.answered_upto = max(self.answered_upto, waiting.popleft())
+            if not waiting:
+                del self.unanswered[stamp_ns]
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name == self.consumer_status:
+                for kv in status.values:
+                    if kv.key == DECISIONS_HANDLED and kv.value.isdigit():
+                        self.consumer_handled = max(self.consumer_handled, int(kv.value))
+
+    def _consumer_reads_decisions(self) -> bool | None:
+        """Return whether decision_consumer reads decisions; None while a reader's node is not yet known."""
+        topic = self.resolve_topic_name(topics.relative(topics.ISLANDING_DECISION))
+        readers = self.get_subscriptions_info_by_topic(topic)
+        if any(info.node_name == self.decision_consumer and info.node_namespace == self.get_namespace()
+               for info in readers):
+            return True
+        # A reader's node name comes on its own discovery topic, later than the reader itself under load.
+        return None if any(info.node_name == _UNKNOWN_NODE for info in readers) else False
+
+    def _await_handled(self, executor: SingleThreadedExecutor) -> None:
+        """Hold until decision_consumer has handled every decision seen; lockstep_settle_s if none reads them."""
+        self._hold(executor, 'the names of the decision readers', lambda: self._consumer_reads_decisions() is not None)
+        if self._consumer_reads_decisions():
+            self._hold(executor, f'decision handled by {self.decision_consumer}',
+                       lambda: self.consumer_handled >= self.decisions, lambda: self.consumer_handled)
+        else:
+            self._spin_until(executor, time.monotonic() + self.lockstep_settle_s)
 
     def _on_groups(self, msg: CoherentGroups) -> None:
         stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
@@ -174,18 +243,40 @@ class BagPlayerNode(Node):
         self.clock_pub.publish(Clock(clock=Time(sec=clock_ns // 1_000_000_000, nanosec=clock_ns % 1_000_000_000)))
         self.clock_ns, self.clock_sent_at = clock_ns, time.monotonic()
 
-    def _hold(self, executor: SingleThreadedExecutor, what: str, done, progress=lambda: None) -> None:
-        """Spin until done(), or until progress() (a stamp, say) has stood still for lockstep_timeout_s."""
+    def _hold(self, executor: SingleThreadedExecutor, what: str, done, progress=lambda: None,
+              timeout_s: float | None = None) -> bool:
+        """Spin until done(), or until progress() (a stamp, say) has stood still for timeout_s; return done().
+
+        timeout_s defaults to lockstep_timeout_s; a lockstep wait that ends without done() is logged here.
+        """
+        limit_s = self.lockstep_timeout_s if timeout_s is None else timeout_s
         t0 = last_move = time.monotonic()
         seen = progress()
-        while not done() and time.monotonic() < last_move + self.lockstep_timeout_s:
-            self._spin_until(executor, min(last_move + self.lockstep_timeout_s, time.monotonic() + 0.1), done)
+        while not done() and time.monotonic() < last_move + limit_s:
+            self._spin_until(executor, min(last_move + limit_s, time.monotonic() + 0.1), done)
             if progress() != seen:
                 seen, last_move = progress(), time.monotonic()
         self.held_s[what] = self.held_s.get(what, 0.0) + time.monotonic() - t0
-        if not done():
+        if not done() and timeout_s is None:
             self.get_logger().warning(f'lockstep: no {what}, and no progress towards it for lockstep_timeout_s='
                                       f'{self.lockstep_timeout_s}')
+        return done()
+
+    def _await_window(self, executor: SingleThreadedExecutor) -> None:
+        """Flow control: return once fewer than flow_window_frames frames are unanswered on /rotor_angles."""
+        if not self.flow_window or self.frames_sent - 1 - self.answered_upto < self.flow_window:
+            return
+        if self.angles_sub.get_publisher_count() == 0:
+            self.get_logger().info('no /rotor_angles publisher to answer frames: playing without flow control')
+            self.flow_window = 0
+            return
+        if not self._hold(executor, 'flow control (frames answered on /rotor_angles)',
+                          lambda: self.frames_sent - 1 - self.answered_upto < self.flow_window,
+                          lambda: self.answered_upto, self.flow_stall_s):
+            self.flow_stalled_at, self.flow_window = self.frames_sent, 0
+            self.get_logger().warning(
+                f'flow control: no answer on /rotor_angles to frames {self.answered_upto + 1} to '
+                f'{self.frames_sent - 1} for flow_stall_s={self.flow_stall_s}; playing on without flow control')
 
     def _await_decision(self, executor: SingleThreadedExecutor, waiting_for: int, request: bytes) -> None:
         """Hold for the decision; re-send the request (same id) each time the wait times out, twice at most.
@@ -312,18 +403,25 @@ class BagPlayerNode(Node):
                            lambda f=last_frame_ns: self.newest_groups_ns >= f - _STAMP_ROUNDING_NS,
                            lambda: self.newest_groups_ns)
             if frozen_at_ns is not None and self.decisions >= waiting_for:
-                self._spin_until(executor, time.monotonic() + self.lockstep_settle_s)
+                self._await_handled(executor)
                 frozen_at_ns = None
             clock_ns = t_ns if frozen_at_ns is None else frozen_at_ns
             if self.clock_pub is not None and (self.clock_ns is None or request
                                                or clock_ns - self.clock_ns >= self.clock_step_ns):
                 self._publish_clock(clock_ns)
+            frame = topic == topics.PMU_FRAMES
+            if frame:
+                self._await_window(executor)
             self.pubs[topic].publish(raw)
             self.diag.arrived()
             if self.afap and topic in self.latched:
                 self._await_acks(executor, topic)
-            if topic == topics.PMU_FRAMES:
-                last_frame_ns = max(last_frame_ns, self._frame_stamp_ns(raw, t_ns))
+            if frame:
+                stamp_ns = self._frame_stamp_ns(raw, t_ns)
+                last_frame_ns = max(last_frame_ns, stamp_ns)
+                if self.flow_window:
+                    self.unanswered.setdefault(stamp_ns, deque()).append(self.frames_sent)
+                self.frames_sent += 1
             if self.lockstep and request:
                 # Data keeps flowing in bag order (late frames arrive after the request, as in real time),
                 # but /clock stops until the decision is out and handled, so nobody sees it as stale.
@@ -332,13 +430,15 @@ class BagPlayerNode(Node):
                 executor.spin_once(timeout_sec=0.0)
         if frozen_at_ns is not None:
             self._await_decision(executor, waiting_for, pending_request)
-            self._spin_until(executor, time.monotonic() + self.lockstep_settle_s)
+            self._await_handled(executor)
         wall_s = time.monotonic() - start
         bag_s = (self.messages[-1][1] - t0_ns) * 1e-9
         report = {'messages': len(self.messages), 'bag_duration_s': bag_s, 'wall_s': wall_s,
                   'speed_vs_real_time': bag_s / wall_s if wall_s > 0 else float('inf'),
                   'as_fast_as_possible': self.afap, 'rate': self.rate, 'lockstep_waits_s': self.held_s,
                   'latched_ack_waits_s': self.ack_waits_s, 'latched_unacked': self.unacked,
+                  'flow_window_frames': int(self.get_parameter('flow_window_frames').value) if self.afap else 0,
+                  'flow_stalled_at_frame': self.flow_stalled_at,
                   'loaded_unix': self.loaded_unix, 'play_begun_unix': begun_unix, 'play_ended_unix': time.time()}
         self.get_logger().info(f'played {len(self.messages)} messages: {bag_s:.2f} s of bag in {wall_s:.2f} s '
                                f'({report["speed_vs_real_time"]:.1f}x real time)')

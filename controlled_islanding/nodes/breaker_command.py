@@ -34,7 +34,7 @@ from rclpy.parameter import Parameter
 
 from controlled_islanding.locations import config_dir
 from controlled_islanding.ros.clock_gate import ClockGate
-from controlled_islanding.ros.diagnostics import Diagnostics
+from controlled_islanding.ros.diagnostics import DECISIONS_HANDLED, Diagnostics
 from controlled_islanding.ros.endpoints import qos_for
 from controlled_islanding.ros.intake import SnapshotIntake
 from controlled_islanding.ros.params import NodeSetupError
@@ -176,7 +176,8 @@ class BreakerCommandNode(Node):
         self.diag.values['decision_writers_alive'] = '0'
         self.diag.subscribe(IslandingDecision, topics.ISLANDING_DECISION, self.on_decision,
                             event_callbacks=SubscriptionEventCallbacks(
-                                liveliness=self.diag.guard(self.on_decision_liveliness)))
+                                liveliness=self.diag.guard(self.on_decision_liveliness)),
+                            handled_key=DECISIONS_HANDLED)
         self.diag.subscribe(NetworkSnapshotMsg, topics.NETWORK_SNAPSHOT, self.on_snapshot)
         self.diag.subscribe(BranchStatus, topics.BRANCH_STATUS, self.on_branch_status)
         self.create_service(SetArmed, '~/set_armed', self.diag.guard(self.on_set_armed))

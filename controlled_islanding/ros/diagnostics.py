@@ -138,6 +138,8 @@ class TopicStatus:
 
 
 _INFRASTRUCTURE_TOPICS = ('/rosout', '/parameter_events')
+# breaker_command's count of decisions handled, published at once after each (Diagnostics.subscribe handled_key).
+DECISIONS_HANDLED = 'decisions_handled'
 
 
 class Diagnostics:
@@ -185,16 +187,21 @@ class Diagnostics:
 
     def subscribe(self, msg_type: type, topic: str, callback: Callable[[object], None],
                   rate_hz: float | None = None, stamp_bounds_s: tuple[float, float] = (-1.0, 5.0),
-                  event_callbacks: object | None = None) -> object:
+                  event_callbacks: object | None = None, handled_key: str | None = None) -> object:
         """Subscribe (in the node's namespace) with the topic's documented QoS; count, guard, count losses.
 
         The losses are `lost.<topic>` in /diagnostics, present (0) from the start. With `rate_hz`, the topic
         also gets its own status (`TopicStatus`): expected rate, Hz, and acceptable stamp delays, s.
         `event_callbacks` (rclpy SubscriptionEventCallbacks) are passed on, e.g. for liveliness changes.
+        With `handled_key`, the number of messages the callback has finished with is that counter, and the
+        diagnostics go out at once after each: another process can then tell exactly when a message was
+        handled (a replay's player holds its clock until breaker_command has handled a decision).
         """
         counter = LossCounter()
         key = f'lost.{topic}'
         self.counts[key] = 0
+        if handled_key is not None:
+            self.counts[handled_key] = 0
         guarded = self.guard(callback)
         status = None
         if rate_hz is not None:
@@ -211,6 +218,9 @@ class Diagnostics:
                 stamp = getattr(getattr(msg, 'header', None), 'stamp', None)
                 status.arrived(self._clock_s(), stamp.sec + stamp.nanosec * 1e-9 if stamp is not None else None)
             guarded(msg)
+            if handled_key is not None:
+                self.counts[handled_key] += 1
+                self.publish()
 
         return self._node.create_subscription(msg_type, topics.relative(topic), take, qos_for(topic),
                                               event_callbacks=event_callbacks)
@@ -323,6 +333,12 @@ class Diagnostics:
     def publish(self) -> None:
         """Publish the node's DiagnosticStatus and its topics' ones."""
         self._last_publish_s = time.monotonic()
+        array = DiagnosticArray(status=self.statuses())
+        array.header.stamp = self._node.get_clock().now().to_msg()
+        self._pub.publish(array)
+
+    def statuses(self) -> list[DiagnosticStatus]:
+        """Return the node's DiagnosticStatus and its topics' ones, as publish() sends them now."""
         level, message = self.level()
         pairs = {
             'input_rate_hz': f'{self.input_rate_hz():.1f}',
@@ -347,9 +363,7 @@ class Diagnostics:
         statuses += [DiagnosticStatus(level=t.level, name=t.name, hardware_id='controlled_islanding', message=t.message,
                                       values=[KeyValue(key=k, value=v) for k, v in t.values.items()])
                      for t in self.topics]
-        array = DiagnosticArray(status=statuses)
-        array.header.stamp = self._node.get_clock().now().to_msg()
-        self._pub.publish(array)
+        return statuses
 
 
 def writers_matched(values: dict[str, str], count_subscribers: Callable[[str], int]) -> bool:
