@@ -43,7 +43,10 @@ import numpy as np
 
 from controlled_islanding.core.stability import POLE_SLIP_RAD, MachineSet, SIMEPredictor, _chi2_bound
 
-__all__ = ['Alarm', 'SwingWatch', 'final_groups', 'warm_up']
+__all__ = ['STAMP_ROUNDING_S', 'Alarm', 'SwingWatch', 'final_groups', 'warm_up']
+
+# A time tag's float seconds and its stamp's nanoseconds agree to within this, s (far below a frame period).
+STAMP_ROUNDING_S = 1e-6
 
 
 @dataclass(frozen=True)
@@ -139,8 +142,13 @@ class SwingWatch:
         return raised
 
     def at(self, t_s: float) -> Alarm | None:
-        """Return the alarm that stood after the newest frame at or before t_s (None: none, or not remembered)."""
-        i = bisect.bisect_right(self._times, float(t_s))
+        """Return the alarm that stood after the newest frame at or before t_s (None: none, or not remembered).
+
+        A frame within STAMP_ROUNDING_S after t_s counts as at it: a request stamped at a frame's time tag goes
+        through integer nanoseconds and back, and a POSIX time in float seconds keeps only about 0.2 us (a request
+        of the monitor's, a hair before its own frame, found no alarm and was answered with one group).
+        """
+        i = bisect.bisect_right(self._times, float(t_s) + STAMP_ROUNDING_S)
         return self._states[i - 1] if i else None
 
     def returning(self, labels: np.ndarray) -> np.ndarray:
