@@ -6,7 +6,7 @@ from setuptools import find_packages, setup
 
 PACKAGE = 'controlled_islanding'
 NODES = ['pmu_ingestion', 'coherency', 'partitioning', 'breaker_command', 'bag_player', 'recorder', 'pdc_client',
-         'grid_sim']
+         'grid_sim', 'stability_monitor']
 
 setup(
     name=PACKAGE,

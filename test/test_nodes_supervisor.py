@@ -21,6 +21,7 @@ from nodes_harness import graph
 
 from controlled_islanding.graph.supervisor import (
     GRAPH,
+    MONITOR,
     NodeSpec,
     RestartRecord,
     Supervisor,
@@ -64,7 +65,7 @@ def test_launch_file_starts_the_supervisor_table():
             # Every node in the launch's namespace, following its clock topic, as a namespaced replay's graph.
             assert getattr(kw.get('namespace'), 'id', None) == 'namespace', kw['executable'].value
             assert getattr(kw.get('remappings'), 'id', None) == 'clock', kw['executable'].value
-    assert launched == [(s.executable, (s.params_file,)) for s in GRAPH]
+    assert launched == [(s.executable, (s.params_file,)) for s in (*GRAPH, MONITOR)]
     declared = {call.args[0].value for call in ast.walk(tree) if isinstance(call, ast.Call)
                 and getattr(call.func, 'id', None) == 'DeclareLaunchArgument'}
     assert {'use_sim_time', 'namespace', 'clock'} <= declared

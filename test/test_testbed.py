@@ -581,3 +581,26 @@ def test_a_bad_scenario_is_refused_with_simulates_message_before_any_node_starts
     assert str(testbed_says.value) == str(simulate_says.value) and '999' in str(testbed_says.value)
     assert not (tmp_path / 'results').exists()  # no results folder, no logs: nothing started
     print(f'refused in {time.monotonic() - start:.1f} s')
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_with_the_monitor_as_the_trigger_grid_sim_asks_nothing_and_the_monitor_request_opens_the_cut():
+    """Kundur, bus 9: the monitor's signed request alone starts the decision; one switching event, before the slip."""
+    scenario = REPO / 'bags' / 'kundur_bus9_unstable.yaml'
+    results = BUILD / 'test_testbed' / f'monitor-{time.time_ns()}'
+    env = dict(os.environ, CONTROLLED_ISLANDING_KEYS=str(BUILD / 'test_keys'))
+    proc = subprocess.run([sys.executable, '-m', 'controlled_islanding.cli', 'testbed', str(scenario), '--json',
+                           '--results', str(results), '--trigger', 'monitor', '--no-baselines', '--timeout', '300'],
+                          capture_output=True, text=True, timeout=420, env=env, cwd=REPO)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (result,) = json.loads(proc.stdout)
+    (request,) = [e for e in result['events'] if e['what'] == 'request']
+    assert request['from'] == 'stability monitor' and request['request_id'].startswith('/stability_monitor/')
+    assert request['at_s'] < 1.833 - 0.1, 'asked in time to act before the first pole slip (bags/index.yaml)'
+    assert result['decision']['request_id'] == request['request_id'] and result['decision']['split']
+    (event,) = [e for e in result['events'] if e['what'] == 'switching event']
+    assert set(event['branch_ids']) == set(result['decision']['cut_branch_ids'])
+    assert result['closed_loop']['request_s'] == pytest.approx(request['at_s'])
+    assert sorted(map(sorted, result['coherent_groups']['groups'])) == [['GENROU_1', 'GENROU_2'],
+                                                                         ['GENROU_3', 'GENROU_4']]

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from controlled_islanding.commands import CliError
 from controlled_islanding.commands.evaluate_attacks import sweep_attacks
+from controlled_islanding.commands.evaluate_monitor import judge_monitor
 from controlled_islanding.commands.evaluate_predictors import compare_predictors
 from controlled_islanding.commands.evaluate_rules import compare_rules, sweep_observability
 from controlled_islanding.evaluation.cases import (
@@ -68,6 +69,12 @@ large cases.
 separation rule frame by frame on the DSE angles of the bags and --andes scenarios: alarm against the first pole
 slip, false alarms, groups at the alarm (docs/prediction.md).
 
+--monitor FILE.md instead runs the stability monitor's core (core/final_grouping.py) frame by frame on the DSE
+angles of the bags and --andes scenarios, as the node would: every request against the first pole slip, false
+requests on runs that stay one group, the groups of the first request against the final grouping; with --testbed
+RESULTS (a `testbed --trigger monitor` results folder, repeatable) also the closed loop's load served against no
+action and the oracle (docs/monitor.md).
+
 --k-rules FILE.md instead compares every k rule (core/k_rules.py) on the bags and on --andes scenarios
 (simulated here, the simulator's own rotor angles), and writes the table (docs/coherency_rules.md).
 
@@ -111,10 +118,16 @@ def add_arguments(parser) -> None:
     parser.add_argument('--attacks', type=Path, metavar='FILE.md', help='instead, the attack sweep (docs/attacks.md)')
     parser.add_argument('--predictors', type=Path, metavar='FILE.md',
                         help='instead, compare the stability predictors and write this page (docs/prediction.md)')
+    parser.add_argument('--monitor', type=Path, metavar='FILE.md',
+                        help='instead, judge the stability monitor on every scenario and write this page '
+                             '(docs/monitor.md)')
+    parser.add_argument('--testbed', action='append', type=Path, metavar='RESULTS', default=[],
+                        help='with --monitor: a `testbed --trigger monitor` results folder whose closed loops the page '
+                             'shows (repeatable)')
     parser.add_argument('--draws', type=int, default=5, help='random placements per coverage (--observability)')
     parser.add_argument('--seed', type=int, default=0, help='seed of the random placements (--observability)')
     parser.add_argument('--andes', action='append', type=Path, metavar='SCENARIO.yaml', default=[],
-                        help='with --k-rules or --predictors: also simulate this scenario in ANDES')
+                        help='with --k-rules, --predictors or --monitor: also simulate this scenario in ANDES')
     parser.add_argument('--time-limit-s', type=float, default=60.0, help='MILP time limit per solve, s (default: 60)')
     parser.add_argument('--closed-loop', action='store_true',
                         help="also run each row's cut in ANDES on the bag's scenario and judge every island "
@@ -138,6 +151,10 @@ def run(args) -> int:
                        f'({args.dtw_band_samples}) not negative')
     if args.predictors:
         return compare_predictors(args, args.bags)
+    if args.monitor:
+        return judge_monitor(args, args.bags)
+    if args.testbed:
+        raise CliError('--testbed is for --monitor')
     from controlled_islanding.wire.bagdata import BagDataError, load_bag
 
     bags = []
@@ -151,7 +168,7 @@ def run(args) -> int:
     if args.observability or args.attacks:
         return sweep_observability(args, bags) if args.observability else sweep_attacks(args, bags)
     if args.andes:
-        raise CliError('--andes is for --k-rules and --predictors')
+        raise CliError('--andes is for --k-rules, --predictors and --monitor')
     cases = []
     if args.paper_cases:
         for name in PAPER_CASES:

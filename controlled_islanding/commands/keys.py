@@ -9,16 +9,18 @@ from controlled_islanding.commands import CliError
 from controlled_islanding.locations import checkout
 from controlled_islanding.safety import signing
 
-HELP = 'make the Ed25519 keys that sign decisions and arm/disarm requests'
+HELP = "make the Ed25519 keys that sign decisions, arm/disarm requests and the monitor's islanding requests"
 DESCRIPTION = """\
 breaker_command acts only on signed messages (the ROS 2 wheels from PyPI have no DDS security, so
-SROS2 cannot authenticate anyone on the domain). Two key pairs are used:
+SROS2 cannot authenticate anyone on the domain). Three key pairs are used:
 
   partitioning.key / .pub   the partitioning node signs every islanding decision
-  operator.key / .pub       an operator signs every arm and disarm request
+  operator.key / .pub       an operator signs every arm and disarm request (and may sign islanding requests)
+  monitor.key / .pub        the stability monitor signs its islanding requests
 
-breaker_command needs only the two public keys. Private keys are written 0600 in a 0700 directory,
-never inside the repository. Existing keys are kept unless --force.
+breaker_command needs the partitioning and operator public keys, partitioning those of its request_signers
+(monitor, operator): a signed request that does not verify is refused. Private keys are written 0600 in a 0700
+directory, never inside the repository. Existing keys are kept unless --force.
 
   controlled-islanding keys init              # into $CONTROLLED_ISLANDING_KEYS or ~/.config/controlled_islanding/keys
   controlled-islanding keys init /secure/keys # elsewhere; then set key_dir on the nodes

@@ -48,6 +48,14 @@ hosts; DDS discovers by multicast across it. Roles joined by '+' share a host (p
 observer and the recorder are a fourth host, the operator's, whose view is a tap without delay or loss. Needs
 root; without it, says so and exits 2. docs/deployment.md describes the emulation and a real deployment.
 
+Trigger: by default the bag's own islanding request is played, as the paper's operator asks (--trigger bag).
+With --trigger monitor the stability monitor (nodes/stability_monitor.py) runs beside the four nodes and is the
+only source of requests: the bag's request is not played. The monitor predicts, swing by swing, whether the grid
+separates and into which groups (SIME, docs/prediction.md) and asks once per swing that does, stamped at the frame
+that decided it, signed with its key; the output names each request, its predicted groups and first pole slip,
+or says that none was made (a grid predicted to recover: exit status 0). Real time only (or --rate): the player
+holds the graph in step only at requests it plays itself.
+
 Several bags (bags/*/): a regression run. Each bag gets a fresh graph of its own (the nodes keep state a
 bag must not inherit: the breaker node's commanded breakers, the time of the last input) on a private
 domain, in a child process, --jobs of them at once (default 2: a graph's start-up is mostly one process's
@@ -63,6 +71,7 @@ Examples (bag names from bags/index.yaml):
   controlled-islanding replay bags/*/ --fast --json            every bag, one report
   controlled-islanding replay bags/*/ --fast --junit-xml build/replay.xml   the same, for CI
   controlled-islanding replay bags/ieee39_g6g7_unstable --probe-hz 20   extra requests: a latency benchmark
+  controlled-islanding replay bags/kundur_bus9_unstable --trigger monitor   the monitor asks, not the bag
   controlled-islanding replay bags/ieee39_g6g7_unstable --fast --namespace /area1   one area of several
   controlled-islanding replay bags/ieee39_case2_g3_unstable --fast --hosts pdc,control,substation \
       --wan-delay-ms 20 --wan-jitter-ms 5 --wan-loss-pct 1
@@ -107,10 +116,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--estimator', choices=('steady_state', 'dse'), default=None,
                         help="pmu_ingestion's rotor angle estimator: steady_state, or dse (a Kalman filter on each "
                              "machine's model from the snapshot's machine data); default: config/pmu_ingestion.yaml")
+    parser.add_argument('--trigger', choices=('bag', 'monitor'), default='bag',
+                        help="where islanding requests come from: the bag's own (default, the paper's operator), or "
+                             'the stability monitor alone (see "Trigger" above)')
     add_wan_arguments(parser)
     parser.add_argument('--junit-xml', type=Path, default=None, metavar='FILE',
                         help='also write the run as a JUnit XML report, a test case per bag with its reason on '
                              'failure, as pytest --junit-xml does (a regression run, even of one bag)')
+
 
 def add_wan_arguments(parser: argparse.ArgumentParser) -> None:
     """Add --hosts and the WAN's options (replay and testbed)."""
@@ -141,7 +154,8 @@ def wan_link(args: argparse.Namespace) -> wan.LinkModel | None:
 def _options(args: argparse.Namespace) -> dict:
     return {'fast': args.fast, 'rate': args.rate, 'probe_hz': args.probe_hz, 'timeout_s': args.timeout,
             'arm': not args.disarmed, 'record': not args.no_record, 'isolate': args.isolate,
-            'namespace': args.namespace, 'estimator': args.estimator, 'hosts': args.hosts, 'link': wan_link(args)}
+            'namespace': args.namespace, 'estimator': args.estimator, 'hosts': args.hosts, 'link': wan_link(args),
+            'trigger': args.trigger}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -163,7 +177,9 @@ def run(args: argparse.Namespace) -> int:
         if args.json:  # render() already said it on stdout otherwise
             print(f'replay: FAILED: {graph_failure(summary)}', file=sys.stderr)
         return 1
-    return 1 if summary['split'] is None or summary['undecided_requests'] or refused(summary) else 0
+    quiet_monitor = args.trigger == 'monitor' and not summary['requests']
+    return 1 if (summary['split'] is None and not quiet_monitor) or summary['undecided_requests'] \
+        or refused(summary) else 0
 
 
 def _run_repeated(args: argparse.Namespace) -> int:
@@ -205,6 +221,8 @@ def _run_suite(args: argparse.Namespace) -> int:
                                       ('--no-record', args.no_record), ('--no-figures', args.no_figures)) if on]
     if args.estimator:
         options += ['--estimator', args.estimator]
+    if args.trigger != 'bag':
+        options += ['--trigger', args.trigger]
     try:
         names = run_names(args.bag)
     except ValueError as exc:

@@ -110,9 +110,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="repeat an oracle candidate whose ANDES run failed at 1/4, then 1/16, of the step, as the "
                              "closed loop's runs are (off by default: it multiplies the search's time, 3x on IEEE 39; "
                              'the failures are listed either way)')
-    parser.add_argument('--trigger', choices=('scenario', 'out-of-step'), default='scenario',
-                        help="where the islanding request comes from: the scenario's time (default), or grid_sim's "
-                             'out-of-step trigger on the measured rotor angles (sim/closed_loop.out_of_step)')
+    parser.add_argument('--trigger', choices=('scenario', 'out-of-step', 'monitor'), default='scenario',
+                        help="where the islanding request comes from: the scenario's time (default, the paper's "
+                             "operator), grid_sim's out-of-step trigger on the measured rotor angles "
+                             '(sim/closed_loop.out_of_step), or the stability monitor alone '
+                             '(nodes/stability_monitor.py: a request only for a swing predicted to separate, with its '
+                             'groups; none for one '
+                             "predicted to return, the run then judged from the scenario's request time as no action)")
     parser.add_argument('--timeout', type=float, default=900.0, help='give up on one closed-loop run after this, s')
     parser.add_argument('--namespace', default='', metavar='NS',
                         help='run the graph and grid_sim in this ROS namespace, e.g. /area1 (default: the root one)')

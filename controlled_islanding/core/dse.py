@@ -60,7 +60,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ['DSEError', 'MODELS', 'MachineData', 'RotorAngleDSE', 'StreamingDSE', 'saturation_coefficients']
+__all__ = ['DSEError', 'MODELS', 'MachineData', 'RotorAngleDSE', 'StreamingDSE', 'nominal_hz',
+           'saturation_coefficients']
 
 MODELS = ('steady_state', 'classical', 'two_axis', 'genrou')
 _JUDGE_MIN_VOLTAGE_PU = 0.1  # C37.118.1 (class M) specifies accuracy from 10 % of rated voltage up
@@ -69,6 +70,27 @@ _HALF_PI = 0.5 * np.pi
 
 class DSEError(ValueError):
     """Machine data, settings or frames the estimator cannot use."""
+
+
+NOMINALS_HZ = (50.0, 60.0)  # the two nominal frequencies of AC grids (C37.118.2's FNOM allows no other)
+
+
+def nominal_hz(frequency_hz) -> float:
+    """Return the nominal frequency (50 or 60 Hz) nearest the PMUs' median reported frequency, Hz.
+
+    A grid runs within a few percent of its nominal frequency even through a fault, so the median of what its PMUs
+    report names it: for a filter (omega_base) whose snapshot does not say.
+
+    Raises:
+        DSEError: No finite frequency among them.
+
+    """
+    f = np.asarray(frequency_hz, dtype=float).reshape(-1)
+    f = f[np.isfinite(f)]
+    if not f.size:
+        raise DSEError('no PMU reported a frequency: the nominal frequency is unknown')
+    median = float(np.median(f))
+    return min(NOMINALS_HZ, key=lambda f0: abs(f0 - median))
 
 
 def saturation_coefficients(s10: np.ndarray, s12: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -137,6 +137,7 @@ class Grid:
         p_from_mw: Active power entering each branch at its from end, MW (None if unknown).
         p_to_mw: Active power entering each branch at its to end, MW (None if unknown).
         matpower: The MATPOWER ppc the grid came from (None if built otherwise); used by `with_flows`.
+        freq_hz: Nominal frequency f0, Hz (NaN if unknown): a machine's speed in pu is of 2 pi f0 rad/s.
 
     """
 
@@ -149,6 +150,7 @@ class Grid:
     p_from_mw: np.ndarray | None = field(default=None, compare=False)
     p_to_mw: np.ndarray | None = field(default=None, compare=False)
     matpower: Mapping[str, Any] | None = field(default=None, compare=False, repr=False)
+    freq_hz: float = field(default=float('nan'), compare=False)
 
     def __post_init__(self) -> None:
         bus_set = set(self.buses)

@@ -127,6 +127,25 @@ class MachineSet:
                    d_pu=np.array([g.d_pu for g in gens], dtype=float),
                    pm_pu=np.array([g.p_mw for g in gens], dtype=float) / float(grid.base_mva), freq_hz=freq_hz)
 
+    def reordered(self, names) -> MachineSet:
+        """Return the same machines in the order of names (each named once).
+
+        Raises:
+            StabilityError: names are not exactly these machines.
+
+        """
+        index = {n: i for i, n in enumerate(self.names)}
+        names = tuple(str(n) for n in names)
+        if sorted(names) != sorted(self.names):
+            raise StabilityError(f'reordered: {len(names)} names are not the {len(self.names)} machines')
+        order = [index[n] for n in names]
+        return MachineSet(names, self.m_s[order], self.d_pu[order], self.pm_pu[order], self.freq_hz)
+
+    def same_as(self, other: MachineSet) -> bool:
+        """Whether other holds the same machines, in the same order, with the same data."""
+        return (self.names == other.names and self.freq_hz == other.freq_hz
+                and all(np.array_equal(getattr(self, f), getattr(other, f)) for f in ('m_s', 'd_pu', 'pm_pu')))
+
     @property
     def omega_base(self) -> float:
         """Return 2 pi f0, rad/s."""

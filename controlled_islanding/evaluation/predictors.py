@@ -25,7 +25,6 @@ import numpy as np
 from controlled_islanding.core.stability import TIME_TO_ACT_S
 
 _FIELDS = ('v_mag_pu', 'v_angle_rad', 'i_mag_pu', 'i_angle_rad', 'frequency_hz', 'rocof_hz_per_s')
-_NOMINALS_HZ = (50.0, 60.0)
 
 
 class PredictionStudyError(ValueError):
@@ -81,16 +80,6 @@ class MonitorInputs:
         return len(set(self.truth.values()))
 
 
-def nominal_hz(frequency_hz: np.ndarray) -> float:
-    """Return the standard nominal frequency (50 or 60 Hz) nearest the PMUs' median reported frequency."""
-    f = np.asarray(frequency_hz, dtype=float)
-    f = f[np.isfinite(f)]
-    if not f.size:
-        raise PredictionStudyError('no PMU reported a frequency: the nominal frequency is unknown')
-    median = float(np.median(f))
-    return min(_NOMINALS_HZ, key=lambda f0: abs(f0 - median))
-
-
 def _columns(station_ids: Sequence[str], buses, generators) -> list[int]:
     """Each generator's PMU channel: its own ('<station>/<name>') if it has one, else its bus's."""
     buses = np.asarray(buses)
@@ -143,13 +132,13 @@ def monitor_inputs(run: ScenarioRun) -> MonitorInputs:
     interpolated). The rows returned are those answers, sorted by time tag, late duplicates of a tag dropped.
     """
     from controlled_islanding.core.bad_data import BadDataDetector
-    from controlled_islanding.core.dse import MachineData, StreamingDSE
+    from controlled_islanding.core.dse import DSEError, MachineData, StreamingDSE, nominal_hz
 
     channels, gens = run.channels, run.grid.generators
     try:
         cols = _columns(channels.station_ids, channels.buses, gens)
         f0 = nominal_hz(channels.frequency_hz)
-    except PredictionStudyError as exc:
+    except (PredictionStudyError, DSEError) as exc:
         raise PredictionStudyError(f'{run.source}: {exc}; a predictor needs every generator') from None
     stream = StreamingDSE(MachineData.of_generators(gens), run.rate_fps, 0.1, history_s=1.0, freq_hz=f0)
     detector = BadDataDetector()
@@ -578,10 +567,10 @@ def choice_reasons(results: Sequence[ScenarioResult], chosen: str) -> str:
             f'most runs that separate, then the fewer false alarms. **{chosen}** does on {a.right_to_act} of '
             f'{a.unstable}, {other} on {b.right_to_act}. Before the slip at all, {chosen} names the final groups '
             f'on {a.right_in_time} and {other} on {b.right_in_time}; {chosen} alarms before the slip on {a.in_time} '
-            f'(median lead {lead(a)}), {other} on {b.in_time} (median lead {lead(b)}). Both stay quiet on the runs '
-            'that stay one '
-            f'group ({a.quiet} and {b.quiet} of {a.stable}), where the separation rule alarms on '
-            f'{rule.stable - rule.quiet}: the predictors answer where the swing ends, the rule where it is.\n\n'
+            f'(median lead {lead(a)}), {other} on {b.in_time} (median lead {lead(b)}). Of the {a.stable} runs that '
+            f'stay one group, {chosen} stays quiet on {a.quiet} and {other} on {b.quiet}, where the separation rule '
+            f'alarms on {rule.stable - rule.quiet}: the predictors answer where the swing ends, the rule where it '
+            'is.\n\n'
             f'- {chosen}: {TRAITS[chosen]}.\n- {other}: {TRAITS[other]}.\n\n'
             f'The monitor of the second part should run {chosen}; the other stays in core/ as the comparison, and the '
             'coherency node can call the chosen one on its window (`fit`) so that the request and the decision '

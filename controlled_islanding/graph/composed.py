@@ -32,12 +32,13 @@ from pathlib import Path
 
 from controlled_islanding.graph import GraphError
 from controlled_islanding.graph.observer import process_environment
-from controlled_islanding.graph.supervisor import GRAPH, NodeSpec, ros_arguments
+from controlled_islanding.graph.supervisor import GRAPH, MONITOR, NodeSpec, ros_arguments
 
 NODE_CLASSES = {'pmu_ingestion': 'PmuIngestionNode', 'coherency': 'CoherencyNode',
                 'partitioning': 'PartitioningNode', 'breaker_command': 'BreakerCommandNode',
-                'bag_player': 'BagPlayerNode', 'recorder': 'RecorderNode'}
-_PIPELINE = frozenset(spec.executable for spec in GRAPH)
+                'bag_player': 'BagPlayerNode', 'recorder': 'RecorderNode',
+                'stability_monitor': 'StabilityMonitorNode'}
+_PIPELINE = frozenset(spec.executable for spec in (*GRAPH, MONITOR))
 _JOIN_S = 10.0  # longest wait for a thread to end at exit, s
 _INFRASTRUCTURE = frozenset({'/rosout', '/parameter_events'})
 

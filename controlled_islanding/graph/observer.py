@@ -22,6 +22,7 @@ class Observation:
     """What the observer saw, with wall arrival times (time.monotonic, s) in this one process."""
 
     requests: dict[str, float] = field(default_factory=dict)
+    request_msgs: dict[str, object] = field(default_factory=dict)  # request id -> the first IslandingRequest of that id
     decisions: dict[str, tuple[float, object]] = field(default_factory=dict)  # request id -> (t, msg)
     decision_log: list[tuple[float, object]] = field(default_factory=list)  # every decision, a request's again too
     commands: list[tuple[float, object]] = field(default_factory=list)
@@ -107,13 +108,16 @@ class Observer:
         def subscribe(msg_type: type, topic: str, callback: Callable[[object], None]) -> None:
             self.node.create_subscription(msg_type, topics.relative(topic), callback, qos_for(topic))
 
-        subscribe(IslandingRequest, topics.ISLANDING_REQUEST,
-                  lambda m: obs.requests.setdefault(m.request_id, time.monotonic()))
+        def on_request(msg: IslandingRequest) -> None:
+            obs.requests.setdefault(msg.request_id, time.monotonic())
+            obs.request_msgs.setdefault(msg.request_id, msg)
+
         def on_decision(msg: IslandingDecision) -> None:
             seen = (time.monotonic(), msg)
             obs.decisions.setdefault(msg.request_id, seen)
             obs.decision_log.append(seen)
 
+        subscribe(IslandingRequest, topics.ISLANDING_REQUEST, on_request)
         subscribe(IslandingDecision, topics.ISLANDING_DECISION, on_decision)
         subscribe(BreakerCommand, topics.BREAKER_COMMANDS, lambda m: obs.commands.append((time.monotonic(), m)))
         subscribe(CoherentGroups, topics.COHERENT_GROUPS, obs.groups.append)
@@ -206,18 +210,19 @@ INTERNAL_TOPICS = (topics.ROTOR_ANGLES, topics.COHERENT_GROUPS, topics.ISLANDING
 
 def start_pipeline(sup: object, results: object, key_dir: object, estimator: str | None,
                    prefix: Callable[[str], list[str]] = lambda executable: [],
-                   remaps: Callable[[str], dict[str, str]] = lambda executable: {}) -> None:
+                   remaps: Callable[[str], dict[str, str]] = lambda executable: {}, monitor: bool = False) -> None:
     """Start the four pipeline nodes under a supervisor on sim time, the breaker node's audit log in `results`.
 
-    `prefix(executable)` runs a node on its host; `remaps(executable)` gives a node remappings of its own.
+    `prefix(executable)` runs a node on its host; `remaps(executable)` gives a node remappings of its own. With
+    `monitor`, the stability monitor too (graph/supervisor.MONITOR), signing its requests with key_dir's key.
     """
-    from controlled_islanding.graph.supervisor import GRAPH
+    from controlled_islanding.graph.supervisor import GRAPH, MONITOR
 
     sim = {'use_sim_time': True}
     extra = {'breaker_command': {'audit_log': results / 'breaker_audit.jsonl', 'key_dir': key_dir},
-             'partitioning': {'key_dir': key_dir}}
+             'partitioning': {'key_dir': key_dir}, 'stability_monitor': {'key_dir': key_dir}}
     if estimator is not None:
         extra['pmu_ingestion'] = {'estimator': estimator}
-    for spec in GRAPH:
+    for spec in (*GRAPH, MONITOR) if monitor else GRAPH:
         sup.start(spec, {**sim, **extra.get(spec.executable, {})}, prefix=prefix(spec.executable),
                   remaps=remaps(spec.executable) or None)

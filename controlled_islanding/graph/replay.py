@@ -4,11 +4,13 @@ The four pipeline nodes and a recorder start under a supervisor (each its own pr
 the breaker node is armed with a signed operator request, and bag_player plays the bag (ground truth withheld)
 once the graph is wired. One observer (graph.observer) sees requests, decisions, commands and diagnostics; the
 results folder gets the summary (graph.summary), the output bag, the audit log, the node logs and the figures.
-With hosts, the graph runs on emulated hosts joined by an emulated WAN (graph.wan).
+With hosts, the graph runs on emulated hosts joined by an emulated WAN (graph.wan). With the trigger 'monitor', the
+stability monitor runs beside the four nodes and is the only source of requests: the bag's own are not played.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -35,6 +37,9 @@ log = logging.getLogger(__name__)
 # After the bag ends, a request still unanswered this long (wall, s) is reported as undecided. The nodes
 # give up after at most 2 s (coherency request_wait_s, partitioning groups_wait_s), so this is ample.
 SETTLE_S = 8.0
+# With the monitor as the trigger, nothing in the bag says a request is coming: after the bag ends, the graph gets this
+# long (wall, s) for the last frames to reach the monitor and its request to appear; real time, a frame takes ms.
+MONITOR_SETTLE_S = 1.0
 # Once every request is decided, how long breaker_command may take to handle the decisions (wall, s); it takes
 # milliseconds, so only a node without its audit log, or a dead one, reaches this.
 BREAKER_WAIT_S = 5.0
@@ -58,6 +63,8 @@ class ReplayOptions:
         estimator: pmu_ingestion's rotor angle estimator, 'steady_state' or 'dse'; None: its parameter file's.
         in_process: The nodes in this process (graph/composed.py), fresh ones in a fresh Context, not as processes
             under a supervisor: what a warm regression worker (graph/worker.py) runs.
+        trigger: Where the islanding requests come from: 'bag' (the bag's own, the paper's operator) or 'monitor'
+            (the stability monitor's alone; the bag's are withheld).
 
     """
 
@@ -73,6 +80,12 @@ class ReplayOptions:
     namespace: str = ''
     estimator: str | None = None
     in_process: bool = False
+    trigger: str = 'bag'
+
+    @property
+    def monitor(self) -> bool:
+        """Whether the stability monitor is the source of requests."""
+        return self.trigger == 'monitor'
 
     def say(self, text: str, *args: object) -> None:
         """Log one progress line (debug when quiet)."""
@@ -132,7 +145,7 @@ def run_graph(bag: Path, results: Path, options: ReplayOptions, hosts: dict[str,
     """
     from controlled_islanding.graph.composed import ComposedGraph
     from controlled_islanding.graph.rosenv import graph_environment
-    from controlled_islanding.graph.supervisor import GRAPH, PIPELINE_POLICY, PLAYER, RECORDER, Supervisor
+    from controlled_islanding.graph.supervisor import GRAPH, MONITOR, PIPELINE_POLICY, PLAYER, RECORDER, Supervisor
     from controlled_islanding.ros.diagnostics import writers_matched
     from controlled_islanding.ros.spin import settle_heap
     from controlled_islanding.safety import signing
@@ -141,6 +154,8 @@ def run_graph(bag: Path, results: Path, options: ReplayOptions, hosts: dict[str,
     key_dir = signing.default_key_dir()
     signing.init_keys(key_dir)
     operator_key = signing.load_private_key(signing.key_paths(key_dir, 'operator').private)
+    withheld = [topics.ISLANDING_REQUEST] if options.monitor else []
+    nodes = (*GRAPH, MONITOR) if options.monitor else GRAPH
     # A composed graph's player has read the bag by the time the graph is wired; reading it here too would cost
     # as much CPU again (rosbags parses each topic's QoS from YAML).
     in_bag = {} if options.in_process else bag_topics(bag)
@@ -167,7 +182,7 @@ def run_graph(bag: Path, results: Path, options: ReplayOptions, hosts: dict[str,
                 observer = stack.enter_context(Observer(env, 'replay_observer', ns, obs))
                 sup = stack.enter_context(Supervisor(env, logs, PIPELINE_POLICY, namespace=ns, remaps=remaps))
             obs.restarts, obs.hangs = sup.restarts, sup.hangs
-            start_pipeline(sup, results, key_dir, options.estimator, on_host)
+            start_pipeline(sup, results, key_dir, options.estimator, on_host, monitor=options.monitor)
             if options.record:
                 sup.start(RECORDER, {'use_sim_time': True, 'output': results / 'output_bag'},
                           prefix=on_host(RECORDER.executable))
@@ -175,10 +190,11 @@ def run_graph(bag: Path, results: Path, options: ReplayOptions, hosts: dict[str,
             go_file = results / 'player_go.json'
             player = sup.start(PLAYER, {'bag': bag.resolve(), 'as_fast_as_possible': options.fast,
                                         'rate': options.rate, 'report_file': report_file,
-                                        'clock_min_step_s': 0.05 if options.fast else 0.0, 'go_file': go_file},
+                                        'clock_min_step_s': 0.05 if options.fast else 0.0, 'go_file': go_file,
+                                        **({'withhold_topics': str(withheld)} if withheld else {})},
                                prefix=on_host(PLAYER.executable))
             obs.phases_unix['nodes_started'] = time.time()
-            options.say('started %d nodes%s (logs in %s)', len(GRAPH), ' and the recorder' if options.record else '',
+            options.say('started %d nodes%s (logs in %s)', len(nodes), ' and the recorder' if options.record else '',
                         logs)
             observer.arm(operator_key, options.arm, 20.0, sup.check_alive)
             obs.phases_unix['armed'] = time.time()
@@ -199,20 +215,20 @@ def run_graph(bag: Path, results: Path, options: ReplayOptions, hosts: dict[str,
                 in_bag = Counter(t for t, _, _ in player_node.messages)
                 counts = {t: sup.readers(topic_name(t), observer.node) for t in [*player_node.pubs, topics.CLOCK]}
             else:
-                played = [t for t in in_bag if t not in topics.TRUTH_TOPICS] + [topics.CLOCK]
+                played = [t for t in in_bag if t not in topics.TRUTH_TOPICS and t not in withheld] + [topics.CLOCK]
                 # The player starts once every subscriber now in the graph (this observer included) matches it.
                 # Kundur at load 9 lost the rotor angles before its request without the writers' match
                 # (writers_matched).
                 counts = observer.wait_until_wired(
                     played, INTERNAL_TOPICS, 20.0, topic_name,
                     ready=lambda: all(writers_matched(obs.diagnostics.get(f'/{spec.executable}', {}),
-                                                      observer.node.count_subscribers) for spec in GRAPH),
+                                                      observer.node.count_subscribers) for spec in nodes),
                     check=player_alive)
             obs.phases_unix['wired'] = time.time()
             atomic.write_text(go_file, json.dumps({'min_subscribers': [f'{t}={n}' for t, n in counts.items()]}))
             settle_heap()  # this observer's timestamps must not wait on a full garbage collection either
-            _watch(observer, sup, player, options, in_bag.get(topics.ISLANDING_REQUEST, 0), logs,
-                   results / 'breaker_audit.jsonl')
+            _watch(observer, sup, player, options, 0 if options.monitor else in_bag.get(topics.ISLANDING_REQUEST, 0),
+                   logs, results / 'breaker_audit.jsonl', nodes)
             if options.in_process and 'decided' in obs.phases_unix:
                 # What each node counted once it has taken everything, read from the node itself.
                 sup.settle()
@@ -269,11 +285,14 @@ def breaker_done(audit_log: Path, obs: Observation) -> bool:
 
 
 def _watch(observer: Observer, sup: object, player: subprocess.Popen, options: ReplayOptions, n_requests: int,
-           logs: Path, audit_log: Path) -> None:
-    """Follow the play until every request is answered (or the bag ended SETTLE_S ago); send probe requests."""
+           logs: Path, audit_log: Path, nodes: tuple = ()) -> None:
+    """Follow the play until every request is answered (or the bag ended SETTLE_S ago); send probe requests.
+
+    With the monitor as the trigger, the play is over no sooner than MONITOR_SETTLE_S after the bag ended: the
+    monitor's request for the last frames may still be on its way. `nodes`: the graph's, whose diagnostics are awaited.
+    """
     from controlled_islanding_msgs.msg import IslandingRequest
 
-    from controlled_islanding.graph.supervisor import GRAPH
     from controlled_islanding.ros.endpoints import qos_for
 
     obs = observer.obs
@@ -306,7 +325,8 @@ def _watch(observer: Observer, sup: object, player: subprocess.Popen, options: R
                     obs.requests[probe.request_id] = time.monotonic()
                     probe_pub.publish(probe)
                 next_probe += probe_period
-        if bag_done and answered >= n_requests and all(r in obs.decisions for r in obs.requests):
+        settled = not options.monitor or time.monotonic() - exited_at >= MONITOR_SETTLE_S
+        if bag_done and settled and answered >= n_requests and all(r in obs.decisions for r in obs.requests):
             if not observer.spin_for(BREAKER_WAIT_S, lambda: breaker_done(audit_log, obs)):
                 options.say('breaker_command handled not every decision within %g s', BREAKER_WAIT_S)
             # The summary gives each node's last /diagnostics (sent every second): wait, at most 1.5 s, for one
@@ -314,7 +334,7 @@ def _watch(observer: Observer, sup: object, player: subprocess.Popen, options: R
             # from its nodes instead (run_graph).
             limit = time.monotonic() + (0.0 if options.in_process else 1.5)
             while time.monotonic() < limit and any(
-                    obs.heartbeats_s.get(f'/{spec.executable}', -math.inf) < exited_at for spec in GRAPH):
+                    obs.heartbeats_s.get(f'/{spec.executable}', -math.inf) < exited_at for spec in nodes):
                 observer.spin_for(0.05)
             obs.phases_unix['decided'] = time.time()
             return
@@ -376,7 +396,7 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
            timeout_s: float = 120.0, figures: bool = True, quiet: bool = False, arm: bool = True,
            record: bool = True, isolate: bool = True, namespace: str = '', estimator: str | None = None,
            hosts: str | None = None, link: wan.LinkModel | None = None, force: bool = False,
-           in_process: bool = False) -> dict:
+           in_process: bool = False, trigger: str = 'bag') -> dict:
     """Replay a bag through the graph; write the results folder; return the summary.
 
     The options are ReplayOptions'. `hosts` (e.g. 'pdc,control,substation') runs the graph on emulated hosts
@@ -401,9 +421,16 @@ def replay(bag: Path, results: Path | None, *, fast: bool = False, rate: float =
         raise GraphError(f'bag {bag} does not exist')
     if rate <= 0:
         raise GraphError(f'--rate {rate} must be positive')
+    if trigger not in ('bag', 'monitor'):
+        raise GraphError(f'--trigger {trigger!r} must be bag or monitor')
+    if trigger == 'monitor' and (fast or probe_hz):
+        # The player holds the graph in step only at requests it plays; at a request it did not play, its /clock
+        # runs on, and breaker_command refuses a decision whose request is older than its max_decision_age_s.
+        raise GraphError('--trigger monitor replays in real time (or at --rate): not with --fast or --probe-hz, since '
+                         'the player holds the graph in step only at the requests it plays itself')
     options = ReplayOptions(fast=fast, rate=rate, probe_hz=probe_hz, timeout_s=timeout_s, figures=figures,
                             quiet=quiet, arm=arm, record=record, isolate=isolate, namespace=namespace_name(namespace),
-                            estimator=estimator, in_process=in_process)
+                            estimator=estimator, in_process=in_process, trigger=trigger)
     if results is None:
         stamp = datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')
         results = Path('results') / f'replay-{bag.name}-{stamp}'
@@ -421,6 +448,7 @@ def _replay_here(bag: Path, results: Path, options: ReplayOptions, hosts: dict[s
     obs, report = run_graph(bag, results, options, hosts, netns)
     summary = summarize(bag, results, obs, report)
     summary['namespace'] = options.namespace
+    summary['trigger'] = options.trigger
     summary['estimator'] = next((d['estimator'] for name, d in obs.diagnostics.items()
                                  if name.endswith('pmu_ingestion') and 'estimator' in d), options.estimator)
     if options.figures and options.record:

@@ -88,6 +88,17 @@ def _groups_dict(obs: Observation, request_stamp: object | None) -> dict:
             'unobserved': list(g.unobserved_generator_names)}
 
 
+def request_dict(msg: object) -> dict:
+    """Return an IslandingRequest as the summary holds it: stamp, predicted groups and first slip, signer."""
+    from controlled_islanding.wire.messages import stamp_s
+
+    k = max((int(g) for g in msg.group), default=-1) + 1
+    slip = stamp_s(msg.predicted_first_slip)
+    return {'request_id': msg.request_id, 'stamp_s': stamp_s(msg.header.stamp), 'reason': msg.reason,
+            'groups': [[n for n, g in zip(msg.generator_names, msg.group, strict=True) if g == i] for i in range(k)],
+            'predicted_first_slip_s': slip if slip > 0 else None, 'key_id': msg.key_id}
+
+
 def percentile(values: list[float], q: float) -> float:
     """Return the q-th percentile (0..100) by linear interpolation."""
     data = sorted(values)
@@ -119,6 +130,7 @@ def summarize(bag: Path, results: Path, obs: Observation, report: dict) -> dict:
             'n': len(latencies), 'median': statistics.median(latencies) if latencies else None,
             'p99': percentile(latencies, 99) if latencies else None, 'max': max(latencies) if latencies else None,
             'samples': latencies, 'to_command': to_command},
+        'requests': [request_dict(obs.request_msgs[r]) for r in bag_requests if r in obs.request_msgs],
         'replay': report, 'phases_s': phases(obs.phases_unix, report), 'cpu_s': obs.cpu_s,
         'diagnostics_rejects': {k: v for k, v in rejects.items() if any(x != '0' for x in v.values())},
         'diagnostics': obs.diagnostics,  # each node's last /diagnostics values, for a failure's post-mortem
@@ -162,12 +174,17 @@ def graph_failure(summary: dict) -> str | None:
 def render(summary: dict) -> str:
     """Return the readable decision."""
     lines = [f'bag: {summary["bag"]}']
+    if summary.get('trigger') == 'monitor':
+        lines += monitor_lines(summary)
     groups = summary['coherent_groups']
     if groups:
         lines.append(f'coherent groups ({groups["method"]}, k={groups["k"]}, window {groups["window_s"]:.2f} s):')
         lines += [f'  group {i}: {", ".join(names)}' for i, names in enumerate(groups['groups'])]
         if groups.get('unobserved'):
             lines.append(f'  unobserved (no PMU data, in no group): {", ".join(groups["unobserved"])}')
+    if summary.get('split') is None and summary.get('trigger') == 'monitor' and not summary['requests']:
+        lines.append(f'results: {summary["results_dir"]}')
+        return '\n'.join(lines)
     if summary.get('split') is None:
         lines.append('NO DECISION: see the dropped inputs below and the node logs')
         lines += [f'dropped inputs at {name}: ' + ', '.join(f'{k}={v}' for k, v in rejects.items())
@@ -222,6 +239,21 @@ def render(summary: dict) -> str:
         lines.append(f'FAILED: {graph_failure(summary)}')
     lines.append(f'results: {summary["results_dir"]}')
     return '\n'.join(lines)
+
+
+def monitor_lines(summary: dict) -> list[str]:
+    """Return the stability monitor's requests (replay --trigger monitor), one line each, or that it made none."""
+    if not summary['requests']:
+        return ['stability monitor: no islanding request (no separation predicted with confidence)']
+    out = []
+    for r in summary['requests']:
+        slip = r['predicted_first_slip_s']
+        small = sorted(r['groups'], key=len)[:-1]
+        out.append(f'stability monitor: request {r["request_id"]} at {r["stamp_s"]:.3f} s, {len(r["groups"])} '
+                   f'groups predicted (' + '; '.join(', '.join(g) for g in small)[:300] + ' apart), first pole slip '
+                   + (f'predicted {slip - r["stamp_s"]:.3f} s later' if slip else 'not predicted')
+                   + ('' if r['key_id'] else ', UNSIGNED'))
+    return out
 
 
 def wan_line(info: dict) -> str:

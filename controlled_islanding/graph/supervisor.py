@@ -46,6 +46,8 @@ GRAPH: tuple[NodeSpec, ...] = (
     NodeSpec('partitioning', 'partitioning.yaml'),
     NodeSpec('breaker_command', 'breaker_command.yaml'),
 )
+# The stability monitor raises the islanding requests itself (`--trigger monitor`): started beside GRAPH then.
+MONITOR = NodeSpec('stability_monitor', 'stability_monitor.yaml')
 PLAYER = NodeSpec('bag_player', 'bag_player.yaml')
 RECORDER = NodeSpec('recorder', 'recorder.yaml')
 
@@ -55,7 +57,7 @@ RECORDER = NodeSpec('recorder', 'recorder.yaml')
 # heartbeat: 14-16 s measured for partitioning at load average 12 on the 2-core machine, hence 60 s of grace.
 # After it, a 2224-bus decision takes 1.1-1.3 s in one callback there, and a false kill loses the requests a node
 # holds, hence 10 s: a node truly hung is still found well within a replay's lockstep waits.
-PIPELINE_POLICY = RestartPolicy(nodes=frozenset(spec.executable for spec in GRAPH), hang_timeout_s=10.0,
+PIPELINE_POLICY = RestartPolicy(nodes=frozenset(spec.executable for spec in (*GRAPH, MONITOR)), hang_timeout_s=10.0,
                                 startup_grace_s=60.0)
 
 

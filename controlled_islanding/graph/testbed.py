@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -44,7 +45,8 @@ class TestbedSettings:
         breaker_operating_s: Breaker command -> branch open, s.
         shed_delay_s: Branch open -> the decision's load sheds and generator trips, s.
         run_after_s: Simulate at least this long after the request, s.
-        trigger: Where the request comes from: 'scenario' (its time) or 'out-of-step' (grid_sim's trigger).
+        trigger: Where the request comes from: 'scenario' (its time), 'out-of-step' (grid_sim's trigger) or
+            'monitor' (the stability monitor's, started beside the four nodes; grid_sim raises none).
         timeout_s: Give up on one closed-loop run after this, wall s.
         namespace: The graph's and grid_sim's namespace ('' = the root one).
         estimator: pmu_ingestion's rotor angle estimator; None: its parameter file's.
@@ -85,7 +87,7 @@ def _say(quiet: bool, text: str) -> None:
 def run_closed_loop(scenario: Path, results: Path, *, rate: float, params: dict[str, float], timeout_s: float,
                     quiet: bool, namespace: str = '', estimator: str | None = None,
                     hosts: dict[str, tuple[str, ...]] | None = None, netns: dict[str, str] | None = None,
-                    injector: FaultInjector | None = None) -> tuple[Observation, dict]:
+                    injector: FaultInjector | None = None, monitor: bool = False) -> tuple[Observation, dict]:
     """Run the four nodes and grid_sim on one scenario; return what the observer saw and grid_sim's report.
 
     The graph runs in `namespace` ('' = the root one, else e.g. '/area1'), its clock on <namespace>/clock.
@@ -93,6 +95,7 @@ def run_closed_loop(scenario: Path, results: Path, *, rate: float, params: dict[
     nodes start in its network namespace `netns[host]` of an emulated WAN (grid_sim on the PDC's host, as the PMUs
     feed it), and this process must be on the operator's (run_on_hosts). `injector` carries out one fault
     (graph/chaos.py); after grid_sim ends, the run waits (at most RECOVERY_WAIT_S) for the graph to recover from it.
+    With `monitor`, the stability monitor runs beside the four nodes (params' trigger should then be 'monitor').
 
     Raises:
         GraphError: A node died, or grid_sim gave no report within timeout_s.
@@ -120,8 +123,9 @@ def run_closed_loop(scenario: Path, results: Path, *, rate: float, params: dict[
         with Observer(env, 'testbed_observer', namespace, obs) as observer, \
                 Supervisor(env, logs, PIPELINE_POLICY, namespace=namespace, remaps=remaps) as sup:
             obs.restarts, obs.hangs = sup.restarts, sup.hangs
-            start_pipeline(sup, results, key_dir, estimator, on_host, lambda executable: own_remaps.get(executable, {}))
-            _say(quiet, f'started {len(GRAPH)} nodes (logs in {logs})')
+            start_pipeline(sup, results, key_dir, estimator, on_host,
+                           lambda executable: own_remaps.get(executable, {}), monitor=monitor)
+            _say(quiet, f'started {len(GRAPH) + monitor} nodes (logs in {logs})')
             if injector:
                 injector.attach(observer, sup, remaps.get(topics.CLOCK, topics.CLOCK))
             observer.arm(operator_key, True, 30.0, sup.check_alive)
@@ -362,11 +366,12 @@ def _run_scenario(path: Path, results: Path, args: TestbedSettings, cache: dict,
     _say(quiet, f'{scenario.name}: closed loop')
     obs, report = run_closed_loop(path, out, rate=args.rate, params=params, timeout_s=args.timeout_s, quiet=quiet,
                                   namespace=namespace_name(args.namespace), estimator=args.estimator, hosts=hosts,
-                                  netns=netns)
+                                  netns=netns, monitor=args.trigger == 'monitor')
     decision = _decision(obs, report['request_id'])
     loop = report['outcome']
-    if args.trigger != 'scenario':
-        # The baselines and the figure answer the request grid_sim's trigger made, not the scenario's.
+    if args.trigger != 'scenario' and math.isfinite(loop['request_s']):
+        # The baselines and the figure answer the request grid_sim's trigger made, not the scenario's (with none,
+        # the run was judged from the scenario's own request time, as the no-action run is).
         scenario = replace(scenario, request_s=loop['request_s'],
                            end_s=max(scenario.end_s, loop['request_s'] + args.run_after_s))
     result: dict[str, Any] = {'scenario': scenario.name, 'path': str(path), 'decision': decision,

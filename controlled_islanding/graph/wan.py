@@ -48,7 +48,7 @@ from controlled_islanding.graph.processes import die_with_parent, sigterm_as_int
 # and the substation that holds the breakers. The bag player stands in for the PDC's stream.
 ROLES: dict[str, tuple[str, ...]] = {
     'pdc': ('pmu_ingestion', 'bag_player'),
-    'control': ('coherency', 'partitioning'),
+    'control': ('coherency', 'partitioning', 'stability_monitor'),
     'substation': ('breaker_command',),
 }
 OPERATOR = 'operator'

@@ -58,6 +58,7 @@ _NOT_DECIDED = {
     IslandingDecision.STATUS_REFUSED_TOPOLOGY_PENDING: 'topology pending',
     IslandingDecision.STATUS_REFUSED_FAILED: 'failed',
     IslandingDecision.STATUS_REFUSED_SUSPECT_DATA: 'suspect data',
+    IslandingDecision.STATUS_REFUSED_UNAUTHENTIC_REQUEST: 'unauthentic request',
 }
 
 

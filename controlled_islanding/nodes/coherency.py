@@ -8,6 +8,15 @@ wall) for a sample at T or later, then groups the window ending at T and publish
 id, so partitioning can tell that answer from a periodic grouping that reaches it later; the groups are latched
 (transient local) for late joiners.
 
+The groups are the predicted final grouping (core/final_grouping.py), the one rule the stability monitor shares:
+every sample also goes, in time-tag order, to a SwingWatch (the chosen predictor, SIME, on the filter's angles,
+speeds and torques and the measured power and voltage /rotor_angles carries); for a window ending at T, the
+groups are the predicted ones when a separation was predicted with confidence by T in the present swing (so the
+monitor's request and this node's answer agree on k), else the DTW rule's, less the splits the predictor says
+come back (a pair drifting apart but slowing down and predicted to return, or already heading back). Without the
+grid's nominal frequency or the machines' inertia in the snapshot, or without speeds in the samples, there is no
+prediction and the DTW rule's groups stand (`grouping` in /diagnostics says which).
+
 The generators are those of the latched /network/snapshot: a sample naming any other generator is refused
 (unknown_id), and a snapshot with a different generator set starts a new window. Stamps are bounded by the
 node's own clock (sim time in replay): a sample or request stamped more than `future_tolerance_s` ahead of
@@ -29,7 +38,9 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from controlled_islanding.core.coherency import DTWCoherency, decimation_factor
+from controlled_islanding.core.final_grouping import SwingWatch, final_groups, warm_up
 from controlled_islanding.core.k_rules import DEFAULT_RULE, RULES
+from controlled_islanding.core.stability import MachineSet, StabilityError
 from controlled_islanding.ros.clock_gate import ClockGate
 from controlled_islanding.ros.diagnostics import Diagnostics
 from controlled_islanding.ros.endpoints import qos_for
@@ -38,7 +49,7 @@ from controlled_islanding.ros.params import NodeSetupError, declare_bounded
 from controlled_islanding.ros.pending import PendingRequests
 from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.wire import topics
-from controlled_islanding.wire.messages import MAX_REQUEST_ID, split_stamp, stamp_s
+from controlled_islanding.wire.messages import MAX_REQUEST_ID, MONITOR_FIELDS, sample_columns, split_stamp, stamp_s
 
 
 class CoherencyNode(Node):
@@ -84,6 +95,18 @@ class CoherencyNode(Node):
         self.max_window_samples = int(declare_bounded(
             self, 'max_window_samples', 10_000, 2, 1_000_000,
             'samples kept in the window (twice window_s of time tags); beyond it the oldest are dropped'))
+        # The predictor's settings: the stability monitor's own (config/stability_monitor.yaml), so both predict alike.
+        self.predictor_settings = {
+            'noise_tve': float(declare_bounded(self, 'predictor_noise_tve', 0.01, 1e-6, 0.49,
+                                               "as stability_monitor's: the PMUs' TVE bound", True)),
+            'z_alarm': float(declare_bounded(self, 'predictor_z_alarm', 3.0, 0.1, 100.0,
+                                             "as stability_monitor's: the alarm's standard errors", True)),
+            'history_s': float(declare_bounded(self, 'predictor_history_s', 2.0, 0.1, 60.0,
+                                               "as stability_monitor's: frames the predictor keeps, s", True)),
+            'time_to_act_s': float(declare_bounded(self, 'predictor_time_to_act_s', 0.1, 0.0, 10.0,
+                                                   "as stability_monitor's: time to act before the slip, s", True)),
+            'max_groups': self.max_groups}
+        self.watch: SwingWatch | None = None
         if self.max_window_samples < self.min_samples:
             raise NodeSetupError(f'max_window_samples={self.max_window_samples} < min_samples={self.min_samples}: '
                                  'no window could ever be grouped')
@@ -150,8 +173,22 @@ class CoherencyNode(Node):
             self.t_s, self.angles, self.suspect, self.dirty = [], [], [], False
             self.computed_end_s, self.late_inserts_before_s = -1.0, -1.0
         self.buses = [bus_of[n] for n in self.names]
+        self._start_watch(grid)
         while self.early:
             self._take_angles(self.early.popleft())
+
+    def _start_watch(self, grid) -> None:
+        """(Re)start the predictor for a snapshot's machines (kept when they are the same), or say why there is none."""
+        try:
+            if not np.isfinite(grid.freq_hz):
+                raise StabilityError('the snapshot gives no nominal frequency')
+            machines = MachineSet.of_grid(grid, grid.freq_hz).reordered(self.names)
+        except StabilityError as exc:
+            self.watch = None
+            self.diag.values['grouping'] = f'DTW rule only: no prediction ({exc})'[:200]
+            return
+        if self.watch is None or not machines.same_as(self.watch.machines):
+            self.watch = SwingWatch(machines, keep_s=2 * self.window_s, **self.predictor_settings)
 
     def _warm_up_engine(self) -> None:
         """Group a made-up window once, before spinning, so that the DTW engine is loaded before any real window.
@@ -169,6 +206,7 @@ class CoherencyNode(Node):
             DTWCoherency(max_groups=self.max_groups, window=self.band, k_rule=self.k_rule).fit(series)
         except Exception as exc:  # noqa: BLE001  a made-up window only loads the engine; its answer is unused
             self.get_logger().info(f'DTW warm-up grouping failed ({exc}); continuing')
+        warm_up(self.predictor_settings['z_alarm'])
         self.diag.values['warm_up_ms'] = f'{(time.perf_counter() - t0) * 1e3:.1f}'
 
     def on_angles(self, msg: RotorAngles) -> None:
@@ -182,7 +220,8 @@ class CoherencyNode(Node):
             self.diag.reject('too_large', f'rotor angles name {n} generators, more than '
                                           f'max_generators={self.limits.max_generators}')
             return
-        if any(x != n for x in lengths) or len(msg.suspect_reason) not in (0, n):
+        if any(x != n for x in lengths) or any(len(getattr(msg, f)) not in (0, n)
+                                               for f in ('suspect_reason', *MONITOR_FIELDS)):
             self.diag.reject('array_length', f'rotor angles: {n} names but buses/angles/valid have {lengths}')
             return
         t = stamp_s(msg.header.stamp)
@@ -215,6 +254,7 @@ class CoherencyNode(Node):
             return
         row = np.full(len(self.names), np.nan)
         row[cols] = np.where(valid, angles, np.nan)
+        self._watch(msg)
         suspect = {cols[j]: str(why) for j, why in enumerate(msg.suspect_reason) if why}
         t = stamp_s(msg.header.stamp)
         if self.t_s and t < self.t_s[-1] - self.max_sample_age_s:
@@ -238,6 +278,18 @@ class CoherencyNode(Node):
         self.dirty = True
         if self.pending:
             self.pending.serve()
+
+    def _watch(self, msg: RotorAngles) -> None:
+        """Feed a sample to the predictor (SwingWatch skips one older than the newest it took)."""
+        if self.watch is None:
+            return
+        if not len(msg.omega_pu):
+            self.diag.values['grouping'] = 'DTW rule only: the rotor angles carry no speeds (no dse estimator)'
+            return
+        row = sample_columns(msg, self.column)
+        if row is not None:
+            self.watch.update(stamp_s(msg.header.stamp), row['delta_rad'], row['omega_pu'], row['pe_pu'], row['v_pu'],
+                              row['valid'], row['pm_pu'])
 
     def on_request(self, msg: IslandingRequest) -> None:
         """Check a request's stamp; queue it, hold it, or refuse it."""
@@ -276,6 +328,24 @@ class CoherencyNode(Node):
         if self.dirty and not self.pending:
             self._compute(self.t_s[-1])
 
+    def _final(self, end_s: float, seen: np.ndarray, rule_labels: np.ndarray) -> list[int]:
+        """Return the predicted final grouping of the observed machines `seen` (core/final_grouping.py)."""
+        if self.watch is None or self.watch.frames_ == 0:
+            return [int(g) for g in rule_labels]
+        alarm = self.watch.at(end_s)
+        if alarm is not None:
+            out = final_groups(alarm, [])[seen]
+            order: dict[int, int] = {}
+            self.diag.values['grouping'] = f'predicted at {alarm.t_s:.3f} s (k={alarm.k})'
+            return [order.setdefault(int(g), len(order)) for g in out]
+        full = np.full(len(self.names), -1)
+        full[seen] = rule_labels
+        returning = self.watch.returning(full)
+        labels = final_groups(None, rule_labels, returning)
+        merged = int(rule_labels.max()) - int(labels.max())
+        self.diag.values['grouping'] = 'DTW rule' + (f', {merged} split(s) predicted to come back' if merged else '')
+        return [int(g) for g in labels]
+
     def _compute(self, end_s: float, request_id: str = '') -> None:
         hi = bisect.bisect_right(self.t_s, end_s)
         lo = bisect.bisect_left(self.t_s, end_s - self.window_s)
@@ -306,7 +376,8 @@ class CoherencyNode(Node):
             else:
                 model = DTWCoherency(max_groups=self.max_groups, window=self.band, k_rule=self.k_rule,
                                      decimate=decimate, all_pairs=self.all_pairs).fit(list(block[:, seen].T))
-                labels, k = [int(g) for g in model.labels_], int(model.n_groups_)
+                labels = self._final(end_s, seen, model.labels_)
+                k = max(labels) + 1
                 matrix = np.asarray(model.distance_matrix_, dtype=float)
                 # The message's distance is all pairs or none: the pairs the rule did not need were not computed.
                 distance = [float(x) for x in matrix.ravel()] if not np.isnan(matrix).any() else []

@@ -36,6 +36,12 @@ Time. Stamps are sim time plus sim/bag.START_TIME_UNIX_S, as in the bags, and /c
   (IEEE 39 G6-G7: the trigger at 5.39 s, two groups from 5.55 s, from 5.43 s with the runaway test of 63828a7),
   so a one-shot trigger asked once, too early, and never again. A relay is not disabled by a request that was
   answered; the operator-side bound is the cap.
+- `trigger: monitor`: grid_sim raises no request; the stability monitor (nodes/stability_monitor.py) does, on the
+  angles it reads. The first IslandingRequest heard on the topic is the run's request: in lockstep each step waits
+  (at most `trigger_wait_s` wall) until /rotor_angles has answered every frame sent, then takes what came (the
+  monitor judges each sample as it arrives), and once a request is heard the simulation is held for its decision
+  and commands as for its own, the wall time charged from the request's stamp. With no request, the run is judged
+  from the scenario's own request time, as no action is.
 - `rate: R > 0`: paced at R times real time, nothing waits; a command opens its branch at max(its stamp, the sim
   time it arrived) + breaker_operating_s, the decision's latest. If ANDES is slower than R x real time, the
   pace is ANDES'.
@@ -87,7 +93,7 @@ from controlled_islanding.sim.closed_loop import (
 from controlled_islanding.sim.pmu import Frame, PmuStream
 from controlled_islanding.sim.scenario import ScenarioError, load_scenario
 from controlled_islanding.wire import topics
-from controlled_islanding.wire.messages import dynamic_data_fields
+from controlled_islanding.wire.messages import dynamic_data_fields, nominal_frequency_hz
 
 ASSESSMENT_TOPIC = '/grid/assessment'
 _CLOCK_HEARTBEAT_S = 0.05
@@ -107,7 +113,8 @@ def _sim_s(stamp: Any) -> float:
 def snapshot_msg(grid: Grid) -> NetworkSnapshot:
     """Return the NetworkSnapshot of a grid, stamped at sim time 0 (as sim/bag.py writes it)."""
     msg = NetworkSnapshot(
-        case_name=grid.name, base_mva=float(grid.base_mva), bus_numbers=[int(b) for b in grid.buses],
+        case_name=grid.name, base_mva=float(grid.base_mva), nominal_frequency_hz=nominal_frequency_hz(grid),
+        bus_numbers=[int(b) for b in grid.buses],
         branch_ids=[b.branch_id for b in grid.branches], branch_breaker_ids=[b.breaker for b in grid.branches],
         branch_from_bus=[b.from_bus for b in grid.branches], branch_to_bus=[b.to_bus for b in grid.branches],
         branch_in_service=[b.in_service for b in grid.branches],
@@ -186,9 +193,11 @@ class GridSimNode(Node):
                              self.grid_run.bus_numbers, float(self.grid_run.ss.config.freq))
         self.report_file = self.get_parameter('report_file').value
         self.trigger = str(self.get_parameter('trigger').value)
-        if self.trigger not in ('scenario', 'out_of_step'):
-            raise NodeSetupError(f'parameter trigger={self.trigger!r} must be scenario or out_of_step')
-        if self.trigger == 'out_of_step':  # the request comes when the angles say so, not at the scenario's time
+        if self.trigger not in ('scenario', 'out_of_step', 'monitor'):
+            raise NodeSetupError(f'parameter trigger={self.trigger!r} must be scenario, out_of_step or monitor')
+        self.judged_from_s = self.scenario.request_s  # without any request, the run is judged from here
+        self.heard: IslandingRequest | None = None  # trigger monitor: the first request heard on the topic
+        if self.trigger != 'scenario':  # the request comes when the angles say so, not at the scenario's time
             self.scenario = replace(self.scenario, request_s=math.inf)
         self.angle_ref: dict[str, float] = {}
         self.answered_s = -math.inf  # sim time of the last request answered without a split (trigger re-arm)
@@ -209,6 +218,9 @@ class GridSimNode(Node):
                                  qos_for(topics.ISLANDING_DECISION))
         self.create_subscription(RotorAngles, topics.relative(topics.ROTOR_ANGLES), self._on_angles,
                                  qos_for(topics.ROTOR_ANGLES))
+        if self.trigger == 'monitor':
+            self.create_subscription(IslandingRequest, topics.relative(topics.ISLANDING_REQUEST), self._on_request,
+                                     qos_for(topics.ISLANDING_REQUEST))
         self.diag = Diagnostics(self)
         self.requests_made = 1
         self.request_id = f'{self.scenario.name}/closed-loop-request-1'
@@ -240,6 +252,10 @@ class GridSimNode(Node):
 
     def _on_decision(self, msg: IslandingDecision) -> None:
         self.decisions.setdefault(msg.request_id, msg)
+
+    def _on_request(self, msg: IslandingRequest) -> None:
+        if self.heard is None:
+            self.heard = msg
 
     def _on_angles(self, msg: RotorAngles) -> None:
         self.newest_angle_s = max(self.newest_angle_s, _sim_s(msg.header.stamp))
@@ -359,7 +375,7 @@ class GridSimNode(Node):
         self.queue += frames
         if frames:
             self._publish_clock(min(t, frames[-1].tag_s) if not self.request_sent else t)
-        if self.trigger == 'out_of_step' and not self.request_sent and self.rate == 0 and frames:
+        if self.trigger != 'scenario' and not self.request_sent and self.rate == 0 and frames:
             # Lockstep: judge the angles of every frame sent so far. Without this wait the trigger saw whichever
             # angles the graph had answered while the simulation ran on, so it fired later the busier the machine
             # (IEEE 39 G6-G7: 5.625 s under load, 5.433 s with less).
@@ -374,6 +390,10 @@ class GridSimNode(Node):
             self.events.append({'what': 'out-of-step trigger', 'at_s': t,
                                 'separation_rad': max(self.angle_now[n] - self.angle_ref[n] for n in self.angle_now)
                                 - min(self.angle_now[n] - self.angle_ref[n] for n in self.angle_now)})
+        if self.trigger == 'monitor' and not self.request_sent:
+            self._spin()
+            if self.heard is not None:
+                self._heard(run, t)
         request_s = self.scenario.request_s
         if not self.request_sent and t >= request_s - 1e-9:
             self._deliver(request_s)
@@ -400,6 +420,22 @@ class GridSimNode(Node):
         names = list(self.angle_now)
         return out_of_step([self.angle_now[n] for n in names], [self.angle_ref[n] for n in names], self.frame_v_pu)
 
+    def _heard(self, run: GridRun, t: float) -> None:
+        """Take the monitor's request as the run's: its stamp is the request time; hold for its decision."""
+        msg = self.heard
+        request_s = min(_sim_s(msg.header.stamp), t)
+        self.scenario = replace(self.scenario, request_s=request_s)
+        run.scenario = self.scenario
+        run.run_until_s = max(run.run_until_s, request_s + run.config.run_after_s)
+        run.ss.TDS.config.tf = run.run_until_s
+        self.request_id = msg.request_id
+        self.request_sent_wall = time.monotonic()
+        self.request_sent = True
+        self.events.append({'what': 'request', 'request_id': msg.request_id, 'at_s': request_s, 'heard_at_s': t,
+                            'from': 'stability monitor', 'reason': msg.reason})
+        if self.rate == 0:
+            self._hold(time.monotonic(), msg)
+
     def _request(self, run: GridRun, t: float) -> None:
         request_s = self.scenario.request_s
         self._publish_clock(request_s)
@@ -423,7 +459,10 @@ class GridSimNode(Node):
             return
         # Lockstep: hold the simulation at the request; frames already tagged go out while we wait.
         self._deliver(request_s, tags_up_to_s=request_s)
-        t0 = time.monotonic()
+        self._hold(time.monotonic(), msg)
+
+    def _hold(self, t0: float, msg: IslandingRequest) -> None:
+        """Lockstep: wait for the request's decision and, for a split, its commands; then re-arm the trigger."""
         # In thirds, the request sent again with its id after each, as bag_player does: a partitioning node the
         # supervisor restarted lost the volatile request; one that has it answers each id once.
         for attempt in range(_REQUEST_ATTEMPTS):
@@ -501,8 +540,8 @@ class GridSimNode(Node):
         if decision is not None and decision.split and opened:
             bus_island = dict(zip((int(b) for b in decision.bus_numbers), (int(k) for k in decision.bus_island),
                                   strict=True))
-        outcome = run.outcome('closed loop', cut, bus_island, opened_s,
-                              opened_s if opened_s is not None else run.scenario.request_s)
+        asked_s = run.scenario.request_s if math.isfinite(run.scenario.request_s) else self.judged_from_s
+        outcome = run.outcome('closed loop', cut, bus_island, opened_s, opened_s if opened_s is not None else asked_s)
         array = DiagnosticArray()
         array.header.stamp = _stamp(self.t_now)
         for isl in outcome.islands:

@@ -19,6 +19,10 @@ stamped at or before T with every branch status change stamped after it and at o
 Every stamp from the wire is bounded by the node clock (`future_tolerance_s`), so no single message can become
 "the newest" for good.
 
+A signed request (the stability monitor's, or an operator's) must verify with the public key of a requester named
+in `request_signers`, else it is refused at once (STATUS_REFUSED_UNAUTHENTIC_REQUEST, saying why): a forged or
+altered request. An unsigned one is an operator's, the paper's mode, unless `require_signed_requests`.
+
 To keep the request path short, decisions are cached by (groups, tripped branches): whenever new groups or a
 topology change arrive, the decision for them is computed ahead of any request.
 """
@@ -136,12 +140,24 @@ class PartitioningNode(Node):
         self.partitioner = str(self.get_parameter('partitioner').value)
         if self.partitioner not in PARTITIONERS:
             raise NodeSetupError(f'partitioner must be one of {sorted(PARTITIONERS)}, got {self.partitioner!r}')
+        self.declare_parameter('request_signers', ['monitor', 'operator'], ParameterDescriptor(
+            description='roles whose public keys (<role>.pub in key_dir) verify a signed islanding request',
+            read_only=True))
+        self.declare_parameter('require_signed_requests', False, ParameterDescriptor(
+            description="refuse unsigned islanding requests too (false: an unsigned request is an operator's, the "
+                        "paper's mode)", read_only=True))
+        self.require_signed = bool(self.get_parameter('require_signed_requests').value)
         key_dir = self.get_parameter('key_dir').value
-        key_path = signing.key_paths(Path(key_dir) if key_dir else signing.default_key_dir(), 'partitioning').private
+        key_dir = Path(key_dir) if key_dir else signing.default_key_dir()
+        key_path = signing.key_paths(key_dir, 'partitioning').private
         try:
             self.key = signing.load_private_key(key_path)
+            self.request_keys = {}
+            for role in self.get_parameter('request_signers').value:
+                public = signing.load_public_key(signing.key_paths(key_dir, str(role)).public)
+                self.request_keys[signing.fingerprint(public)] = public
         except signing.SigningError as exc:
-            raise NodeSetupError(f'{exc} (make keys with: controlled-islanding keys init {key_path.parent})') from exc
+            raise NodeSetupError(f'{exc} (make keys with: controlled-islanding keys init {key_dir})') from exc
         self.key_id = signing.fingerprint(self.key)
         self.topology = Topology(future_tolerance_s=self.future_tolerance_s)
         self.groups: list[Groups] = []  # recent groups, ordered by stamp
@@ -262,6 +278,9 @@ class PartitioningNode(Node):
     def _queue(self, msg: IslandingRequest) -> None:
         if msg.request_id in self.answered_set or any(p.request_id == msg.request_id for p in self.pending):
             return  # our own service requests come back on the topic; a repeat is answered once
+        if signing.check_request(msg, self.request_keys, self.require_signed) is not None:
+            self._answer(msg, None)  # refused at once: no groups make a forged request authentic
+            return
         if len(self.pending) >= self.max_pending:
             self.diag.reject('overloaded', f'request {msg.request_id}: {len(self.pending)} requests already wait '
                                            f'(max_pending_requests)')
@@ -358,7 +377,10 @@ class PartitioningNode(Node):
     def _answer(self, request: IslandingRequest, groups: Groups | None) -> None:
         t0 = time.perf_counter()
         req_s = stamp_s(request.header.stamp)
-        if self.topology.snapshot is None:
+        unauthentic = signing.check_request(request, self.request_keys, self.require_signed)
+        if unauthentic is not None:
+            msg = self._refusal(request, IslandingDecision.STATUS_REFUSED_UNAUTHENTIC_REQUEST, unauthentic)
+        elif self.topology.snapshot is None:
             msg = self._refusal(request, IslandingDecision.STATUS_REFUSED_NO_SNAPSHOT, 'no network snapshot')
         elif self._topology_pending(request):
             msg = self._refusal(request, IslandingDecision.STATUS_REFUSED_TOPOLOGY_PENDING,

@@ -49,7 +49,7 @@ from controlled_islanding_msgs.msg import NetworkSnapshot, PmuFrame, PmuMeasurem
 from rclpy.node import Node
 
 from controlled_islanding.core.bad_data import BadDataDetector, BadDataError
-from controlled_islanding.core.dse import DSEError, MachineData, StreamingDSE, TagGrid
+from controlled_islanding.core.dse import DSEError, MachineData, StreamingDSE, TagGrid, nominal_hz
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.core.rotor_angle import RotorAngleError, estimate_rotor_angle_rad
 from controlled_islanding.ros.clock_gate import ClockGate
@@ -186,7 +186,7 @@ class PmuIngestionNode(Node):
             self.diag.reject('time_backwards', f'network snapshot stamped {t:.3f} s, older than the one held '
                                                f'({self.grid_stamp_s:.3f} s)')
             return
-        if self.estimator == 'dse' and not self._start_dse(grid):
+        if self.estimator == 'dse' and not self._start_dse(grid, grid.freq_hz):
             return
         self.grid, self.grid_stamp_s, self.buses = grid, t, frozenset(grid.buses)
         # Memory follows the network: nothing is kept for a generator or a bus the snapshot no longer has.
@@ -199,18 +199,27 @@ class PmuIngestionNode(Node):
         while self.early:
             self._take_frame(self.early.popleft())
 
-    def _start_dse(self, grid: Grid) -> bool:
-        """Fit the filter to a snapshot's machines (kept as is when their data did not change)."""
+    def _start_dse(self, grid: Grid, freq_hz: float) -> bool:
+        """Fit the filter to a snapshot's machines (kept as is when their data and f0 did not change).
+
+        The filter's speed is in pu of 2 pi f0: a 60 Hz filter on a 50 Hz grid scales every speed by 5/6. A snapshot
+        that does not give f0 leaves the filter unmade until a frame's reported frequencies name it (_frame_f0).
+        """
         machines = MachineData.of_generators(grid.generators)
-        if self.stream is not None and self.stream.dse.machines_.same_as(machines):
+        same = self.stream is not None and self.stream.dse.machines_.same_as(machines)
+        if same and (self.stream.dse.freq_hz == freq_hz or not math.isfinite(freq_hz)):
+            return True
+        if not math.isfinite(freq_hz):
+            self.stream = None
             return True
         try:
             self.stream = StreamingDSE(machines, self.rate_fps, self.dse_reorder_s, history_s=self.max_delay_s,
-                                       model=self.dse_model, max_gap_s=self.dse_max_gap_s,
+                                       model=self.dse_model, max_gap_s=self.dse_max_gap_s, freq_hz=freq_hz,
                                        innovation_gate=self.detector.nis_bound if self.detector else math.inf)
         except DSEError as exc:
             self.diag.reject('bad_value', f'network snapshot: no rotor angle filter from its machine data: {exc}')
             return False
+        self.diag.values['nominal_frequency_hz'] = f'{freq_hz:g}'
         models = self.stream.dse.models_
         self.diag.values['dse_models'] = ','.join(f'{m or "none"}:{models.count(m)}' for m in sorted(set(models)))
         fallback = self.stream.fallback_names()
@@ -307,6 +316,8 @@ class PmuIngestionNode(Node):
                 self._remember(m.station_id, int(m.bus), t if verdict == 'use' else -math.inf)
         sources = self._sources(by_bus, by_generator)
         suspect = self._screen(t, by_bus, by_generator)
+        if self.estimator == 'dse' and self.stream is None and not self._frame_f0(by_bus, by_generator):
+            return
         try:
             if self.stream is not None:
                 angles = self._dse_angles(frame, t, sources, suspect)
@@ -326,6 +337,18 @@ class PmuIngestionNode(Node):
         self.tag_grid.add(key)
         self.pub.publish(angles)
         self._account(t0)
+
+    def _frame_f0(self, by_bus: dict[int, PmuMeasurement], by_generator: dict[str, PmuMeasurement]) -> bool:
+        """Make the filter at the nominal frequency this frame's usable stations report; False if none does."""
+        assert self.grid is not None
+        reported = [m.frequency_hz for m in [*by_bus.values(), *by_generator.values()]]
+        try:
+            f0 = nominal_hz(reported)
+        except DSEError:
+            self.diag.reject('no_data', 'the snapshot gives no nominal frequency and no usable PMU of the frame '
+                                        'reports one: no rotor angle filter yet')
+            return False
+        return self._start_dse(self.grid, f0)
 
     def _screen(self, t: float, by_bus: dict[int, PmuMeasurement],
                 by_generator: dict[str, PmuMeasurement]) -> dict[str, str]:
@@ -396,6 +419,12 @@ class PmuIngestionNode(Node):
         if suspect:
             angles.suspect_reason = [suspect.get(n, '') for n in angles.generator_names]
             angles.valid = [v and n not in suspect for v, n in zip(angles.valid, angles.generator_names, strict=True)]
+            # A stability monitor reads only data that passed these tests: a suspect station's power and voltage
+            # are not known.
+            angles.pe_pu = [math.nan if n in suspect else x for n, x in zip(angles.generator_names, angles.pe_pu,
+                                                                            strict=True)]
+            angles.v_pu = [math.nan if n in suspect else x for n, x in zip(angles.generator_names, angles.v_pu,
+                                                                          strict=True)]
 
     def _angles(self, frame: PmuFrame, by_bus: dict[int, PmuMeasurement],
                 by_generator: dict[str, PmuMeasurement]) -> RotorAngles:
@@ -422,7 +451,7 @@ class PmuIngestionNode(Node):
             self.last_angle_rad[gens[i].name] = float(angles[i])
         return RotorAngles(header=frame.header, generator_names=[g.name for g in gens],
                            generator_buses=[g.bus for g in gens], angle_rad=np.where(valid, angles, 0.0).tolist(),
-                           valid=valid.tolist())
+                           valid=valid.tolist(), **_terminal_power(source))
 
     def _dse_angles(self, frame: PmuFrame, t: float, source: list[PmuMeasurement | None],
                     suspect: dict[str, str]) -> RotorAngles:
@@ -440,7 +469,9 @@ class PmuIngestionNode(Node):
         known = np.isfinite(angles)
         return RotorAngles(header=frame.header, generator_names=[g.name for g in gens],
                            generator_buses=[g.bus for g in gens], angle_rad=np.where(known, angles, 0.0).tolist(),
-                           valid=(valid & known).tolist())
+                           valid=(valid & known).tolist(), omega_pu=self.stream.omega_pu_.tolist(),
+                           tm_pu=self.stream.tm_pu_.tolist(),
+                           **_terminal_power([m if ok else None for m, ok in zip(source, valid, strict=True)]))
 
     def _account(self, t0: float) -> None:
         self.diag.computed(time.perf_counter() - t0)
@@ -457,6 +488,20 @@ class PmuIngestionNode(Node):
                                      f'{self.diag.values["stale_pmu_ids"]}' if stale else None)
         self.diag.values['stations_remembered'] = str(len(self.stations))
         self.diag.values['stations_forgotten'] = str(self.stations_forgotten)
+
+
+def _terminal_power(source: list[PmuMeasurement | None]) -> dict[str, list[float]]:
+    """Return RotorAngles' pe_pu (Re(V I*), pu system base) and v_pu (|V|, pu) of each channel; NaN: none."""
+    pe, v = [], []
+    for m in source:
+        if m is None:
+            pe.append(math.nan)
+            v.append(math.nan)
+            continue
+        pe.append(m.voltage_magnitude_pu * m.current_magnitude_pu
+                  * math.cos(m.voltage_angle_rad - m.current_angle_rad))
+        v.append(float(m.voltage_magnitude_pu))
+    return {'pe_pu': pe, 'v_pu': v}
 
 
 def main(args: list[str] | None = None) -> int:

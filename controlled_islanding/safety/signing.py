@@ -1,4 +1,4 @@
-"""Ed25519 signatures on what may move a breaker: islanding decisions and arm/disarm requests.
+"""Ed25519 signatures on what may move a breaker: islanding decisions, arm/disarm requests, islanding requests.
 
 The PyPI ROS 2 wheels ship Fast DDS without its security plugins, so SROS2 cannot authenticate anyone on the
 domain. Instead, in the spirit of IEC 62351-6 (signed GOOSE), the messages that matter carry a signature
@@ -7,6 +7,9 @@ key and an operator signs arm/disarm requests with another. A breaker node that 
 not forge either. Each signature covers a canonical encoding of every field the breaker node acts on, plus a
 domain tag (so a decision signature can never pass as an arm signature) and the fields that defeat replay:
 the decision id with the request stamp, or the nonce with the stamp of an arm request.
+
+The stability monitor signs its islanding requests with a third key, so that partitioning can tell its request
+from a forged one (which it refuses, saying why); an operator's request may stay unsigned, the paper's mode.
 
 Keys never enter the repository: `controlled-islanding keys init DIR` makes them, private keys 0600.
 """
@@ -33,10 +36,12 @@ from cryptography.hazmat.primitives.serialization import (
 
 from controlled_islanding import atomic
 
-# Who signs what: the decision maker (partitioning) and the operator who arms and disarms.
-ROLES = ('partitioning', 'operator')
+# Who signs what: the decision maker (partitioning), the operator who arms and disarms (and may sign requests),
+# and the stability monitor that requests islanding.
+ROLES = ('partitioning', 'operator', 'monitor')
 DECISION_DOMAIN = 'controlled_islanding/IslandingDecision/v2'  # v2: the remedial actions too
 ARM_DOMAIN = 'controlled_islanding/SetArmed/v1'
+REQUEST_DOMAIN = 'controlled_islanding/IslandingRequest/v1'
 SIGNATURE_BYTES = 64
 
 
@@ -183,6 +188,43 @@ def arm_payload(request: object, target: str) -> bytes:
     return _canonical(ARM_DOMAIN, {'target': target, 'action': int(request.action),
                                    'stamp_ns': _stamp_ns(request.stamp), 'nonce': str(request.nonce),
                                    'key_id': str(request.key_id)})
+
+
+def request_payload(msg: object) -> bytes:
+    """Return the bytes an islanding request's signature covers: every field partitioning and coherency read."""
+    return _canonical(REQUEST_DOMAIN, {
+        'request_id': str(msg.request_id), 'stamp_ns': _stamp_ns(msg.header.stamp), 'reason': str(msg.reason),
+        'branch_changes_before': int(msg.branch_changes_before),
+        'generator_names': [str(x) for x in msg.generator_names], 'group': [int(x) for x in msg.group],
+        'predicted_first_slip_ns': _stamp_ns(msg.predicted_first_slip), 'key_id': str(msg.key_id)})
+
+
+def sign_request(msg: object, key: Ed25519PrivateKey) -> object:
+    """Sign an IslandingRequest (rclpy or rosbags type) in place with a requester's key; return it."""
+    msg.key_id = fingerprint(key)
+    msg.signature = sign(key, request_payload(msg))
+    return msg
+
+
+def check_request(msg: object, keys: dict[str, Ed25519PublicKey], require_signed: bool) -> str | None:
+    """Return why an islanding request is not authentic, or None when it is (or may be unsigned).
+
+    Args:
+        msg: The IslandingRequest.
+        keys: Key id -> public key of each requester whose signature is accepted.
+        require_signed: Whether an unsigned request is refused too (else it is an operator's, the paper's mode).
+
+    """
+    if not bytes(msg.signature) and not str(msg.key_id):
+        return 'the request is unsigned and require_signed_requests is set' if require_signed else None
+    key = keys.get(str(msg.key_id))
+    if key is None:
+        return f'the request is signed with key {str(msg.key_id)[:32]!r}, which is no requester key held here'
+    try:
+        verify(key, request_payload(msg), msg.signature)
+    except SigningError as exc:
+        return f'the request signature: {exc}'
+    return None
 
 
 def sign(key: Ed25519PrivateKey, payload: bytes) -> list[int]:

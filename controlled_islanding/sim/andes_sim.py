@@ -647,4 +647,5 @@ def _snapshot(ss: Any, case_name: str, bus_numbers: list[int], ids: list[str], p
     for suffix in ('.xlsx', '.json', '.raw', '.m'):
         name = name.removesuffix(suffix)
     return Grid(name=name, base_mva=mva, buses=tuple(bus_numbers), branches=branches,
-                generators=tuple(generators), loads=loads, p_from_mw=p_from, p_to_mw=p_to)
+                generators=tuple(generators), loads=loads, p_from_mw=p_from, p_to_mw=p_to,
+                freq_hz=float(ss.config.freq))

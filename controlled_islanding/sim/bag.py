@@ -40,7 +40,7 @@ from controlled_islanding.sim.truth import final_separation, truth_groups
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.bagmeta import set_ros_distro
 from controlled_islanding.wire.interfaces import msg_type_name, typestore
-from controlled_islanding.wire.messages import dynamic_data_fields
+from controlled_islanding.wire.messages import MONITOR_FIELDS, dynamic_data_fields, nominal_frequency_hz
 from controlled_islanding.wire.qos import bag_qos
 
 log = logging.getLogger(__name__)
@@ -101,7 +101,8 @@ def _snapshot_msg(m: _Messages, grid: Grid, stamp_ns: int) -> Any:
     gens, loads = grid.generators, grid.loads
     return m.new(
         'NetworkSnapshot', header=m.header(stamp_ns, 'andes_power_flow'), case_name=grid.name,
-        base_mva=float(grid.base_mva), bus_numbers=np.array(grid.buses, dtype=np.uint32),
+        base_mva=float(grid.base_mva), nominal_frequency_hz=nominal_frequency_hz(grid),
+        bus_numbers=np.array(grid.buses, dtype=np.uint32),
         branch_ids=[b.branch_id for b in grid.branches], branch_breaker_ids=[b.breaker for b in grid.branches],
         branch_from_bus=np.array([b.from_bus for b in grid.branches], dtype=np.uint32),
         branch_to_bus=np.array([b.to_bus for b in grid.branches], dtype=np.uint32),
@@ -185,7 +186,9 @@ def run_scenario(scenario: Scenario, out: Path, *, force: bool = False, progress
                           request_id=request_id, reason=f'scenario {scenario.name}: islanding requested at '
                                                         f'{scenario.request_s:g} s',
                           branch_changes_before=len({(bid, t_s) for t_s, bid, _ in changes
-                                                     if 0.0 < t_s <= scenario.request_s}))))
+                                                     if 0.0 < t_s <= scenario.request_s}),
+                          generator_names=[], group=np.zeros(0, dtype=np.uint32),
+                          predicted_first_slip=m.header(0).stamp, key_id='', signature=np.zeros(0, dtype=np.uint8))))
     for stamp, msg in _frame_msgs(m, pmu, scenario.rate_fps):
         records.append((stamp, 3, topics.PMU_FRAMES, msg))
     names = list(sim.generator_names)
@@ -195,7 +198,8 @@ def run_scenario(scenario: Scenario, out: Path, *, force: bool = False, progress
         records.append((stamp, 4, topics.TRUTH_ROTOR_ANGLES,
                         m.new('RotorAngles', header=m.header(stamp, 'andes'), generator_names=names,
                               generator_buses=gen_buses, angle_rad=pmu.truth_delta_rad[k].astype(np.float64),
-                              valid=np.ones(len(names), dtype=bool), suspect_reason=[])))
+                              valid=np.ones(len(names), dtype=bool), suspect_reason=[],
+                              **{f: np.zeros(0, dtype=np.float64) for f in MONITOR_FIELDS})))
     last_tag = int(np.flatnonzero(pmu.tag_s <= scenario.request_s + 1e-9)[-1])
     sep = final_separation(pmu.tag_s, pmu.truth_delta_rad)
     records.append((_ns(scenario.request_s), 5, topics.TRUTH_COHERENT_GROUPS,

@@ -25,7 +25,7 @@ from controlled_islanding.core.grid import DYNAMIC_FIELDS, Branch, Generator, Gr
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.bagmeta import unreadable
 from controlled_islanding.wire.interfaces import typestore
-from controlled_islanding.wire.messages import MessageError, decode_dynamic_data
+from controlled_islanding.wire.messages import MessageError, decode_dynamic_data, snapshot_frequency_hz
 
 # STAT bits 15-14 set to 10 or 11 mean "do not use" (PmuMeasurement.msg).
 _STAT_UNUSABLE_MASK = 0x8000
@@ -200,6 +200,7 @@ def _grid_from_snapshot(msg: object) -> Grid:
                                 strict=True))
     try:
         models, dynamic = decode_dynamic_data(msg, n_gen)
+        f0 = snapshot_frequency_hz(msg)
     except MessageError as exc:
         raise BagDataError(f'snapshot machine data: {exc}') from exc
     generators = tuple(
@@ -212,7 +213,7 @@ def _grid_from_snapshot(msg: object) -> Grid:
     return Grid(name=str(msg.case_name), base_mva=base, buses=tuple(int(b) for b in msg.bus_numbers),
                 branches=branches, generators=generators, loads=loads,
                 p_from_mw=np.asarray(msg.branch_p_from_mw, dtype=float),
-                p_to_mw=np.asarray(msg.branch_p_to_mw, dtype=float))
+                p_to_mw=np.asarray(msg.branch_p_to_mw, dtype=float), freq_hz=f0)
 
 
 def load_bag(path: str | Path) -> BagData:

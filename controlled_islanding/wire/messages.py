@@ -141,6 +141,27 @@ def decode_dynamic_data(msg: object, n_gen: int) -> tuple[list[str], dict[str, n
 _LOAD_FIELDS = ('load_bus', 'load_p_mw', 'load_q_mvar')
 
 
+def nominal_frequency_hz(grid: Grid) -> float:
+    """Return a grid's nominal frequency for NetworkSnapshot.nominal_frequency_hz: Hz, 0 when not known."""
+    f0 = float(grid.freq_hz)
+    return f0 if np.isfinite(f0) and f0 > 0 else 0.0
+
+
+def snapshot_frequency_hz(msg: object) -> float:
+    """Return a NetworkSnapshot's nominal frequency, Hz, NaN when not known (0, or a message from before the field).
+
+    Raises:
+        MessageError: NaN, inf or negative ('nan_value', 'bad_value').
+
+    """
+    f0 = float(getattr(msg, 'nominal_frequency_hz', 0.0))
+    if not np.isfinite(f0):
+        raise MessageError('nan_value', f'nominal_frequency_hz={f0} is not a number')
+    if f0 < 0:
+        raise MessageError('bad_value', f'nominal_frequency_hz={f0} Hz must be positive, or 0 when not known')
+    return f0 if f0 > 0 else float('nan')
+
+
 def grid_from_snapshot(msg: object, limits: Limits = Limits()) -> Grid:
     """Build a core Grid (with flows) from a NetworkSnapshot message.
 
@@ -181,6 +202,7 @@ def grid_from_snapshot(msg: object, limits: Limits = Limits()) -> Grid:
     load_p = _finite(msg.load_p_mw, 'load_p_mw')
     load_q = _finite(msg.load_q_mvar, 'load_q_mvar')
     base = float(msg.base_mva)
+    f0 = snapshot_frequency_hz(msg)
     if not np.isfinite(base):
         raise MessageError('nan_value', f'base_mva={base} is not a number')
     if base <= 0:
@@ -197,9 +219,40 @@ def grid_from_snapshot(msg: object, limits: Limits = Limits()) -> Grid:
                                                             xq, ra, strict=True))),
             loads=tuple(Load(int(b), float(p), float(q))
                         for b, p, q in zip(msg.load_bus, load_p, load_q, strict=True)),
-            p_from_mw=p_from, p_to_mw=p_to)
+            p_from_mw=p_from, p_to_mw=p_to, freq_hz=f0)
     except GridError as exc:
         raise MessageError('unknown_id', str(exc)) from exc
+
+
+MONITOR_FIELDS = ('omega_pu', 'tm_pu', 'pe_pu', 'v_pu')  # RotorAngles' optional arrays: empty or one per name
+
+
+def sample_columns(msg: object, column: dict[str, int]) -> dict[str, np.ndarray] | None:
+    """Return a RotorAngles sample's arrays in column order (NaN: not known); None if it names other generators.
+
+    column: generator name -> column (the snapshot's machines). Keys: delta_rad, omega_pu, pm_pu, pe_pu, v_pu
+    (float) and valid (bool). A machine's angle is kept where the sample is valid or the filter has its speed (its
+    prediction); its power and voltage only where valid.
+    """
+    names = [str(x) for x in msg.generator_names]
+    cols = [column.get(x, -1) for x in names]
+    n = len(column)
+    if -1 in cols or len(set(cols)) != len(cols) or len(cols) != n:
+        return None
+    valid = np.zeros(n, dtype=bool)
+    valid[cols] = np.asarray(msg.valid, dtype=bool)
+    out = {'valid': valid}
+    for field, key in (('angle_rad', 'delta_rad'), ('omega_pu', 'omega_pu'), ('tm_pu', 'pm_pu'),
+                       ('pe_pu', 'pe_pu'), ('v_pu', 'v_pu')):
+        values = np.asarray(getattr(msg, field, ()), dtype=float)
+        row = np.full(n, np.nan)
+        if values.size:
+            row[cols] = values
+        out[key] = row
+    out['delta_rad'] = np.where(valid | np.isfinite(out['omega_pu']), out['delta_rad'], np.nan)
+    out['pe_pu'] = np.where(valid, out['pe_pu'], np.nan)
+    out['v_pu'] = np.where(valid, out['v_pu'], np.nan)
+    return out
 
 
 @dataclass(frozen=True)

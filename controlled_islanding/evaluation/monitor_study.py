@@ -1,0 +1,300 @@
+"""The stability monitor judged on every scenario (issue 30): its requests on the DSE angles, and the closed loop.
+
+Offline, per scenario (a bag of bags/, or a scenario YAML simulated in ANDES): the PMU frames go through what
+pmu_ingestion runs (evaluation/predictors.monitor_inputs: bad-data tests, the streaming filter at the PMUs' nominal
+frequency), and every frame, in time-tag order, through the monitor's own core (core/final_grouping.SwingWatch).
+Every request it raises is recorded at the delivery time of the frame that raised it:
+- on a run that ends in one group, every request is a false one;
+- on a run that separates, the lead is the first pole slip (sim/truth.py) minus the first request, and its groups
+  are compared with the final grouping (the truth rule of bags/README.md).
+
+Closed loop, from the results folders of `testbed --trigger monitor` (each scenario's result.json): the load served
+by the graph with the monitor as the only trigger (the run `dtw`) against no action and, where the folder has it,
+the oracle of `testbed --oracle` (the best found); and whether every island survived where the oracle's did.
+
+Acceptance (issue 30), per scenario: stable, no request (and, closed loop, the load served equals no action's);
+unstable, the first request before the first pole slip with the final groups, the closed loop's load served at
+least 90 % of the oracle's, and every island surviving wherever the oracle's best keeps every island.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from controlled_islanding.core.stability import TIME_TO_ACT_S
+
+ORACLE_SHARE = 0.9  # the closed loop must serve at least this share of the oracle's load (issue 30's acceptance)
+
+
+@dataclass
+class Request:
+    """One request the monitor raised: when, for which groups, predicting which first slip."""
+
+    t_s: float
+    delivery_s: float
+    groups: dict[str, int]
+    predicted_slip_s: float
+
+
+@dataclass
+class MonitorRun:
+    """The monitor on one scenario, offline.
+
+    Attributes:
+        name, source, system: Scenario name, where it came from, its case file.
+        scenario_path: The scenario YAML (a bag's from its manifest entry), to find its closed loop.
+        truth: Generator name -> final group; first_pole_slip_s: s, None if never.
+        requests: Every request raised, in order.
+        clearings_s: When the scenario's faults clear, s.
+        cpu_ms_per_frame: Mean CPU time of one SwingWatch.update, ms.
+
+    """
+
+    name: str
+    source: str
+    system: str
+    freq_hz: float
+    n_machines: int
+    truth: dict[str, int]
+    first_pole_slip_s: float | None
+    requests: list[Request]
+    clearings_s: tuple[float, ...] = ()
+    cpu_ms_per_frame: float = math.nan
+    scenario_path: Path | None = None
+
+    def loop(self, loops: dict[str, ClosedLoop]) -> ClosedLoop | None:
+        """Return this scenario's closed loop: by its scenario file, else by name (a bag and a file may share one)."""
+        if self.scenario_path is not None and str(self.scenario_path.resolve()) in loops:
+            return loops[str(self.scenario_path.resolve())]
+        return loops.get(self.name)
+
+    @property
+    def stable(self) -> bool:
+        """Whether the run ends in one group."""
+        return len(set(self.truth.values())) == 1
+
+    @property
+    def lead_s(self) -> float | None:
+        """First pole slip minus the first request, s (None: no request, or no slip)."""
+        if not self.requests or self.first_pole_slip_s is None:
+            return None
+        return self.first_pole_slip_s - self.requests[0].delivery_s
+
+    @property
+    def groups_right(self) -> bool:
+        """Whether the first request's groups are the final grouping."""
+        from controlled_islanding.evaluation.coherency_rules import blocks
+
+        return bool(self.requests) and blocks(self.requests[0].groups) == blocks(self.truth)
+
+
+def watch_run(run) -> MonitorRun:
+    """Run the monitor's core over a scenario's frames (evaluation/predictors.ScenarioRun); record its requests."""
+    from controlled_islanding.core.final_grouping import SwingWatch
+    from controlled_islanding.core.stability import MachineSet
+    from controlled_islanding.evaluation.predictors import monitor_inputs
+
+    inputs = monitor_inputs(run)
+    watch = SwingWatch(MachineSet.of_grid(inputs.grid, inputs.freq_hz))
+    requests, cpu = [], 0.0
+    for k in range(len(inputs.t_s)):
+        start = time.process_time()
+        alarm = watch.update(inputs.t_s[k], inputs.delta_rad[k], inputs.omega_pu[k], inputs.pe_pu[k], inputs.v_pu[k],
+                             inputs.valid[k], inputs.tm_pu[k])
+        cpu += time.process_time() - start
+        if alarm is not None:
+            requests.append(Request(float(inputs.t_s[k]), float(inputs.delivery_s[k]),
+                                    {n: int(g) for n, g in zip(inputs.generator_names, alarm.groups, strict=True)},
+                                    float(alarm.first_slip_s)))
+    return MonitorRun(inputs.name, inputs.source, str(run.grid.name), inputs.freq_hz, len(inputs.generator_names),
+                      inputs.truth, inputs.first_pole_slip_s, requests, inputs.clearings_s,
+                      1e3 * cpu / max(len(inputs.t_s), 1), _scenario_path(inputs.source, inputs.name))
+
+
+def _scenario_path(source: str, name: str) -> Path | None:
+    """Return the scenario YAML of a run: the --andes file, or the bag's from bags/index.yaml beside it."""
+    from controlled_islanding.sim.manifest import entry_for_bag
+
+    if source.startswith('ANDES '):
+        return Path(source.removeprefix('ANDES '))
+    entry = entry_for_bag(Path(source)) or {}
+    path = Path(source).parent / str(entry.get('scenario', f'{name}.yaml'))
+    return path if path.is_file() else None
+
+
+@dataclass
+class ClosedLoop:
+    """One scenario of a `testbed --trigger monitor` results folder.
+
+    Attributes:
+        scenario: Its name.
+        asked: Whether the monitor asked (a request event from it).
+        request_s: The request time, s (None without one).
+        served_mw: Load served by the closed loop, MW (None: the simulation failed); likewise none_mw (no action)
+            and oracle_mw (the oracle's best, None without `testbed --oracle`).
+        survived, none_survived, oracle_survived: Whether every island survived (None: not known).
+
+    """
+
+    scenario: str
+    asked: bool
+    request_s: float | None
+    served_mw: float | None
+    none_mw: float | None
+    oracle_mw: float | None = None
+    survived: bool | None = None
+    none_survived: bool | None = None
+    oracle_survived: bool | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+def read_testbed(folders: Sequence[Path]) -> dict[str, ClosedLoop]:
+    """Return each scenario's closed loop from `testbed --trigger monitor` results folders (*/result.json).
+
+    Keyed by the scenario file's resolved path, and by the scenario's name.
+    """
+    out: dict[str, ClosedLoop] = {}
+    for folder in folders:
+        for path in sorted(Path(folder).glob('*/result.json')):
+            r = json.loads(path.read_text())
+            runs = r.get('runs', {})
+            asks = [e for e in r.get('events', []) if e.get('what') == 'request']
+            from_monitor = [e for e in asks if e.get('from') == 'stability monitor']
+            loop, none, oracle = runs.get('dtw', {}), runs.get('no action', {}), runs.get('oracle')
+            item = ClosedLoop(r['scenario'], bool(from_monitor), from_monitor[0]['at_s'] if from_monitor else None,
+                              loop.get('load_served_mw'), none.get('load_served_mw'),
+                              None if oracle is None else oracle.get('load_served_mw'), loop.get('all_survived'),
+                              none.get('all_survived'), None if oracle is None else oracle.get('all_survived'))
+            if asks and not from_monitor:
+                item.notes.append(f'{path.parent}: a request not from the monitor (not a --trigger monitor run)')
+            out[r['scenario']] = item
+            if r.get('path'):
+                out[str(Path(r['path']).resolve())] = item
+    return out
+
+
+def _fmt_mw(x: float | None) -> str:
+    return '-' if x is None else f'{x:.0f}'
+
+
+def verdict(run: MonitorRun, loop: ClosedLoop | None) -> tuple[bool | None, str]:
+    """Return (met, why) for issue 30's acceptance on one scenario; met None where a figure is missing."""
+    if run.stable:
+        if run.requests:
+            return False, f'{len(run.requests)} false request(s)'
+        if loop is not None and loop.served_mw is not None and loop.none_mw is not None \
+                and abs(loop.served_mw - loop.none_mw) > 1e-6 * max(1.0, loop.none_mw):
+            return False, 'closed-loop load served differs from no action'
+        return True, 'quiet'
+    why = []
+    lead = run.lead_s
+    if lead is None or lead <= 0:
+        why.append('no request before the first slip')
+    elif not run.groups_right:
+        why.append('groups not the final ones')
+    if loop is None or loop.served_mw is None:
+        missing = 'no closed loop' if loop is None else 'closed loop failed'
+        return (False if why else None), '; '.join(why + [missing])
+    if loop.oracle_mw is None:
+        return (False if why else None), '; '.join(why + ['no oracle'])
+    if loop.served_mw < ORACLE_SHARE * loop.oracle_mw - 1e-6:
+        why.append(f'{100 * loop.served_mw / max(loop.oracle_mw, 1e-9):.0f} % of the oracle')
+    if loop.oracle_survived and not loop.survived:
+        why.append('an island lost that the oracle keeps')
+    return not why, '; '.join(why) or 'met'
+
+
+def report(runs: Sequence[MonitorRun], loops: dict[str, ClosedLoop], run_note: str = '') -> list[str]:
+    """Return the figures and the per-scenario table as Markdown lines."""
+    stable = [r for r in runs if r.stable]
+    unstable = [r for r in runs if not r.stable]
+    in_time = [r for r in unstable if (r.lead_s or 0) > 0]
+    right = [r for r in in_time if r.groups_right]
+    to_act = [r for r in right if r.lead_s >= TIME_TO_ACT_S - 1e-9]
+    leads = [r.lead_s for r in in_time]
+    systems = sorted({r.system for r in runs})
+    lines = [f'{len(runs)} runs on {len(systems)} case files ({", ".join(systems)}): {len(stable)} stay one group, '
+             f'{len(unstable)} separate.' + (f' This run: {run_note}.' if run_note else ''), '',
+             '| figure | value |', '|---|---|',
+             f'| stable runs without any request | {sum(not r.requests for r in stable)} / {len(stable)} '
+             f'({sum(len(r.requests) for r in stable)} false requests in all) |',
+             f'| separating runs asked before the first pole slip | {len(in_time)} / {len(unstable)} |',
+             f'| ... with the final groups | {len(right)} / {len(unstable)} |',
+             f'| ... and at least {TIME_TO_ACT_S:g} s before it | {len(to_act)} / {len(unstable)} |',
+             '| lead, s: median (least) | '
+             + (f'{np.median(leads):.2f} ({min(leads):.2f})' if leads else '-') + ' |',
+             f'| CPU per frame, ms: median (most) | {np.median([r.cpu_ms_per_frame for r in runs]):.2f} '
+             f'({max(r.cpu_ms_per_frame for r in runs):.1f}) |']
+    looped = [r.loop(loops) for r in runs if r.loop(loops) is not None]
+    if looped:
+        lines.append(f'| closed loop with the monitor as trigger | {len(looped)} scenarios; oracle for '
+                     f'{sum(loop.oracle_mw is not None for loop in looped)} |')
+    lines += ['', '| scenario | system, f0 | machines | final k | first slip, s | requests: time, s (lead), k | '
+              'groups | closed loop MW | no action MW | oracle MW | acceptance |',
+              '|---|---|---:|---:|---:|---|---|---:|---:|---:|---|']
+    for r in runs:
+        slip = '-' if r.first_pole_slip_s is None else f'{r.first_pole_slip_s:.2f}'
+        asks = ', '.join(f'{q.delivery_s:.2f}' + (f' ({r.first_pole_slip_s - q.delivery_s:+.2f})'
+                                                  if r.first_pole_slip_s is not None else '')
+                         + f' k={len(set(q.groups.values()))}' for q in r.requests) or 'none'
+        groups = '-' if not r.requests else ('right' if r.groups_right else 'WRONG')
+        loop = r.loop(loops)
+        met, why = verdict(r, loop)
+        mark = {True: 'met', False: 'NOT MET', None: 'open'}[met]
+        lines.append(f'| {r.name} | {r.system}, {r.freq_hz:g} Hz | {r.n_machines} | {len(set(r.truth.values()))} | '
+                     f'{slip} | {asks} | {groups} | {_fmt_mw(loop.served_mw if loop else None)} | '
+                     f'{_fmt_mw(loop.none_mw if loop else None)} | {_fmt_mw(loop.oracle_mw if loop else None)} | '
+                     f'{mark}: {why} |')
+    return lines
+
+
+INTRO = """\
+The stability monitor (`controlled_islanding/nodes/stability_monitor.py`) asks for islanding when the chosen
+predictor (SIME, [prediction.md](prediction.md)) says with confidence that a swing separates the grid, once per
+swing, with the predicted final groups; coherency's groups come from the same rule
+(`controlled_islanding/core/final_grouping.py`). This page runs its core on every scenario as the node would:
+the PMU frames through pmu_ingestion's bad-data tests and filter (`evaluation/predictors.monitor_inputs`), every
+frame in time-tag order through `SwingWatch`; a request is dated by the delivery time of the frame that raised it.
+The lead is the first pole slip (two machines pi rad apart, the simulator's own angles, `sim/truth.py`) minus the
+first request; its groups are compared with the final grouping (`bags/README.md`'s truth rule). The closed-loop
+columns come from `testbed --trigger monitor` results folders, where the monitor is the only source of requests:
+the load served (MW, at the end of the run, in islands that survived, net of every shed) against no action and the
+oracle's best (`testbed --oracle`) where the folder has it.
+
+Acceptance (issue 30): a stable run gets no request (and the closed loop serves what no action does); a
+separating manifest run gets its first request before the first pole slip with the final groups, serves at least
+90 % of the oracle's load, and keeps every island wherever the oracle's best keeps every island. "open": a figure
+the page was not given (no closed loop, or no oracle).
+"""
+
+
+def write_page(runs: Sequence[MonitorRun], loops: dict[str, ClosedLoop], path: Path, *, command: str,
+               run_note: str = '') -> None:
+    """Write the page (docs/monitor.md)."""
+    from controlled_islanding.atomic import write_text
+
+    notes = list(dict.fromkeys(n for loop in loops.values() for n in loop.notes))
+    missed = []
+    for r in runs:
+        if not r.stable and (r.lead_s or 0) <= 0:
+            cleared = [c for c in r.clearings_s if c <= (r.first_pole_slip_s or math.inf)]
+            after = (f'{r.first_pole_slip_s - cleared[-1]:.2f} s after its last fault cleared' if cleared
+                     else 'no fault cleared before it')
+            missed.append(f'- {r.name}: first slip at {r.first_pole_slip_s:.2f} s, {after}')
+    body = ['# The stability monitor: requests before the slip, quiet when the grid recovers', '',
+            f'Generated by `{command}`; do not edit by hand (the text is in '
+            '`controlled_islanding/evaluation/monitor_study.py`).', '', INTRO, '## Figures', '',
+            *report(runs, loops, run_note), '']
+    if missed:
+        body += ['Separating runs the monitor does not ask for before the first pole slip (why such slips cannot be '
+                 'predicted: [prediction.md](prediction.md)):', '', *missed, '']
+    if notes:
+        body += ['Notes:', '', *(f'- {n}' for n in notes), '']
+    write_text(Path(path), '\n'.join(body))
