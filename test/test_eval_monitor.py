@@ -65,3 +65,29 @@ def test_on_two_bags_the_monitor_asks_in_time_on_the_unstable_one_and_not_on_the
     assert '| kundur_bus9_unstable | kundur_full, 60 Hz | 4 | 2 | 1.83 | 1.63 (+0.20) k=2 | right |' in text
     assert '| ieee39_paper_case2 |' in text and 'met: quiet' in text
     assert '| separating runs asked before the first pole slip | 1 / 1 |' in capsys.readouterr().out
+
+
+def test_an_oracle_searched_under_another_trigger_fills_in_the_monitor_runs_oracle(tmp_path):
+    """A `testbed --oracle` run of another trigger lends the monitor's closed loop its oracle, and only that.
+
+    The oracle's search spans every request time and candidate cut on its own, whatever asked in the closed loop.
+    """
+
+    def result(folder: str, origin: str | None, served: float, oracle: float | None) -> None:
+        (tmp_path / folder / 'a').mkdir(parents=True)
+        runs = {'dtw': {'load_served_mw': served, 'all_survived': False},
+                'no action': {'load_served_mw': 0.0, 'all_survived': False}}
+        if oracle is not None:
+            runs['oracle'] = {'load_served_mw': oracle, 'all_survived': True}
+        event = {'what': 'request', 'at_s': 1.5, **({'from': origin} if origin else {})}
+        (tmp_path / folder / 'a' / 'result.json').write_text(json.dumps({'scenario': 'a', 'events': [event],
+                                                                         'runs': runs}))
+
+    result('searched', None, 1.0, 500.0)
+    result('monitor', 'stability monitor', 450.0, None)
+    for order in (['searched', 'monitor'], ['monitor', 'searched']):
+        loop = read_testbed([tmp_path / f for f in order])['a']
+        assert loop.asked and loop.served_mw == 450.0 and not loop.notes
+        assert loop.oracle_mw == 500.0 and loop.oracle_survived is True
+    alone = read_testbed([tmp_path / 'searched'])
+    assert alone == {}, 'a run the monitor did not trigger is no closed loop of it'

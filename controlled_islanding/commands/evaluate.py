@@ -73,7 +73,7 @@ slip, false alarms, groups at the alarm (docs/prediction.md).
 angles of the bags and --andes scenarios, as the node would: every request against the first pole slip, false
 requests on runs that stay one group, the groups of the first request against the final grouping; with --testbed
 RESULTS (a `testbed --trigger monitor` results folder, repeatable) also the closed loop's load served against no
-action and the oracle (docs/monitor.md).
+action and the oracle, from that folder or from a `testbed --oracle` folder of any trigger (docs/monitor.md).
 
 --k-rules FILE.md instead compares every k rule (core/k_rules.py) on the bags and on --andes scenarios
 (simulated here, the simulator's own rotor angles), and writes the table (docs/coherency_rules.md).
@@ -123,7 +123,7 @@ def add_arguments(parser) -> None:
                              '(docs/monitor.md)')
     parser.add_argument('--testbed', action='append', type=Path, metavar='RESULTS', default=[],
                         help='with --monitor: a `testbed --trigger monitor` results folder whose closed loops the page '
-                             'shows (repeatable)')
+                             'shows, or a `testbed --oracle` one whose oracle they are judged against (repeatable)')
     parser.add_argument('--draws', type=int, default=5, help='random placements per coverage (--observability)')
     parser.add_argument('--seed', type=int, default=0, help='seed of the random placements (--observability)')
     parser.add_argument('--andes', action='append', type=Path, metavar='SCENARIO.yaml', default=[],

@@ -158,9 +158,12 @@ class ClosedLoop:
 def read_testbed(folders: Sequence[Path]) -> dict[str, ClosedLoop]:
     """Return each scenario's closed loop from `testbed --trigger monitor` results folders (*/result.json).
 
-    Keyed by the scenario file's resolved path, and by the scenario's name.
+    Keyed by the scenario file's resolved path, and by the scenario's name. A run another trigger asked for is not
+    the monitor's closed loop, but its oracle (`testbed --oracle`) is the scenario's whatever the trigger (the search
+    spans every request time and candidate cut on its own): it fills in a monitor run's missing oracle.
     """
     out: dict[str, ClosedLoop] = {}
+    oracles: dict[str, dict] = {}
     for folder in folders:
         for path in sorted(Path(folder).glob('*/result.json')):
             r = json.loads(path.read_text())
@@ -168,6 +171,11 @@ def read_testbed(folders: Sequence[Path]) -> dict[str, ClosedLoop]:
             asks = [e for e in r.get('events', []) if e.get('what') == 'request']
             from_monitor = [e for e in asks if e.get('from') == 'stability monitor']
             loop, none, oracle = runs.get('dtw', {}), runs.get('no action', {}), runs.get('oracle')
+            if oracle is not None:
+                oracles.setdefault(r['scenario'], oracle)
+            if asks and not from_monitor:
+                if oracle is not None or r['scenario'] in out:
+                    continue
             item = ClosedLoop(r['scenario'], bool(from_monitor), from_monitor[0]['at_s'] if from_monitor else None,
                               loop.get('load_served_mw'), none.get('load_served_mw'),
                               None if oracle is None else oracle.get('load_served_mw'), loop.get('all_survived'),
@@ -177,6 +185,10 @@ def read_testbed(folders: Sequence[Path]) -> dict[str, ClosedLoop]:
             out[r['scenario']] = item
             if r.get('path'):
                 out[str(Path(r['path']).resolve())] = item
+    for item in out.values():
+        oracle = oracles.get(item.scenario)
+        if item.oracle_mw is None and oracle is not None:
+            item.oracle_mw, item.oracle_survived = oracle.get('load_served_mw'), oracle.get('all_survived')
     return out
 
 
