@@ -91,3 +91,19 @@ def test_an_oracle_searched_under_another_trigger_fills_in_the_monitor_runs_orac
         assert loop.oracle_mw == 500.0 and loop.oracle_survived is True
     alone = read_testbed([tmp_path / 'searched'])
     assert alone == {}, 'a run the monitor did not trigger is no closed loop of it'
+
+
+def test_a_scenario_file_finds_only_its_own_closed_loop_where_a_bag_shares_its_name(tmp_path):
+    (tmp_path / 'a').mkdir()
+    (tmp_path / 'a' / 'result.json').write_text(json.dumps({
+        'scenario': 'a', 'path': str(tmp_path / 'bags' / 'a.yaml'),
+        'events': [{'what': 'request', 'at_s': 1.5, 'from': 'stability monitor'}],
+        'runs': {'dtw': {'load_served_mw': 10.0}, 'no action': {'load_served_mw': 5.0}}}))
+    loops = read_testbed([tmp_path])
+    bag, other = run(), run()
+    bag.name = other.name = 'a'
+    bag.scenario_path, other.scenario_path = tmp_path / 'bags' / 'a.yaml', tmp_path / 'docs' / 'a.yaml'
+    assert bag.loop(loops).served_mw == 10.0
+    assert other.loop(loops) is None, 'another file of the same name took the bag closed loop'
+    other.scenario_path = None
+    assert other.loop(loops) is not None, 'with no file to go by, the name is all there is'

@@ -70,10 +70,16 @@ class MonitorRun:
     scenario_path: Path | None = None
 
     def loop(self, loops: dict[str, ClosedLoop]) -> ClosedLoop | None:
-        """Return this scenario's closed loop: by its scenario file, else by name (a bag and a file may share one)."""
+        """Return this scenario's closed loop: by its scenario file, else by name where either file is not known.
+
+        A bag and a scenario file elsewhere may share a name (ieee14_g1_unstable): different files, different runs.
+        """
         if self.scenario_path is not None and str(self.scenario_path.resolve()) in loops:
             return loops[str(self.scenario_path.resolve())]
-        return loops.get(self.name)
+        found = loops.get(self.name)
+        if found is not None and found.path is not None and self.scenario_path is not None:
+            return None
+        return found
 
     @property
     def stable(self) -> bool:
@@ -140,6 +146,7 @@ class ClosedLoop:
         served_mw: Load served by the closed loop, MW (None: the simulation failed); likewise none_mw (no action)
             and oracle_mw (the oracle's best, None without `testbed --oracle`).
         survived, none_survived, oracle_survived: Whether every island survived (None: not known).
+        path: The scenario file the run was of, resolved (None: the result does not say).
 
     """
 
@@ -153,6 +160,7 @@ class ClosedLoop:
     none_survived: bool | None = None
     oracle_survived: bool | None = None
     notes: list[str] = field(default_factory=list)
+    path: str | None = None
 
 
 def read_testbed(folders: Sequence[Path]) -> dict[str, ClosedLoop]:
@@ -184,7 +192,8 @@ def read_testbed(folders: Sequence[Path]) -> dict[str, ClosedLoop]:
                 item.notes.append(f'{path.parent}: a request not from the monitor (not a --trigger monitor run)')
             out[r['scenario']] = item
             if r.get('path'):
-                out[str(Path(r['path']).resolve())] = item
+                item.path = str(Path(r['path']).resolve())
+                out[item.path] = item
     for item in out.values():
         oracle = oracles.get(item.scenario)
         if item.oracle_mw is None and oracle is not None:
