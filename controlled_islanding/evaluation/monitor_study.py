@@ -179,8 +179,8 @@ def read_testbed(folders: Sequence[Path]) -> dict[str, ClosedLoop]:
             asks = [e for e in r.get('events', []) if e.get('what') == 'request']
             from_monitor = [e for e in asks if e.get('from') == 'stability monitor']
             loop, none, oracle = runs.get('dtw', {}), runs.get('no action', {}), runs.get('oracle')
-            if oracle is not None:
-                oracles.setdefault(r['scenario'], oracle)
+            if oracle is not None:  # by its scenario file where known: a file elsewhere may share the name
+                oracles.setdefault(str(Path(r['path']).resolve()) if r.get('path') else r['scenario'], oracle)
             if asks and not from_monitor:
                 if oracle is not None or r['scenario'] in out:
                     continue
@@ -195,7 +195,7 @@ def read_testbed(folders: Sequence[Path]) -> dict[str, ClosedLoop]:
                 item.path = str(Path(r['path']).resolve())
                 out[item.path] = item
     for item in out.values():
-        oracle = oracles.get(item.scenario)
+        oracle = oracles.get(item.path or item.scenario)
         if item.oracle_mw is None and oracle is not None:
             item.oracle_mw, item.oracle_survived = oracle.get('load_served_mw'), oracle.get('all_survived')
     return out
