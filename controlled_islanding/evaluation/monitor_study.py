@@ -179,8 +179,9 @@ def read_testbed(folders: Sequence[Path]) -> dict[str, ClosedLoop]:
             asks = [e for e in r.get('events', []) if e.get('what') == 'request']
             from_monitor = [e for e in asks if e.get('from') == 'stability monitor']
             loop, none, oracle = runs.get('dtw', {}), runs.get('no action', {}), runs.get('oracle')
+            scenario_file = str(Path(r['path']).resolve()) if r.get('path') else None
             if oracle is not None:  # by its scenario file where known: a file elsewhere may share the name
-                oracles.setdefault(str(Path(r['path']).resolve()) if r.get('path') else r['scenario'], oracle)
+                oracles.setdefault(scenario_file or r['scenario'], oracle)
             if asks and not from_monitor:
                 if oracle is not None or r['scenario'] in out:
                     continue
@@ -191,8 +192,8 @@ def read_testbed(folders: Sequence[Path]) -> dict[str, ClosedLoop]:
             if asks and not from_monitor:
                 item.notes.append(f'{path.parent}: a request not from the monitor (not a --trigger monitor run)')
             out[r['scenario']] = item
-            if r.get('path'):
-                item.path = str(Path(r['path']).resolve())
+            if scenario_file:
+                item.path = scenario_file
                 out[item.path] = item
     for item in out.values():
         oracle = oracles.get(item.path or item.scenario)
