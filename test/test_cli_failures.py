@@ -7,13 +7,17 @@ or in a bag_player made in this process, which refuses before it plays.
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import signal
+import time
 from pathlib import Path
 
 import pytest
 
 from controlled_islanding.cli import main
 from controlled_islanding.graph import GraphError
+from controlled_islanding.graph.processes import interrupted, sigterm_as_interrupt
 from controlled_islanding.graph.results import FAILED, INTERRUPTED, claim, running
 from controlled_islanding.sim.manifest import default_bag
 
@@ -113,6 +117,31 @@ def test_running_removes_an_empty_folder_and_marks_one_with_files(tmp_path):
 
     assert claim(tmp_path / 'late') == (tmp_path / 'late').resolve()
     assert list((tmp_path / 'late').iterdir()) == [], 'a marked folder is claimed afresh'
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_that_another_library_turns_into_its_own_error_still_marks_the_folder_interrupted(tmp_path, sig):
+    """pybind11 turns a KeyboardInterrupt raised while rclpy converts a message into a RuntimeError."""
+    def convert():
+        try:
+            os.kill(os.getpid(), sig)
+            time.sleep(1.0)
+        except KeyboardInterrupt as exc:
+            raise RuntimeError('Unable to convert call argument') from exc
+
+    with pytest.raises(RuntimeError), sigterm_as_interrupt(), running(tmp_path / 'run', bag='B') as folder:
+        (folder / 'logs').mkdir()
+        (folder / 'logs' / 'node.log').write_text('started\n')
+        convert()
+    assert interrupted() == sig
+    assert json.loads((tmp_path / 'run' / INTERRUPTED).read_text())['bag'] == 'B'
+    assert not (tmp_path / 'run' / FAILED).exists()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler, 'Ctrl-C is given back as it was'
+
+    with pytest.raises(GraphError), sigterm_as_interrupt(), running(tmp_path / 'later') as folder:
+        (folder / 'log').write_text('x')
+        raise GraphError('partitioning died')
+    assert interrupted() is None and (tmp_path / 'later' / FAILED).exists(), 'a signal is forgotten by the next run'
 
 
 def test_claim_never_removes_a_folder_that_is_not_a_runs(tmp_path):

@@ -283,10 +283,7 @@ def _procs() -> dict[int, tuple[str, int, int]]:
 @pytest.mark.slow
 @pytest.mark.parametrize(('sig', 'when'), [
     (signal.SIGTERM, ''),
-    pytest.param(signal.SIGINT, 't =  2.00', marks=pytest.mark.xfail(strict=False, reason=(
-        'a known race, found in CI (2 of about 7 runs): a Ctrl-C that lands while rclpy converts a taken message '
-        "comes out of pybind11 as RuntimeError 'Unable to convert call argument', so the folder says FAILED, not "
-        'INTERRUPTED; the processes still end. Not yet fixed')))],
+    (signal.SIGINT, 't =  2.00')],
     ids=['sigterm_at_grid_sim_start', 'ctrl_c_at_the_request'])
 def test_an_interrupted_testbed_ends_every_process_it_started_and_says_it_was_interrupted(sig, when):
     """Interrupted as grid_sim starts, or at the request (lockstep: the graph deciding, the cut being opened).

@@ -13,26 +13,46 @@ from pathlib import Path
 _PR_SET_PDEATHSIG = 1
 
 
+_interrupted_by: int | None = None
+
+
 @contextlib.contextmanager
 def sigterm_as_interrupt() -> Iterator[None]:
-    """While open, SIGTERM raises KeyboardInterrupt in the main thread, as Ctrl-C does.
+    """While open, SIGTERM raises KeyboardInterrupt in the main thread, as Ctrl-C does, and both are remembered.
 
     Python's default SIGTERM ends the process at once, skipping every `finally` and `__exit__`: a `kill PID` left
     the nodes' forked helpers running, network namespaces mounted, and a results folder that did not say it was
     unfinished. A handler the program set itself, or a call off the main thread, is left alone.
+
+    A KeyboardInterrupt raised while rclpy converts a message comes out of pybind11 as a RuntimeError, so the
+    exception alone cannot say a run was interrupted: `interrupted()` can, until the next outermost opening.
     """
+    global _interrupted_by
     if (threading.current_thread() is not threading.main_thread()
             or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL):
         yield
         return
+    _interrupted_by = None
+    previous_int = signal.getsignal(signal.SIGINT)
     signal.signal(signal.SIGTERM, _terminated)
+    if previous_int is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _terminated)
     try:
         yield
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        if previous_int is signal.default_int_handler:
+            signal.signal(signal.SIGINT, previous_int)
+
+
+def interrupted() -> int | None:
+    """Return the signal (SIGINT or SIGTERM) that interrupted the last `sigterm_as_interrupt` block, if one did."""
+    return _interrupted_by
 
 
 def _terminated(signum: int, _frame: object) -> None:
+    global _interrupted_by
+    _interrupted_by = signum
     raise KeyboardInterrupt(f'signal {signum}')
 
 

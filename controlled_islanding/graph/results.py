@@ -18,6 +18,7 @@ from pathlib import Path
 
 from controlled_islanding import atomic
 from controlled_islanding.graph import GraphError
+from controlled_islanding.graph.processes import interrupted as signalled
 
 FAILED = 'FAILED.json'
 INTERRUPTED = 'INTERRUPTED.json'
@@ -62,7 +63,7 @@ def running(path: Path, force: bool = False, **about: object) -> Iterator[Path]:
     try:
         yield path
     except BaseException as exc:
-        interrupted = isinstance(exc, KeyboardInterrupt)
+        interrupted = isinstance(exc, KeyboardInterrupt) or signalled() is not None
         if not interrupted and not any(p.is_file() for p in path.rglob('*')):
             shutil.rmtree(path, ignore_errors=True)
         elif not (path / FAILED).exists() and not (path / INTERRUPTED).exists():

@@ -27,6 +27,7 @@ from controlled_islanding import atomic
 from controlled_islanding.graph import GraphError, wan
 from controlled_islanding.graph.chaos import FaultInjector
 from controlled_islanding.graph.observer import INTERNAL_TOPICS, Observation, Observer, start_pipeline
+from controlled_islanding.graph.processes import interrupted
 from controlled_islanding.graph.replay import namespace_name
 from controlled_islanding.graph.results import INTERRUPTED
 from controlled_islanding.graph.summary import _groups_dict, decision_dict
@@ -503,20 +504,23 @@ def run_all(paths: list[Path], results_dir: Path, settings: TestbedSettings,
         _say(settings.quiet, f'scenario {i + 1}/{len(paths)}: {path}')
         try:
             results.append(run_scenario(path, results_dir, settings, cache))
-        except GraphError as exc:
-            if len(paths) == 1:
+        except BaseException as exc:
+            if isinstance(exc, KeyboardInterrupt) or interrupted() is not None:
+                # Ctrl-C or SIGTERM (the supervisor turns it into this; inside rclpy it may come out as another
+                # error): its nodes are stopped by now. Without a testbed.json the folder is unfinished; this file
+                # says so and why, for a reader and for --render.
+                atomic.write_text(results_dir / INTERRUPTED, json.dumps({
+                    'interrupted_utc': datetime.now(UTC).isoformat(timespec='seconds'), 'during': path.stem,
+                    'finished': [r['scenario'] for r in results], 'failed': failures,
+                    'not_run': [p.stem for p in paths[i + 1:]]}, indent=1) + '\n')
+                if isinstance(exc, KeyboardInterrupt):
+                    raise
+                raise KeyboardInterrupt(f'interrupted ({exc})') from exc
+            if not isinstance(exc, GraphError) or len(paths) == 1:
                 raise
             _say(settings.quiet, f'{path.stem}: FAILED: {exc}')
             failures.append(f'{path.stem}: {str(exc).splitlines()[0]}')
             continue
-        except KeyboardInterrupt:
-            # Ctrl-C or SIGTERM (the supervisor turns it into this): its nodes are stopped by now. Without a
-            # testbed.json the folder is unfinished; this file says so and why, for a reader and for --render.
-            atomic.write_text(results_dir / INTERRUPTED, json.dumps({
-                'interrupted_utc': datetime.now(UTC).isoformat(timespec='seconds'), 'during': path.stem,
-                'finished': [r['scenario'] for r in results], 'failed': failures,
-                'not_run': [p.stem for p in paths[i + 1:]]}, indent=1) + '\n')
-            raise
         after_each(results, [p.stem for p in paths[i + 1:]] + failures)
     atomic.write_text(results_dir / 'testbed.json', json.dumps(results, indent=1, default=str))
     return results, failures
