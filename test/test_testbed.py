@@ -137,6 +137,13 @@ def test_assess_leaves_a_rejected_machine_out_after_its_trip():
     (alone,) = assess(t, delta, omega, volts, names, gen_buses, buses, {1: 1, 2: 1, 3: 0, 4: 1}, 1.0,
                       LoopConfig(), 60.0, {0: 0.0, 1: 100.0}, {}, (), {'G3': (2.0, 80.0)})[:1]
     assert not alone.survived and 'every machine rejected' in alone.why_not
+    # ... and what the simulator computes there afterwards (-22 pu, -73 Hz in ANDES) is no figure of it.
+    volts[:, 2] = -22.3
+    (dead,) = assess(t, delta, omega, volts, names, gen_buses, buses, {1: 1, 2: 1, 3: 0, 4: 1}, 1.0,
+                     LoopConfig(), 60.0, {0: 0.0, 1: 100.0}, {}, (), {'G3': (0.5, 80.0)})[:1]
+    assert dead.why_not == ('every machine rejected',)
+    assert all(math.isnan(x) for x in (dead.f_nadir_hz, dead.f_peak_hz, dead.v_min_pu, dead.v_max_pu, *dead.v_end_pu))
+    assert dead.v_outside_s is None and dead.v_worst_bus is None
 
 
 @pytest.mark.ros
@@ -440,7 +447,7 @@ def test_a_simulator_failure_is_its_own_outcome_never_load_lost():
 
 
 def test_table_reasons_are_cut_at_a_word_and_load_served_is_net_of_shed():
-    from controlled_islanding.evaluation.testbed_report import clip, table_rows
+    from controlled_islanding.evaluation.testbed_report import clip, failure_text, table_rows
 
     text = 'frequency 59.56..67.63 Hz outside 57.80..61.80; voltage 0.270..1.3 pu outside 0.8..1.2'
     for width in range(20, len(text)):
@@ -448,13 +455,26 @@ def test_table_reasons_are_cut_at_a_word_and_load_served_is_net_of_shed():
         assert len(cut) <= width and cut.endswith(' ...')
         assert text.startswith(cut[:-4]) and text[len(cut) - 4] in ' ;', cut  # a whole word, never a part
     assert clip(text, 200) == text
-    isl = [{'island': 0, 'survived': True, 'why_not': [], 'load_mw': 900.0, 'shed_mw': 100.0},
-           {'island': 1, 'survived': False, 'why_not': ['machines tripped: G3'], 'load_mw': 100.0, 'shed_mw': 0.0}]
+    figures = {'f_nadir_hz': 59.2, 'f_peak_hz': 60.1, 'v_min_pu': 0.95}
+    isl = [{'island': 0, 'survived': True, 'why_not': [], 'load_mw': 900.0, 'shed_mw': 100.0,
+            'generators': ['G1', 'G2'], **figures},
+           {'island': 1, 'survived': False, 'why_not': ['machines tripped: G3'], 'load_mw': 100.0, 'shed_mw': 0.0,
+            'generators': ['G3'], **figures}]
     run = {'cut_branch_ids': ['1-2'], 'islands': isl, 'load_lost_mw': 200.0, 'shed_mw': 100.0, 'f_nadir_hz': 59.0,
            'f_peak_hz': 60.5, 'v_min_pu': 0.9, 'request_to_opening_s': 0.1, 'simulation_failed': None,
            'load_served_mw': 800.0, 'load_served_pct': 80.0}
     (row,) = table_rows([{'scenario': 's', 'runs': {'dtw': run}}])
     assert row[3] == '800 (80.0 %)' and row[4] == '1/2 (machines tripped: G3)'
+    # An island whose every machine was rejected: what ANDES computes there is no figure, old results included.
+    live = isl[0]
+    dead = dict(isl[1], generators=['G3'], rejected=['G3'], f_nadir_hz=-73.1, f_peak_hz=63.3, v_min_pu=-22.3)
+    (row,) = table_rows([{'scenario': 's', 'runs': {'dtw': dict(run, islands=[live, dead])}}])
+    assert row[-3:-1] == ['59.20 / 60.10', '0.950']
+    (row,) = table_rows([{'scenario': 's', 'runs': {'dtw': dict(run, islands=[dead])}}])
+    assert row[-3:-1] == ['no machine', '-']
+    dead.update(why_not=['every machine rejected', 'voltage -22.330..-22.299 pu at the end, outside 0.9..1.1'],
+                f_outside_s=[0.0, 0.2], f_outside_since_s=None, v_outside_s=[0.5, 2.9], v_worst_bus=1, v_max_pu=-21.5)
+    assert failure_text(dead) == 'island 1 (G3; rejected G3): every machine rejected; island load 100 MW'
 
 
 def test_prc024_trips_a_machine_only_when_it_stays_beyond_its_curve_longer_than_allowed():

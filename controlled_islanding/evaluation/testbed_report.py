@@ -98,9 +98,26 @@ def table_rows(results: list[dict], reason_width: int | None = 80) -> list[list[
                          verdict if reason_width is None else clip(verdict, reason_width),
                          f'{"-" if lost is None else format(lost, ".0f")} ({run["shed_mw"]:.0f} shed)',
                          f'{run.get("rejected_mw", 0.0):.0f}',
-                         f'{run["f_nadir_hz"]:.2f} / {run["f_peak_hz"]:.2f}', f'{run["v_min_pu"]:.3f}',
+                         *_extremes(run),
                          _fmt(run['request_to_opening_s'], '.3f')])
     return rows
+
+
+def _extremes(run: dict) -> tuple[str, str]:
+    """Return the run's 'f nadir / peak Hz' and 'V min pu' cells, over the islands that kept a machine.
+
+    Where every machine of an island is gone, what the simulator computes there (-22 pu, -73 Hz in ANDES) is no
+    island's state; the run's own extremes may hold it (results written before assess left such islands out).
+    """
+    live = [i for i in run.get('islands', ()) if set(i['generators']) - set(i.get('rejected', ()))]
+    if 'islands' not in run:
+        live = [run]
+    f_lo = [i['f_nadir_hz'] for i in live if i['f_nadir_hz'] is not None and math.isfinite(i['f_nadir_hz'])]
+    f_hi = [i['f_peak_hz'] for i in live if i['f_peak_hz'] is not None and math.isfinite(i['f_peak_hz'])]
+    v_lo = [i['v_min_pu'] for i in live if i['v_min_pu'] is not None and math.isfinite(i['v_min_pu'])]
+    if not f_lo or not f_hi:
+        return 'no machine', _fmt(min(v_lo, default=None), '.3f')
+    return f'{min(f_lo):.2f} / {max(f_hi):.2f}', _fmt(min(v_lo, default=None), '.3f')
 
 
 def _span(span: list[float] | None) -> str:
@@ -115,8 +132,11 @@ def failure_text(isl: dict) -> str:
     if 'f_outside_s' not in isl:  # a result written before the timings were recorded
         return f'{head}: {"; ".join(isl["why_not"])}'
     out = list(isl['why_not'])  # the verdict's reasons in full, then what happened on the way
-    if isl['generators'] and isl['rejected'] and len(isl['rejected']) == len(isl['generators']):
+    if not set(isl['generators']) - set(isl.get('rejected', ())):
+        # Nothing left running: the simulator's figures there are no island's (see _extremes).
+        out = [w for w in out if not w.startswith(('voltage ', 'frequency '))]
         out.append(f'island load {isl["load_mw"]:.0f} MW')
+        return f'{head}: {"; ".join(out)}'
     if isl['f_outside_s']:
         since = isl['f_outside_since_s']
         inherited = '' if since is None else f', already out at the cut (since {since:+.3f} s)'

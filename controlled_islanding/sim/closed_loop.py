@@ -215,12 +215,12 @@ class IslandOutcome:
             never).
         v_worst_bus: The bus whose voltage went furthest outside its band (None: none did).
         ufls_shed_mw: Load shed by the grid's under-frequency load shedding in the island, MW.
-        f_end_hz: The island's mean machine frequency at the last step, Hz.
-        v_end_pu: Lowest and highest bus voltage over the end window, pu.
+        f_end_hz: The island's mean machine frequency at the last step, Hz (NaN: no machine left).
+        v_end_pu: Lowest and highest bus voltage over the end window, pu (NaN: no machine left).
         max_pair_swing_rad: Largest change of a machine pair's angle difference after the cut, rad.
         coherent: max_pair_swing_rad <= the bound.
-        f_nadir_hz, f_peak_hz: Lowest and highest machine frequency after the cut, Hz.
-        v_min_pu, v_max_pu: Lowest and highest bus voltage once settled, pu.
+        f_nadir_hz, f_peak_hz: Lowest and highest machine frequency after the cut, Hz (NaN: no machine left).
+        v_min_pu, v_max_pu: Lowest and highest bus voltage once settled, pu (NaN: no machine left).
         machines_tripped: Machines switched off during the run, other than by generation rejection.
         survived: All of the above within bounds; None: undetermined, the simulation failed before the end.
         why_not: What failed, empty when it survived.
@@ -250,6 +250,12 @@ class IslandOutcome:
     ufls_shed_mw: float = 0.0
     f_end_hz: float = float('nan')
     v_end_pu: tuple[float, float] = (float('nan'), float('nan'))
+
+
+def _extreme(pick: Callable[[Iterable[float]], float], values: Iterable[float]) -> float | None:
+    """Return pick (min or max) of the values that are figures (an island with no machine left has none), or None."""
+    found = [v for v in values if np.isfinite(v)]
+    return pick(found) if found else None
 
 
 def _load_lost_mw(islands: Iterable[IslandOutcome]) -> float:
@@ -362,9 +368,9 @@ class Outcome:
                 'pre_fault_load_mw': self.pre_fault_load_mw, 'load_served_mw': self.load_served_mw,
                 'load_served_pct': self.load_served_pct,
                 'rejected_mw': self.rejected_mw, 'simulation_failed': self.simulation_failed, 'remedy': self.remedy,
-                'f_nadir_hz': min(i.f_nadir_hz for i in self.islands),
-                'f_peak_hz': max(i.f_peak_hz for i in self.islands),
-                'v_min_pu': min(i.v_min_pu for i in self.islands),
+                'f_nadir_hz': _extreme(min, (i.f_nadir_hz for i in self.islands)),
+                'f_peak_hz': _extreme(max, (i.f_peak_hz for i in self.islands)),
+                'v_min_pu': _extreme(min, (i.v_min_pu for i in self.islands)),
                 'islands': [asdict(i) for i in self.islands], 'actions': [asdict(a) for a in self.actions],
                 'wall_s': self.wall_s}
 
@@ -1067,7 +1073,7 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
         if cols and not kept:
             why.append('every machine rejected')
         f_span, f_since = None, None
-        if cols:
+        if kept:
             dev = delta_rad[window][:, cols] - delta_rad[first, cols]
             dev = dev[~np.isnan(dev).all(axis=1)]  # after every machine of the island was rejected
             swing = float(np.nanmax(np.nanmax(dev, axis=1) - np.nanmin(dev, axis=1))) if len(dev) else 0.0
@@ -1084,13 +1090,19 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
             speed = speed[~np.isnan(speed)]
             f_lo, f_hi = (float(speed.min()), float(speed.max())) if speed.size else (f0_hz, f0_hz)
         else:
+            # Lost by definition; with no machine left, what the simulator computes there (-22 pu, -73 Hz) is
+            # no island's state, so no figure is given.
             swing, f_lo, f_hi = 0.0, float('nan'), float('nan')
-            why.append('no machine')
-        volts = bus_v_pu[settled][:, vcols]
-        v_lo, v_hi = float(volts.min()), float(volts.max())
-        beyond = np.maximum(config.v_min_pu - volts, volts - config.v_max_pu)  # > 0 outside the band, pu
-        v_span = _outside_span(t_s[settled], (beyond > 0).any(axis=1), from_s)
-        worst = None if v_span is None else int(bus_numbers[vcols[int(np.argmax(beyond.max(axis=0)))]])
+            if not cols:
+                why.append('no machine')
+        if kept:
+            volts = bus_v_pu[settled][:, vcols]
+            v_lo, v_hi = float(volts.min()), float(volts.max())
+            beyond = np.maximum(config.v_min_pu - volts, volts - config.v_max_pu)  # > 0 outside the band, pu
+            v_span = _outside_span(t_s[settled], (beyond > 0).any(axis=1), from_s)
+            worst = None if v_span is None else int(bus_numbers[vcols[int(np.argmax(beyond.max(axis=0)))]])
+        else:
+            v_lo, v_hi, v_span, worst = float('nan'), float('nan'), None, None
         coherent = swing <= config.coherence_bound_rad
         if not coherent:
             why.append(f'machines {swing:.2f} rad apart (> {config.coherence_bound_rad:.2f}): out of step')
@@ -1111,12 +1123,15 @@ def assess(t_s: np.ndarray, delta_rad: np.ndarray, omega_pu: np.ndarray, bus_v_p
                 if not (band_lo <= mean_hz.min() and mean_hz.max() <= band_hi):
                     why.append(f'frequency {mean_hz.min():.2f}..{mean_hz.max():.2f} Hz at the end, outside the '
                                f'continuous {band_lo:.2f}..{band_hi:.2f}')
-        v_end = bus_v_pu[end][:, vcols]
-        v_end_lo, v_end_hi = float(v_end.min()), float(v_end.max())
-        v0 = bus_v_pu[0, vcols]  # a bus the case itself runs outside the band is judged against its own voltage
-        if ((v_end < np.minimum(config.v_min_pu, v0 - 1e-3)) | (v_end > np.maximum(config.v_max_pu, v0 + 1e-3))).any():
-            why.append(f'voltage {v_end_lo:.3f}..{v_end_hi:.3f} pu at the end, outside the continuous '
-                       f'{config.v_min_pu}..{config.v_max_pu}')
+        v_end_lo, v_end_hi = float('nan'), float('nan')
+        if kept:
+            v_end = bus_v_pu[end][:, vcols]
+            v_end_lo, v_end_hi = float(v_end.min()), float(v_end.max())
+            v0 = bus_v_pu[0, vcols]  # a bus the case itself runs outside the band is judged against its own voltage
+            if ((v_end < np.minimum(config.v_min_pu, v0 - 1e-3))
+                    | (v_end > np.maximum(config.v_max_pu, v0 + 1e-3))).any():
+                why.append(f'voltage {v_end_lo:.3f}..{v_end_hi:.3f} pu at the end, outside the continuous '
+                           f'{config.v_min_pu}..{config.v_max_pu}')
         out.append(IslandOutcome(
             island=island, buses=len(buses), generators=names, load_mw=float(island_load_mw.get(island, 0.0)),
             shed_mw=float(shed_by_island.get(island, 0.0)), max_pair_swing_rad=swing, coherent=coherent,
