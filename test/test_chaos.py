@@ -16,7 +16,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from controlled_islanding.evaluation.chaos_report import reasoned, verdict
+from controlled_islanding.evaluation.chaos_report import opened_text, reasoned, verdict
 from controlled_islanding.graph import wan
 from controlled_islanding.graph.chaos import KINDS, OFFSET_S, TARGETS, Fault, partition_hosts, plan_fault
 from controlled_islanding.graph.testbed import TestbedSettings
@@ -148,6 +148,11 @@ def test_an_answer_is_a_decision_a_reasoned_refusal_or_said_to_be_neither():
     assert not reasoned({'answer': answer_to('r', [], []), 'restarts': [], 'raised': {}, 'chaos': None})
     commanded = answer_to('r', decisions, [{'event': 'command', 'decision_id': 'd2', 'commands': [{}, {}]}])
     assert (commanded['kind'], commanded['reason']) == ('commanded', '2 breakers')
+    # Commanded, but its opening (charged with the wall time held at the request) fell after the run's end.
+    events = [{'what': 'switching event', 'at_s': 11.627, 'branch_ids': ['7-8']}]
+    assert opened_text({'opened': [], 'events': events}) == 'none: due at 11.63 s (sim), after the run ended'
+    assert opened_text({'opened': ['7-8'], 'events': events + [{'what': 'opened', 'branch_id': '7-8'}]}) == '7-8'
+    assert opened_text({'opened': [], 'events': []}) == 'none'
 
 
 @pytest.mark.skipif(bool(UNAVAILABLE), reason=UNAVAILABLE or '')

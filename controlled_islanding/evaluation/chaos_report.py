@@ -70,6 +70,17 @@ def _cut(result: dict) -> tuple[str, ...]:
     return tuple(sorted(result.get('opened') or ()))
 
 
+def opened_text(result: dict) -> str:
+    """Return the branches a run opened, or 'none' and, where its cut was due only after the run ended, when."""
+    opened = _cut(result)
+    if opened:
+        return ', '.join(opened)
+    due = [e['at_s'] for e in result.get('events', ()) if e['what'] == 'switching event']
+    if due:  # lockstep charges the wall time held at the request to sim time (nodes/grid_sim.py)
+        return f'none: due at {min(due):.2f} s (sim), after the run ended'
+    return 'none'
+
+
 def _pct(x: float | None) -> str:
     return '-' if x is None else f'{x:.1f} %'
 
@@ -156,7 +167,7 @@ def run_rows(results: list[dict]) -> list[list[str]]:
         rows.append([r['scenario'], str(r['seed']), chaos.get('describe', '-'),
                      '-' if fired is None else f'{fired:+.3f}',
                      '-' if rec is None else (f'{chaos["recovered_after_s"]:.1f}' if rec else 'NO'),
-                     answer.replace('|', '/'), ', '.join(_cut(r)) or 'none',
+                     answer.replace('|', '/'), opened_text(r),
                      f'{served(r)} ({_each(unfaulted, served)})',
                      str(len(r.get('unsafe', ()))), f'{r.get("wall_s", 0):.0f}'])
     return rows
