@@ -54,13 +54,14 @@ first pole slip: lead = slip - found, >= 0 means found before the slip.
 
 --closed-loop adds a column: each row's cut opened in ANDES on the scenario the bag was simulated from
 (bags/index.yaml names it), breaker_operating_s (0.05 s) after the request, with the row's remedial actions (load
-sheds, generator trips) 0.2 s later, judged per island as the testbed judges it (sim/closed_loop.py: machines
-within pi rad, frequency within 0.9633..1.03 pu of nominal, voltage 0.8..1.2 pu, no machine tripped); it shows
-islands survived / formed, and the first reason an island was lost. Every row's cut opens at the same time (its
-compute time is in its own column; the testbed charges the graph's latency), rows with the same cut share one
-run, and a row that does not split gets the no-action run. Not for the paper's MATPOWER cases (no dynamic data).
-It is off by default because each distinct cut is a time-domain run: a minute or two for IEEE 39, more for the
-large cases.
+sheds, generator trips) 0.2 s later, judged per island as the testbed judges it (sim/closed_loop.py: at the
+end, machines in step within pi rad, frequency in PRC-024's continuous band (59.5..60.5 Hz at 60 Hz), every bus
+in 0.9..1.1 pu, no machine tripped by the PRC-024 ride-through curves or overspeed; the grid's own PRC-006-style
+UFLS runs); it shows islands survived / formed, and the first reason an island was lost. Every row's cut opens
+at the same time (its compute time is in its own column; the testbed charges the graph's latency), rows with the
+same cut share one run, and a row that does not split gets the no-action run. Not for the paper's MATPOWER
+cases (no dynamic data). It is off by default because each distinct cut is a time-domain run: a minute or two
+for IEEE 39, more for the large cases.
 
 --observability FILE.md instead drops PMUs (the largest machines kept first, and seeded random placements) at
 100/75/50/25 % coverage and scores each placement's decision against the truth and the MILP (docs/observability.md).
