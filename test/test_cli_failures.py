@@ -119,8 +119,19 @@ def test_running_removes_an_empty_folder_and_marks_one_with_files(tmp_path):
     assert list((tmp_path / 'late').iterdir()) == [], 'a marked folder is claimed afresh'
 
 
+@pytest.fixture
+def python_signals():
+    """Python's own SIGINT and SIGTERM handling, as a command line has it (a pytest-xdist worker ignores SIGINT)."""
+    before = {s: signal.signal(s, h) for s, h in ((signal.SIGINT, signal.default_int_handler),
+                                                  (signal.SIGTERM, signal.SIG_DFL))}
+    yield
+    for s, h in before.items():
+        signal.signal(s, h)
+
+
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
-def test_a_signal_that_another_library_turns_into_its_own_error_still_marks_the_folder_interrupted(tmp_path, sig):
+def test_a_signal_that_another_library_turns_into_its_own_error_still_marks_the_folder_interrupted(
+        tmp_path, sig, python_signals):
     """pybind11 turns a KeyboardInterrupt raised while rclpy converts a message into a RuntimeError."""
     def convert():
         try:
