@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -20,6 +21,15 @@ from controlled_islanding.ros.endpoints import qos_for
 from controlled_islanding.wire import topics
 
 BUILD = Path(__file__).resolve().parents[1] / 'build'
+
+
+def ctrl_c_as_at_a_terminal() -> None:
+    """Handle SIGINT by default, as under a terminal (a subprocess preexec_fn).
+
+    A shell runs a background job (`cmd &`, nohup) with SIGINT ignored, and Python keeps an ignored SIGINT
+    ignored, so a Ctrl-C test run from one would send a signal nobody hears.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 class Probe:

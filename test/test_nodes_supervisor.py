@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
-from nodes_harness import graph
+from nodes_harness import ctrl_c_as_at_a_terminal, graph
 
 from controlled_islanding.graph.supervisor import (
     GRAPH,
@@ -323,7 +323,8 @@ def test_an_interrupted_replay_says_so_in_its_results_and_leaves_no_node(sig):
     results = BUILD / 'replay_interrupted' / str(time.time_ns())
     cli = subprocess.Popen([sys.executable, '-m', 'controlled_islanding.cli', 'replay', str(bag), '--isolate',
                             '--no-figures', '--no-record', '--timeout', '60', '--results', str(results)],
-                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                           preexec_fn=ctrl_c_as_at_a_terminal)
     nodes: dict[str, int] = {}
     try:
         end = time.monotonic() + 60.0

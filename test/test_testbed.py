@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from nodes_harness import ctrl_c_as_at_a_terminal
 
 from controlled_islanding.sim.closed_loop import (
     LoopConfig,
@@ -303,7 +304,8 @@ def test_an_interrupted_testbed_ends_every_process_it_started_and_says_it_was_in
     with open(f'{results}.stderr', 'w') as err:
         proc = subprocess.Popen([sys.executable, '-m', 'controlled_islanding.cli', 'testbed', str(SCENARIO),
                                  '--no-baselines', '--results', str(results), '--timeout', '120'],
-                                stdout=subprocess.DEVNULL, stderr=err, env=env, cwd=REPO)
+                                stdout=subprocess.DEVNULL, stderr=err, env=env, cwd=REPO,
+                                preexec_fn=ctrl_c_as_at_a_terminal)
     ours: list[int] = []
     try:
         end = time.monotonic() + 90.0

@@ -109,8 +109,9 @@ def _extremes(run: dict) -> tuple[str, str]:
     Where every machine of an island is gone, what the simulator computes there (-22 pu, -73 Hz in ANDES) is no
     island's state; the run's own extremes may hold it (results written before assess left such islands out).
     """
-    live = [i for i in run.get('islands', ()) if set(i['generators']) - set(i.get('rejected', ()))]
-    if 'islands' not in run:
+    islands = run.get('islands') or ()
+    live = [i for i in islands if set(i['generators']) - set(i.get('rejected', ()))]
+    if not all('f_nadir_hz' in i for i in islands) or not islands:  # islands without their own figures
         live = [run]
     f_lo = [i['f_nadir_hz'] for i in live if i['f_nadir_hz'] is not None and math.isfinite(i['f_nadir_hz'])]
     f_hi = [i['f_peak_hz'] for i in live if i['f_peak_hz'] is not None and math.isfinite(i['f_peak_hz'])]
