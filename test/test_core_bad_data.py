@@ -78,6 +78,21 @@ def test_the_two_station_ramp_flags_both(name):
     assert all(at < float(bag.request_t_s[0]) for _, at in flags.values())
 
 
+@pytest.mark.parametrize('kind', ['ramp', 'ramp_back'])
+def test_a_ramp_on_the_faulted_bus_station_is_flagged_in_the_few_frames_between_its_clearing_and_the_request(kind):
+    """A spoofed speed on the few frames a cleared fault leaves before the request is flagged.
+
+    EI 33: bus 101048's voltage is below the floor from 1.033 to 1.133 s and the request comes at 1.3 s, 5 frames
+    after it recovers: a full window (15 frames) never forms before the request; the frames at hand do.
+    """
+    bag = _bag('ei33_bus101048_pair_unstable')
+    request_s = float(bag.request_t_s[0])
+    flags = first_flags(attack(bag, kind, ['PMU_101048'], 1.0))
+    assert set(flags) == {'PMU_101048'}
+    why, at_s = flags['PMU_101048']
+    assert why == 'frequency_mismatch' and 1.15 < at_s <= request_s + 1e-9
+
+
 def test_a_suspect_station_returns_only_after_clean_s_of_clean_data():
     bag = _bag('ieee14_g1_unstable')
     # A step on both angles, before the fault, leaves the frequency window after window_s: from then on the data
