@@ -121,6 +121,22 @@ def test_a_network_at_rest_is_not_frozen():
                          [0.0, 0.0]) == {}
 
 
+@pytest.mark.parametrize('station', ['PMU_39', 'PMU_35'])
+def test_a_station_frozen_from_its_first_frame_after_an_initial_gap_sends_values_and_is_flagged(station):
+    """No frame before the fault: frozen at the empty frame before it, the attack was a silent station, not frozen.
+
+    The sweep counted it "not flagged before the request" (docs/attacks.md, ieee39_g6g7_initial_gap); held at the
+    station's first frame it repeats, and is flagged.
+    """
+    bag = _bag('ieee39_g6g7_initial_gap')
+    frozen = attack(bag, 'frozen', [station], 5.0)
+    j = bag.station_ids.index(station)
+    sent = frozen.v_mag_pu[bag.tag_s >= 5.0 - 1e-9, j]
+    assert np.isfinite(sent).all() and np.all(sent == sent[0])
+    flags = first_flags(frozen)
+    assert set(flags) == {station} and flags[station][1] < float(bag.request_t_s[0])
+
+
 def test_an_attack_needs_a_known_station():
     with pytest.raises(AttackError):
         attack(_bag('kundur_bus9_unstable'), 'ramp', ['PMU_999'], 1.0)
