@@ -272,10 +272,15 @@ def test_a_station_joining_a_running_stream_is_suspect_until_clean_s_of_clean_da
     assert not suspect[tags >= 1.2 + 1.0 + 1e-6, col].any()
 
 
-@pytest.mark.xfail(strict=True, reason="open (issue 29): a ramp on the faulted bus's own station from the fault on "
-                   'passes through frames below 0.1 pu, which carry no usable angle (C37.118.1 sets no accuracy '
-                   'there) and which no test judges, and the request comes at the clearing: nothing is flagged, and '
-                   "Nordic 44's cut grows from 4 branches to 7 (docs/attacks.md, ramp_back)")
+@pytest.mark.xfail(strict=True, reason="open (issue 29): the request comes at the clearing of a bolted fault on the "
+                   "station's own bus, whose every frame after the fault is below 0.01 pu: its voltage carries no "
+                   "angle, and its current is the only evidence of its machine, which no other station sees while "
+                   'its bus is shorted. -2 rad/s over the 0.3 s fault reads as the machine accelerating with 61 % of '
+                   'its pre-fault accelerating power (GB bus 73: 77 % over 0.2 s), a turbine whose power fell that '
+                   "much within the fault: the snapshot bounds no turbine's rate, and the filter's torque walk takes "
+                   "it. Nordic 44's cut grows from 4 branches to 7 (docs/attacks.md, ramp_back). Refusing whenever "
+                   "such a station's data decide would refuse clean bags too: GB bus 73's and PJM 5-bus's clean "
+                   'decisions change when that station is left unobserved')
 def test_a_ramp_through_the_fault_on_the_faulted_bus_station_cannot_steer():
     from controlled_islanding.evaluation.attack_sweep import attack_start_s, run_pipeline
     from controlled_islanding.evaluation.cases import coherency_node_parameters
