@@ -78,6 +78,21 @@ def test_the_two_station_ramp_flags_both(name):
     assert all(at < float(bag.request_t_s[0]) for _, at in flags.values())
 
 
+@pytest.mark.parametrize('kind', ['ramp', 'ramp_back'])
+def test_a_ramp_on_the_faulted_bus_station_is_flagged_in_the_few_frames_between_its_clearing_and_the_request(kind):
+    """A spoofed speed on the few frames a cleared fault leaves before the request is flagged.
+
+    EI 33: bus 101048's voltage is below the floor from 1.033 to 1.133 s and the request comes at 1.3 s, 5 frames
+    after it recovers: a full window (15 frames) never forms before the request; the frames at hand do.
+    """
+    bag = _bag('ei33_bus101048_pair_unstable')
+    request_s = float(bag.request_t_s[0])
+    flags = first_flags(attack(bag, kind, ['PMU_101048'], 1.0))
+    assert set(flags) == {'PMU_101048'}
+    why, at_s = flags['PMU_101048']
+    assert why == 'frequency_mismatch' and 1.15 < at_s <= request_s + 1e-9
+
+
 def test_a_suspect_station_returns_only_after_clean_s_of_clean_data():
     bag = _bag('ieee14_g1_unstable')
     # A step on both angles, before the fault, leaves the frequency window after window_s: from then on the data
@@ -104,6 +119,22 @@ def test_a_network_at_rest_is_not_frozen():
     for k in range(30):
         assert det.judge(k / 30, ['A', 'B'], [1.0, 1.0], [0.1, 0.2], [0.5, 0.5], [0.0, 0.1], [60.0, 60.0],
                          [0.0, 0.0]) == {}
+
+
+@pytest.mark.parametrize('station', ['PMU_39', 'PMU_35'])
+def test_a_station_frozen_from_its_first_frame_after_an_initial_gap_sends_values_and_is_flagged(station):
+    """No frame before the fault: frozen at the empty frame before it, the attack was a silent station, not frozen.
+
+    The sweep counted it "not flagged before the request" (docs/attacks.md, ieee39_g6g7_initial_gap); held at the
+    station's first frame it repeats, and is flagged.
+    """
+    bag = _bag('ieee39_g6g7_initial_gap')
+    frozen = attack(bag, 'frozen', [station], 5.0)
+    j = bag.station_ids.index(station)
+    sent = frozen.v_mag_pu[bag.tag_s >= 5.0 - 1e-9, j]
+    assert np.isfinite(sent).all() and np.all(sent == sent[0])
+    flags = first_flags(frozen)
+    assert set(flags) == {station} and flags[station][1] < float(bag.request_t_s[0])
 
 
 def test_an_attack_needs_a_known_station():
@@ -241,10 +272,15 @@ def test_a_station_joining_a_running_stream_is_suspect_until_clean_s_of_clean_da
     assert not suspect[tags >= 1.2 + 1.0 + 1e-6, col].any()
 
 
-@pytest.mark.xfail(strict=True, reason="open (issue 29): a ramp on the faulted bus's own station from the fault on "
-                   'passes through frames below 0.1 pu, which carry no usable angle (C37.118.1 sets no accuracy '
-                   'there) and which no test judges, and the request comes at the clearing: nothing is flagged, and '
-                   "Nordic 44's cut grows from 4 branches to 7 (docs/attacks.md, ramp_back)")
+@pytest.mark.xfail(strict=True, reason="open (issue 29): the request comes at the clearing of a bolted fault on the "
+                   "station's own bus, whose every frame after the fault is below 0.01 pu: its voltage carries no "
+                   "angle, and its current is the only evidence of its machine, which no other station sees while "
+                   'its bus is shorted. -2 rad/s over the 0.3 s fault reads as the machine accelerating with 61 % of '
+                   'its pre-fault accelerating power (GB bus 73: 77 % over 0.2 s), a turbine whose power fell that '
+                   "much within the fault: the snapshot bounds no turbine's rate, and the filter's torque walk takes "
+                   "it. Nordic 44's cut grows from 4 branches to 7 (docs/attacks.md, ramp_back). Refusing whenever "
+                   "such a station's data decide would refuse clean bags too: GB bus 73's and PJM 5-bus's clean "
+                   'decisions change when that station is left unobserved')
 def test_a_ramp_through_the_fault_on_the_faulted_bus_station_cannot_steer():
     from controlled_islanding.evaluation.attack_sweep import attack_start_s, run_pipeline
     from controlled_islanding.evaluation.cases import coherency_node_parameters

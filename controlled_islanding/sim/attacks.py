@@ -6,7 +6,9 @@ leave it. Rows are time tags (BagData's uniform grid), columns channels.
 
 - ``ramp``: +2 rad/s on both angles (a spoofed speed of 0.32 Hz; the frequency channel left honest).
 - ``replay``: each frame replaced by the station's frame of 1 s earlier, under its fresh time tag.
-- ``frozen``: every value held at the last frame before `start_s`.
+- ``frozen``: every value held at the station's last frame with data before `start_s` (where it has none, as after
+  an initial gap, at its first frame from `start_s` on: a station frozen from its first frame; frozen at an empty
+  frame it would be a silent station, not a frozen one).
 - ``current``: current magnitude x1.5 (a CT ratio error).
 - ``step``: +20 degrees on both angles (a GPS time shift of about 0.9 ms at 60 Hz).
 - ``ramp2``: the ramp on two stations at once (the coordinated case; give two stations).
@@ -69,14 +71,21 @@ def attack(channels, name: str, stations: Sequence[str], start_s: float):
         if name == 'replay':
             period_s = float(np.median(np.diff(tags))) if len(tags) > 1 else 0.0
             source = rows - int(round(REPLAY_LAG_S / period_s)) if period_s > 0 else rows
+            if len(rows) and source.min() < 0:
+                raise AttackError(f'replay: no frame {REPLAY_LAG_S:g} s before {start_s:.3f} s to take')
+            for f in _FIELDS:
+                # Read from the unaltered channels: a replay of replayed frames would repeat the attack's own output.
+                out[f][idx] = np.asarray(getattr(channels, f))[np.ix_(source, cols)]
         else:
-            source = np.full(len(rows), rows[0] - 1 if len(rows) else -1)
-        if len(rows) and source.min() < 0:
-            raise AttackError(f'{name}: no frame {REPLAY_LAG_S if name == "replay" else 0:g} s before '
-                              f'{start_s:.3f} s to take')
-        for f in _FIELDS:
-            # Read from the unaltered channels: a replay of replayed frames would repeat the attack's own output.
-            out[f][idx] = np.asarray(getattr(channels, f))[np.ix_(source, cols)]
+            v = np.asarray(channels.v_mag_pu, dtype=float)
+            for c in cols:
+                has = np.flatnonzero(np.isfinite(v[:, c]))
+                before, after = has[has < (rows[0] if len(rows) else len(tags))], has[np.isin(has, rows)]
+                if not before.size and not after.size:
+                    raise AttackError(f'frozen: station {channels.station_ids[c]!r} has no frame to hold')
+                held = before[-1] if before.size else after[0]
+                for f in _FIELDS:
+                    out[f][rows, c] = np.asarray(getattr(channels, f))[held, c]
     return dataclasses.replace(channels, **out)
 
 
