@@ -349,7 +349,14 @@ class CoherencyNode(Node):
     def _compute(self, end_s: float, request_id: str = '') -> None:
         hi = bisect.bisect_right(self.t_s, end_s)
         lo = bisect.bisect_left(self.t_s, end_s - self.window_s)
-        if hi - lo < self.min_samples:
+        # The DTW rule needs min_samples to see a shape; the predicted groups of an alarm standing at end_s do
+        # not (the predictor judged the swing since its switching). A request raised less than min_samples
+        # frames after the data began (the PMUs' first 5 s missing, the first frame at the fault: the monitor's
+        # request at 5.38 s found no groups and the grid was lost) is answered with them: a machine is then
+        # observed if every sample of the short window has its angle.
+        alarm = self.watch.at(end_s) if self.watch is not None and self.watch.frames_ else None
+        short = hi - lo < self.min_samples
+        if short and (alarm is None or hi - lo < 1):
             self.diag.counts['skipped_short_window'] += 1
             return
         t0 = time.perf_counter()
@@ -362,7 +369,7 @@ class CoherencyNode(Node):
         suspect: dict[int, str] = {}
         for marks in self.suspect[lo:hi]:
             suspect.update(marks)
-        seen = np.flatnonzero(np.isfinite(block).sum(axis=0) >= self.min_samples)
+        seen = np.flatnonzero(np.isfinite(block).sum(axis=0) >= min(self.min_samples, hi - lo))
         seen = np.array([j for j in seen if j not in suspect], dtype=int)
         observed = set(seen.tolist())
         unobserved = [name for j, name in enumerate(self.names) if j not in observed]
@@ -373,6 +380,9 @@ class CoherencyNode(Node):
         try:
             if len(seen) == 1:
                 labels, k, distance = [0], 1, [0.0]
+            elif short:
+                labels = self._final(end_s, seen, np.zeros(len(seen), dtype=int))  # the alarm's groups
+                k, distance = max(labels) + 1, []
             else:
                 model = DTWCoherency(max_groups=self.max_groups, window=self.band, k_rule=self.k_rule,
                                      decimate=decimate, all_pairs=self.all_pairs).fit(list(block[:, seen].T))
