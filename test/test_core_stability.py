@@ -169,3 +169,9 @@ def test_the_pipeline_on_ieee39_bags_alarms_before_the_slip_and_stays_quiet_on_a
     lines = report([unstable, stable], names)
     assert '| sime | 1 / 1 | 1 / 1 | 1 / 1 | 1 / 1 |' in '\n'.join(lines)
     assert any(line.startswith('| ieee39_paper_case2 |') and line.count('quiet') == 2 for line in lines)
+
+
+def test_a_magnitude_a_hair_below_zero_is_no_switching_forever() -> None:
+    tve = 0.01
+    dead = np.array([[-1.21496e-11, 1.0], [-1.21703e-11, 1.0], [-1.21765e-11, 1.0]])  # as ANDES reported a dead bus
+    assert not switching(dead, tve)

@@ -167,7 +167,10 @@ def switching(v_pu: np.ndarray, noise_tve: float) -> bool:
         noise_tve: Total vector error bound of the PMUs.
 
     """
-    v = np.asarray(v_pu, dtype=float)
+    # A magnitude is |V| >= 0: a dead bus reported a hair below zero (-1e-11 pu, ANDES' PJM 5-bus with its faulted
+    # buses at zero) made the bar below zero and flagged every frame after it as a switching, so no swing ever
+    # started.
+    v = np.abs(np.asarray(v_pu, dtype=float))
     d2 = np.abs(v[2] - 2.0 * v[1] + v[0])
     with np.errstate(invalid='ignore'):
         return bool(np.any(d2 > 4.0 * noise_tve * np.fmax(np.fmax(v[0], v[1]), v[2])))
