@@ -175,3 +175,17 @@ def test_a_magnitude_a_hair_below_zero_is_no_switching_forever() -> None:
     tve = 0.01
     dead = np.array([[-1.21496e-11, 1.0], [-1.21703e-11, 1.0], [-1.21765e-11, 1.0]])  # as ANDES reported a dead bus
     assert not switching(dead, tve)
+
+
+def test_a_confident_verdict_on_one_frame_alone_raises_nothing_until_the_next_agrees() -> None:
+    frames = smib(1.1 * T_CR_S)
+    predictor = SIMEPredictor(machines())
+    confident = []
+    for t, d, w, pe, v in frames:
+        predictor.update(t, np.array(d), np.array(w), np.array(pe), np.array(v))
+        confident.append(predictor.confidence_ >= 1)
+        if predictor.separates_:
+            break
+    assert predictor.separates_
+    assert confident[-1] and confident[-2], 'raised on the second confident frame running'
+    assert predictor._confident is not None

@@ -107,3 +107,18 @@ def test_a_scenario_file_finds_only_its_own_closed_loop_where_a_bag_shares_its_n
     assert other.loop(loops) is None, 'another file of the same name took the bag closed loop'
     other.scenario_path = None
     assert other.loop(loops) is not None, 'with no file to go by, the name is all there is'
+
+
+def test_a_borderline_swing_that_returns_raises_no_request():
+    """A swing whose margin hovers near zero and returns gets no request (ANDES run, about 30 s).
+
+    IEEE 39, G6-G7 cleared after 200 ms (205 ms slips): the margin crossed the bar on one frame (5.58 s); a request
+    needs the verdict confirmed on the next frame as well (core/stability.py, step 9).
+    """
+    from controlled_islanding.evaluation.monitor_study import watch_run
+    from controlled_islanding.evaluation.predictors import run_from_scenario
+
+    path = Path(__file__).resolve().parents[1] / 'docs' / 'coherency_rules' / 'ieee39_g6g7_stable.yaml'
+    run = watch_run(run_from_scenario(path))
+    assert run.stable
+    assert run.requests == []
