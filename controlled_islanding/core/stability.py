@@ -58,6 +58,10 @@ Approach to Assessment and Control", 2000: emergency SIME):
 9. Confirmation: a separation is raised when the same critical split is confidently unstable on two frames
    running (the bar is one verdict's false-alarm rate, and every frame of a swing is a verdict), unless the
    predicted first slip is nearer than ``time_to_act_s``.
+10. Measured instability at the clearing: on the first frame after a switching that raised the voltages, the
+   critical OMIB past the crest of its power-angle curve, moving apart and accelerating (beyond Pe's error, with
+   the filter's torque and with the schedule alike) is past its unstable equilibrium already: it separates, with
+   no curve fitted (``_past_unstable_equilibrium``).
 
 Short-horizon forward simulation: core/swing_forecast.py, the same interface.
 """
@@ -187,6 +191,11 @@ class FrameHistory:
         swing_start_s: First frame of the present swing (after the latest switching), s; -inf before any
             switching, +inf while one is under way.
         recovered: Whether the latest switching raised the terminal voltages (a fault cleared).
+        just_cleared: Whether the latest frame is the first one flagged by a switching that raised the voltages:
+            the first frame of the network after a fault cleared (the jump lies between it and the frame before,
+            which was not flagged).
+        pa_schedule: The latest frame's accelerating power per machine with the scheduled mechanical power in
+            place of the filter's torque, pu (NaN where Pe was not measured).
 
     """
 
@@ -204,6 +213,8 @@ class FrameHistory:
         self.volts: deque[np.ndarray] = deque(maxlen=3)
         self.swing_start_s = -math.inf
         self.recovered = False
+        self.just_cleared = False
+        self.pa_schedule = np.full(n, np.nan)
         self._flagged = False  # whether the previous frame was flagged by the switching test
         self._after_jump_s = -math.inf
         self.last_t = -math.inf
@@ -233,6 +244,7 @@ class FrameHistory:
         pm = np.where(np.isfinite(pm), pm, m.pm_pu)
         # Unmeasured Pe (a lost or suspect PMU): NaN, left out of its group's acceleration (SIMEPredictor._omib).
         pa = np.where(measured, pm - pe - m.d_pu * (omega - 1.0), np.nan)
+        self.pa_schedule = np.where(measured, m.pm_pu - pe - m.d_pu * (omega - 1.0), np.nan)
         if not np.isfinite(self.rest_rad).all():
             self.rest_rad = delta.copy()
         self.volts.append(np.where(measured, volts, np.nan))
@@ -248,6 +260,7 @@ class FrameHistory:
                     self.recovered = bool(np.nanmean(self.volts[2] - self.volts[1]) > 0)
         elif self._flagged:
             self.swing_start_s = self._after_jump_s
+        self.just_cleared = flagged and not self._flagged and self.recovered
         self._flagged = flagged
         self.frames.append((t, delta, omega, pa))
         while self.frames and self.frames[0][0] < t - self.history_s:
@@ -356,6 +369,11 @@ def _margin(coef: np.ndarray, s: float, ke: float, behind: float) -> tuple[float
     return -(ke + float(np.polyval(np.polyint(f), y))), y
 
 
+def _centre(x: np.ndarray, members: np.ndarray, m: np.ndarray) -> float:
+    """Return the inertia-weighted mean of x over members."""
+    return float(x[members] @ m[members] / m[members].sum())
+
+
 class SIMEPredictor:
     """Emergency SIME: the critical OMIB's equal-area margin from the measured post-disturbance swing.
 
@@ -436,6 +454,8 @@ class SIMEPredictor:
         self.swing_start_s_ = float(t[0]) if len(t) else math.nan
         self.separates_, self.groups_, self.first_slip_s_ = False, np.zeros(n, dtype=int), math.nan
         self.waiting_ = False
+        if n >= 2 and self._history.just_cleared:
+            return self._past_unstable_equilibrium()
         if len(t) < 4 or n < 2:
             self.confidence_, self.margin_ = math.nan, math.nan
             return self
@@ -463,6 +483,61 @@ class SIMEPredictor:
         for k, members in enumerate(sorted(groups, key=lambda g: int(np.min(g)))):
             self.groups_[members] = k
         self.separates_, self.first_slip_s_ = True, slip_s
+        return self
+
+    def _past_unstable_equilibrium(self) -> SIMEPredictor:
+        """Judge the first frame after a fault cleared: is the critical OMIB past its unstable equilibrium already.
+
+        SIME's measured instability on one frame (step 10). A machine that leaves a long fault far ahead can slip
+        a pole within a few frames of the clearing (GB network, bus 73: 0.1 s, three frames at 30 frames/s), before
+        the four samples a curve needs. On a power-angle curve Pe = Pc + Pmax sin(delta), the post-fault unstable
+        equilibrium delta_u lies past the crest (cos delta_u < 0), and past the crest Pe only falls as delta grows:
+        an OMIB that is past the crest, moving apart and accelerating in its direction of motion is past delta_u,
+        and nothing decelerates it before the slip. Each condition is measured: the angle between the groups'
+        internal voltages (the filter's rotor angles), their speeds, and the accelerating power, which must exceed
+        z_alarm times Pe's measurement error both with the filter's torque and with the schedule (a fault leaves
+        the torque unobserved while the machine gives no electrical power; the schedule ignores the governors).
+        Only the critical split is named: its sides' own splits need a curve. Judged once per clearing, so step
+        9's confirmation does not apply; a switching that did not raise the voltages (a fault still on, seen or
+        not) is never judged here, since the monitor cannot know when protection will clear it.
+        """
+        h = self._history
+        _, delta, omega, pa = h.frames[-1]
+        n = len(self.machines.names)
+        m = self.machines.m_s
+        dev = delta - h.rest_rad
+        order = np.argsort(dev, kind='stable')
+        j = int(np.argmax(np.diff(dev[order]))) + 1
+        lead, lag = np.sort(order[j:]), np.sort(order[:j])
+        self.critical_ = np.zeros(n, dtype=bool)
+        self.critical_[lead] = True
+        self.confidence_, self.margin_ = math.nan, math.nan
+        m_c, m_n = m[lead].sum(), m[lag].sum()
+        mm = m_c * m_n / (m_c + m_n)
+        d = _centre(delta, lead, m) - _centre(delta, lag, m)
+        w = _centre(omega, lead, m) - _centre(omega, lag, m)
+        s = 1.0 if w >= 0 else -1.0
+        from_rest = _centre(dev, lead, m) - _centre(dev, lag, m)
+        sig = self._pe_sigma
+        floor = mm * math.sqrt(float((sig[lead] ** 2).sum()) / m_c ** 2 + float((sig[lag] ** 2).sum()) / m_n ** 2)
+        pushes = []
+        for accel in (pa, h.pa_schedule):
+            known = np.isfinite(accel)
+            if not (known[lead].any() and known[lag].any()):
+                return self  # a group with no measured power: its acceleration is not known
+            acc = [float(np.nansum(accel[side])) / float(m[side][known[side]].sum()) for side in (lead, lag)]
+            pushes.append(s * mm * (acc[0] - acc[1]))
+        push = min(pushes)  # pu, accelerating power along the motion, the less of the two
+        z = push / floor if floor > 0 else math.inf
+        self.confidence_ = z / self.z_alarm
+        if not (math.cos(d) < 0 and s * from_rest > 0 and w != 0 and z >= self.z_alarm):
+            return self
+        ke = 0.5 * mm * self.machines.omega_base * w ** 2
+        self.margin_ = -math.inf  # no decelerating area ahead
+        slip_in = self._slip_in(np.array([0.0, 0.0, s * push]), s, ke, from_rest, mm)
+        self.groups_[lag if lag.min() > lead.min() else lead] = 1
+        self.separates_, self.first_slip_s_ = True, h.last_t + slip_in
+        self.swing_start_s_ = h.last_t
         return self
 
     def verdict(self, lead, lag) -> OmibVerdict:
