@@ -122,3 +122,21 @@ def test_a_borderline_swing_that_returns_raises_no_request():
     run = watch_run(run_from_scenario(path))
     assert run.stable
     assert run.requests == []
+
+
+def test_a_machine_carried_out_by_the_critical_one_is_not_named_with_it():
+    """IEEE 39 case 2, first fault cut long: G2 swings out with G3 and comes back; G3 alone slips (5.75 s).
+
+    The widest gap put G2 with G3 at 5.40 s; the request waits until G2's fate is known and names G3 alone, still
+    at least time_to_act_s before the slip (core/stability.py, step 8).
+    """
+    from controlled_islanding.core.stability import TIME_TO_ACT_S
+    from controlled_islanding.evaluation.monitor_study import watch_run
+    from controlled_islanding.evaluation.predictors import run_from_bag
+
+    bag = Path(__file__).resolve().parents[1] / 'bags' / 'ieee39_case2_g3_unstable'
+    if not bag.exists():
+        pytest.skip('bags/ieee39_case2_g3_unstable is not present')
+    run = watch_run(run_from_bag(bag))
+    assert run.requests and run.groups_right
+    assert run.lead_s >= TIME_TO_ACT_S

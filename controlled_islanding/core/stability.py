@@ -52,7 +52,9 @@ Approach to Assessment and Control", 2000: emergency SIME):
    group slipping as a whole is not split by its own common motion), recursively. While a side's own split
    leans to separating without confidence yet (0 < z < z_alarm) the alarm waits, unless the predicted first
    pole slip is nearer than ``time_to_act_s``: groups are named when they are known or when there is no time
-   left to wait.
+   left to wait. Likewise while part of the critical machines may only be carried along by the others: the
+   part further out separates from everything else with confidence, the nearer part not from the bulk
+   (``_carried``).
    The first pole slip is predicted by running the critical OMIB along its fitted curve until delta_C - delta_N
    has moved pi rad from rest.
 9. Confirmation: a separation is raised when the same critical split is confidently unstable on two frames
@@ -566,6 +568,10 @@ class SIMEPredictor:
         The critical split is refined inside each side while that side's own split is confidently unstable.
         """
         groups, undecided = [], False
+        m = self.machines.m_s
+        # The critical machines: the side of the critical split with the smaller inertia (the machines that swing
+        # out; the other side is the bulk of the grid they swing against).
+        critical = top[0] if m[top[0]].sum() <= m[top[1]].sum() else top[1]
         pending = [np.sort(top[0]), np.sort(top[1])]
         while pending:
             side = pending.pop()
@@ -577,8 +583,32 @@ class SIMEPredictor:
                 pending += [np.sort(lead), np.sort(lag)]
                 continue
             undecided |= 0.0 < verdict.z < self.z_alarm
+            if np.array_equal(side, np.sort(critical)):
+                undecided |= self._carried(side, lead, lag, delta, omega, pa, dev)
             groups.append(side)
         return groups, undecided
+
+    def _carried(self, side, lead, lag, delta, omega, pa, dev) -> bool:
+        """Whether part of the critical machines may only be carried along by the rest (step 8: the alarm waits).
+
+        The widest gap can put a machine that swings out with the critical group, and will come back, in that
+        group (IEEE 39 case 2, G3 cut long: G2 ran out with it, G3 alone slipped). The critical side's part
+        further from the other machines ('far') is judged against everything else; if that separates with
+        confidence while the nearer part is not confidently separating from the machines outside the side, where
+        the nearer part ends is not known yet: with the far part, or with the others. Asked of the critical side
+        only: asked of the bulk, the same question comes back as the nearer part against the critical machines
+        alone, an OMIB of machines that moved together, which has no verdict.
+        """
+        everyone = np.arange(len(self.machines.names))
+        rest = np.setdiff1d(everyone, side)
+        if not len(rest):
+            return False
+        m = self.machines.m_s
+        far, near = (lead, lag) if _centre(dev, side, m) > _centre(dev, rest, m) else (lag, lead)
+        alone = self._omib(np.sort(far), np.setdiff1d(everyone, far), delta, omega, pa, dev)
+        if not alone.z >= self.z_alarm:
+            return False
+        return not self._omib(np.sort(near), rest, delta, omega, pa, dev).z >= self.z_alarm
 
     def _omib(self, lead: np.ndarray, lag: np.ndarray, delta, omega, pa, dev) -> OmibVerdict:
         """Return the equal-area verdict of lead vs lag on the present swing (module docstring, steps 3 to 7)."""
