@@ -53,8 +53,8 @@ Approach to Assessment and Control", 2000: emergency SIME):
    leans to separating without confidence yet (0 < z < z_alarm) the alarm waits, unless the predicted first
    pole slip is nearer than ``time_to_act_s``: groups are named when they are known or when there is no time
    left to wait. Likewise while part of the critical machines may only be carried along by the others: the
-   part further out separates from everything else with confidence, the nearer part not from the bulk
-   (``_carried``).
+   part further out separates from everything else with confidence, the nearer part leans to coming back to
+   the bulk (``_carried``).
    The first pole slip is predicted by running the critical OMIB along its fitted curve until delta_C - delta_N
    has moved pi rad from rest.
 9. Confirmation: a separation is raised when the same critical split is confidently unstable on two frames
@@ -594,8 +594,11 @@ class SIMEPredictor:
         The widest gap can put a machine that swings out with the critical group, and will come back, in that
         group (IEEE 39 case 2, G3 cut long: G2 ran out with it, G3 alone slipped). The critical side's part
         further from the other machines ('far') is judged against everything else; if that separates with
-        confidence while the nearer part is not confidently separating from the machines outside the side, where
-        the nearer part ends is not known yet: with the far part, or with the others. Asked of the critical side
+        confidence while the nearer part, judged against the machines outside the side, leans to coming back
+        (its margin above zero, z < 0, without confidence yet: G2 went -1.4, -2.4, -0.2, -0.4), where the nearer
+        part ends is not known yet: with the far part, or with the others. A nearer part with no verdict, or one
+        in doubt (z = 0: the cubic sees no unstable equilibrium), does not hold the alarm: on IEEE 39 G6-G7 with
+        delayed frames, G6's own OMIB had none at times while it slipped with G7. Asked of the critical side
         only: asked of the bulk, the same question comes back as the nearer part against the critical machines
         alone, an OMIB of machines that moved together, which has no verdict.
         """
@@ -608,7 +611,7 @@ class SIMEPredictor:
         alone = self._omib(np.sort(far), np.setdiff1d(everyone, far), delta, omega, pa, dev)
         if not alone.z >= self.z_alarm:
             return False
-        return not self._omib(np.sort(near), rest, delta, omega, pa, dev).z >= self.z_alarm
+        return self._omib(np.sort(near), rest, delta, omega, pa, dev).z < 0
 
     def _omib(self, lead: np.ndarray, lag: np.ndarray, delta, omega, pa, dev) -> OmibVerdict:
         """Return the equal-area verdict of lead vs lag on the present swing (module docstring, steps 3 to 7)."""
