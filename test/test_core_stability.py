@@ -197,15 +197,12 @@ def test_a_magnitude_a_hair_below_zero_is_no_switching_forever() -> None:
     assert not switching(dead, tve)
 
 
-def test_a_confident_verdict_on_one_frame_alone_raises_nothing_until_the_next_agrees() -> None:
-    frames = smib(1.1 * T_CR_S)
-    predictor = SIMEPredictor(machines())
-    confident = []
-    for t, d, w, pe, v in frames:
-        predictor.update(t, np.array(d), np.array(w), np.array(pe), np.array(v))
-        confident.append(predictor.confidence_ >= 1)
-        if predictor.separates_:
-            break
-    assert predictor.separates_
-    assert confident[-1] and confident[-2], 'raised on the second confident frame running'
-    assert predictor._confident is not None
+def test_the_kth_verdict_of_a_swing_clears_the_bar_that_keeps_one_verdicts_false_alarm_rate() -> None:
+    from scipy.stats import norm
+
+    from controlled_islanding.core.stability import _bonferroni
+
+    assert _bonferroni(3.0, 1) == pytest.approx(3.0)
+    for k in (2, 16, 120):
+        assert k * norm.sf(_bonferroni(3.0, k)) == pytest.approx(norm.sf(3.0))
+    assert _bonferroni(3.0, 16) > 3.03 * 1.01, 'the 16th verdict at 1.01 of the bar (IEEE 39 G6-G7 200 ms) is no alarm'
