@@ -169,3 +169,40 @@ def test_the_pipeline_on_ieee39_bags_alarms_before_the_slip_and_stays_quiet_on_a
     lines = report([unstable, stable], names)
     assert '| sime | 1 / 1 | 1 / 1 | 1 / 1 | 1 / 1 |' in '\n'.join(lines)
     assert any(line.startswith('| ieee39_paper_case2 |') and line.count('quiet') == 2 for line in lines)
+
+
+def test_a_machine_past_its_unstable_equilibrium_at_the_clearing_alarms_on_the_first_frame_after_it() -> None:
+    # Cleared at 1.6 critical clearing times, 30 frames/s: the machine leaves the fault past delta_u and slips
+    # three frames later, before the four samples a curve needs (GB network, bus 73).
+    frames = smib(1.6 * T_CR_S, rate_fps=30)
+    slip = first_slip_s(frames)
+    alarm = run(SIMEPredictor(machines()), frames)
+    assert alarm is not None
+    t, groups, predicted = alarm
+    assert t == min(f[0] for f in frames if f[0] > FAULT_S + 1.6 * T_CR_S), 'the first frame after the clearing'
+    assert t < slip and groups.tolist() == [0, 1]
+    assert t < predicted <= slip + 1 / 30
+    # Cleared past the crest but before delta_u: it decelerates after the clearing, so no alarm on that frame.
+    frames = smib(1.4 * T_CR_S, rate_fps=30)
+    first = min(f[0] for f in frames if f[0] > FAULT_S + 1.4 * T_CR_S)
+    alarm = run(SIMEPredictor(machines()), frames)
+    assert alarm is None or alarm[0] > first
+    # A fault that is never cleared: the voltages never rise, nothing is judged on one frame.
+    assert run(SIMEPredictor(machines()), smib(10.0, rate_fps=30)) is None
+
+
+def test_a_magnitude_a_hair_below_zero_is_no_switching_forever() -> None:
+    tve = 0.01
+    dead = np.array([[-1.21496e-11, 1.0], [-1.21703e-11, 1.0], [-1.21765e-11, 1.0]])  # as ANDES reported a dead bus
+    assert not switching(dead, tve)
+
+
+def test_the_kth_verdict_of_a_swing_clears_the_bar_that_keeps_one_verdicts_false_alarm_rate() -> None:
+    from scipy.stats import norm
+
+    from controlled_islanding.core.stability import _bonferroni
+
+    assert _bonferroni(3.0, 1) == pytest.approx(3.0)
+    for k in (2, 16, 120):
+        assert k * norm.sf(_bonferroni(3.0, k)) == pytest.approx(norm.sf(3.0))
+    assert _bonferroni(3.0, 16) > 3.03 * 1.01, 'the 16th verdict at 1.01 of the bar (IEEE 39 G6-G7 200 ms) is no alarm'

@@ -107,3 +107,36 @@ def test_a_scenario_file_finds_only_its_own_closed_loop_where_a_bag_shares_its_n
     assert other.loop(loops) is None, 'another file of the same name took the bag closed loop'
     other.scenario_path = None
     assert other.loop(loops) is not None, 'with no file to go by, the name is all there is'
+
+
+def test_a_borderline_swing_that_returns_raises_no_request():
+    """A swing whose margin hovers near zero and returns gets no request (ANDES run, about 30 s).
+
+    IEEE 39, G6-G7 cleared after 200 ms (205 ms slips): the margin crossed the bar on one frame (5.58 s), its 16th
+    verdict of the swing; the k-th verdict's bar keeps the swing's false-alarm rate (core/stability.py, step 9).
+    """
+    from controlled_islanding.evaluation.monitor_study import watch_run
+    from controlled_islanding.evaluation.predictors import run_from_scenario
+
+    path = Path(__file__).resolve().parents[1] / 'docs' / 'coherency_rules' / 'ieee39_g6g7_stable.yaml'
+    run = watch_run(run_from_scenario(path))
+    assert run.stable
+    assert run.requests == []
+
+
+def test_a_machine_carried_out_by_the_critical_one_is_not_named_with_it():
+    """IEEE 39 case 2, first fault cut long: G2 swings out with G3 and comes back; G3 alone slips (5.75 s).
+
+    The widest gap put G2 with G3 at 5.40 s; the request waits until G2's fate is known and names G3 alone, still
+    at least time_to_act_s before the slip (core/stability.py, step 8).
+    """
+    from controlled_islanding.core.stability import TIME_TO_ACT_S
+    from controlled_islanding.evaluation.monitor_study import watch_run
+    from controlled_islanding.evaluation.predictors import run_from_bag
+
+    bag = Path(__file__).resolve().parents[1] / 'bags' / 'ieee39_case2_g3_unstable'
+    if not bag.exists():
+        pytest.skip('bags/ieee39_case2_g3_unstable is not present')
+    run = watch_run(run_from_bag(bag))
+    assert run.requests and run.groups_right
+    assert run.lead_s >= TIME_TO_ACT_S

@@ -52,9 +52,18 @@ Approach to Assessment and Control", 2000: emergency SIME):
    group slipping as a whole is not split by its own common motion), recursively. While a side's own split
    leans to separating without confidence yet (0 < z < z_alarm) the alarm waits, unless the predicted first
    pole slip is nearer than ``time_to_act_s``: groups are named when they are known or when there is no time
-   left to wait.
+   left to wait. Likewise while part of the critical machines may only be carried along by the others: the
+   part further out separates from everything else with confidence, the nearer part leans to coming back to
+   the bulk (``_carried``).
    The first pole slip is predicted by running the critical OMIB along its fitted curve until delta_C - delta_N
    has moved pi rad from rest.
+9. Many verdicts, one false-alarm rate: every frame of a swing is a verdict, so the k-th verdict of the swing
+   must clear the bar whose false-alarm rate, k times over, is one verdict's at ``z_alarm`` (Bonferroni:
+   sf(z_k) = sf(z_alarm) / k), unless the predicted first slip is nearer than ``time_to_act_s``.
+10. Measured instability at the clearing: on the first frame after a switching that raised the voltages, the
+   critical OMIB past the crest of its power-angle curve, moving apart and accelerating (beyond Pe's error, with
+   the filter's torque and with the schedule alike) is past its unstable equilibrium already: it separates, with
+   no curve fitted (``_past_unstable_equilibrium``).
 
 Short-horizon forward simulation: core/swing_forecast.py, the same interface.
 """
@@ -167,7 +176,10 @@ def switching(v_pu: np.ndarray, noise_tve: float) -> bool:
         noise_tve: Total vector error bound of the PMUs.
 
     """
-    v = np.asarray(v_pu, dtype=float)
+    # A magnitude is |V| >= 0: a dead bus reported a hair below zero (-1e-11 pu, ANDES' PJM 5-bus with its faulted
+    # buses at zero) made the bar below zero and flagged every frame after it as a switching, so no swing ever
+    # started.
+    v = np.abs(np.asarray(v_pu, dtype=float))
     d2 = np.abs(v[2] - 2.0 * v[1] + v[0])
     with np.errstate(invalid='ignore'):
         return bool(np.any(d2 > 4.0 * noise_tve * np.fmax(np.fmax(v[0], v[1]), v[2])))
@@ -181,6 +193,11 @@ class FrameHistory:
         swing_start_s: First frame of the present swing (after the latest switching), s; -inf before any
             switching, +inf while one is under way.
         recovered: Whether the latest switching raised the terminal voltages (a fault cleared).
+        just_cleared: Whether the latest frame is the first one flagged by a switching that raised the voltages:
+            the first frame of the network after a fault cleared (the jump lies between it and the frame before,
+            which was not flagged).
+        pa_schedule: The latest frame's accelerating power per machine with the scheduled mechanical power in
+            place of the filter's torque, pu (NaN where Pe was not measured).
 
     """
 
@@ -198,6 +215,8 @@ class FrameHistory:
         self.volts: deque[np.ndarray] = deque(maxlen=3)
         self.swing_start_s = -math.inf
         self.recovered = False
+        self.just_cleared = False
+        self.pa_schedule = np.full(n, np.nan)
         self._flagged = False  # whether the previous frame was flagged by the switching test
         self._after_jump_s = -math.inf
         self.last_t = -math.inf
@@ -227,6 +246,7 @@ class FrameHistory:
         pm = np.where(np.isfinite(pm), pm, m.pm_pu)
         # Unmeasured Pe (a lost or suspect PMU): NaN, left out of its group's acceleration (SIMEPredictor._omib).
         pa = np.where(measured, pm - pe - m.d_pu * (omega - 1.0), np.nan)
+        self.pa_schedule = np.where(measured, m.pm_pu - pe - m.d_pu * (omega - 1.0), np.nan)
         if not np.isfinite(self.rest_rad).all():
             self.rest_rad = delta.copy()
         self.volts.append(np.where(measured, volts, np.nan))
@@ -242,6 +262,7 @@ class FrameHistory:
                     self.recovered = bool(np.nanmean(self.volts[2] - self.volts[1]) > 0)
         elif self._flagged:
             self.swing_start_s = self._after_jump_s
+        self.just_cleared = flagged and not self._flagged and self.recovered
         self._flagged = flagged
         self.frames.append((t, delta, omega, pa))
         while self.frames and self.frames[0][0] < t - self.history_s:
@@ -284,6 +305,14 @@ def _chi2_bound(z: float, dof: int) -> float:
     from scipy.stats import chi2, norm
 
     return float(chi2.isf(norm.sf(z), dof))
+
+
+@functools.lru_cache(maxsize=4096)
+def _bonferroni(z: float, k: int) -> float:
+    """Return the normal z whose one-sided false-alarm rate, k times over, is that of z once (k >= 1)."""
+    from scipy.stats import norm
+
+    return float(norm.isf(norm.sf(z) / max(int(k), 1)))
 
 
 def _poly_fit(x: np.ndarray, y: np.ndarray, degree: int, sigma: float, z: float
@@ -350,6 +379,11 @@ def _margin(coef: np.ndarray, s: float, ke: float, behind: float) -> tuple[float
     return -(ke + float(np.polyval(np.polyint(f), y))), y
 
 
+def _centre(x: np.ndarray, members: np.ndarray, m: np.ndarray) -> float:
+    """Return the inertia-weighted mean of x over members."""
+    return float(x[members] @ m[members] / m[members].sum())
+
+
 class SIMEPredictor:
     """Emergency SIME: the critical OMIB's equal-area margin from the measured post-disturbance swing.
 
@@ -395,6 +429,7 @@ class SIMEPredictor:
         self.separates_, self.groups_, self.first_slip_s_ = False, np.zeros(n, dtype=int), math.nan
         self.confidence_, self.margin_, self.critical_ = math.nan, math.nan, np.zeros(n, dtype=bool)
         self.waiting_, self.swing_start_s_ = False, math.nan
+        self._verdicts = (math.nan, 0)  # (swing start, s; verdicts made in that swing)
         return self
 
     def fit(self, t_s, delta_rad, omega_pu, pe_pu, v_pu=None, valid=None, pm_pu=None) -> SIMEPredictor:
@@ -429,6 +464,8 @@ class SIMEPredictor:
         self.swing_start_s_ = float(t[0]) if len(t) else math.nan
         self.separates_, self.groups_, self.first_slip_s_ = False, np.zeros(n, dtype=int), math.nan
         self.waiting_ = False
+        if n >= 2 and self._history.just_cleared:
+            return self._past_unstable_equilibrium()
         if len(t) < 4 or n < 2:
             self.confidence_, self.margin_ = math.nan, math.nan
             return self
@@ -438,16 +475,81 @@ class SIMEPredictor:
         self.critical_ = np.zeros(n, dtype=bool)
         self.critical_[lead] = True
         self.margin_, self.confidence_ = verdict.margin, verdict.z / self.z_alarm
+        # Step 9: the 3-sigma bar is the false-alarm rate of one verdict, but a swing is judged on every frame (30
+        # to 120 verdicts on one curve), and a margin hovering near zero crosses it on one frame now and then:
+        # IEEE 39 G6-G7 cleared after 200 ms, a swing that returns, went 0.66, 1.01, 0.72 of the bar on three
+        # frames, its 16th to 18th verdicts. The k-th verdict's bar keeps the swing's false-alarm rate at one
+        # verdict's (Bonferroni; the verdicts share samples, so it is a bound): z 3.0 for the first, 3.9 for the
+        # 16th. Waived when the predicted slip leaves no time to wait.
+        swing_s, count = self._verdicts
+        count = (count if swing_s == float(t[0]) else 0) + (not math.isnan(verdict.z))
+        self._verdicts = (float(t[0]), count)
         if not verdict.z >= self.z_alarm:
             return self
         groups, undecided = self._final_groups(top, delta, omega, pa, dev)
         slip_s = float(t[-1]) + verdict.slip_in_s
-        if undecided and slip_s - float(t[-1]) > self.time_to_act_s:
+        if (undecided or not verdict.z >= _bonferroni(self.z_alarm, count)) and slip_s - float(t[-1]) > \
+                self.time_to_act_s:
             self.waiting_ = True
             return self
         for k, members in enumerate(sorted(groups, key=lambda g: int(np.min(g)))):
             self.groups_[members] = k
         self.separates_, self.first_slip_s_ = True, slip_s
+        return self
+
+    def _past_unstable_equilibrium(self) -> SIMEPredictor:
+        """Judge the first frame after a fault cleared: is the critical OMIB past its unstable equilibrium already.
+
+        SIME's measured instability on one frame (step 10). A machine that leaves a long fault far ahead can slip
+        a pole within a few frames of the clearing (GB network, bus 73: 0.1 s, three frames at 30 frames/s), before
+        the four samples a curve needs. On a power-angle curve Pe = Pc + Pmax sin(delta), the post-fault unstable
+        equilibrium delta_u lies past the crest (cos delta_u < 0), and past the crest Pe only falls as delta grows:
+        an OMIB that is past the crest, moving apart and accelerating in its direction of motion is past delta_u,
+        and nothing decelerates it before the slip. Each condition is measured: the angle between the groups'
+        internal voltages (the filter's rotor angles), their speeds, and the accelerating power, which must exceed
+        z_alarm times Pe's measurement error both with the filter's torque and with the schedule (a fault leaves
+        the torque unobserved while the machine gives no electrical power; the schedule ignores the governors).
+        Only the critical split is named: its sides' own splits need a curve. Judged once per clearing, so step
+        9's confirmation does not apply; a switching that did not raise the voltages (a fault still on, seen or
+        not) is never judged here, since the monitor cannot know when protection will clear it.
+        """
+        h = self._history
+        _, delta, omega, pa = h.frames[-1]
+        n = len(self.machines.names)
+        m = self.machines.m_s
+        dev = delta - h.rest_rad
+        order = np.argsort(dev, kind='stable')
+        j = int(np.argmax(np.diff(dev[order]))) + 1
+        lead, lag = np.sort(order[j:]), np.sort(order[:j])
+        self.critical_ = np.zeros(n, dtype=bool)
+        self.critical_[lead] = True
+        self.confidence_, self.margin_ = math.nan, math.nan
+        m_c, m_n = m[lead].sum(), m[lag].sum()
+        mm = m_c * m_n / (m_c + m_n)
+        d = _centre(delta, lead, m) - _centre(delta, lag, m)
+        w = _centre(omega, lead, m) - _centre(omega, lag, m)
+        s = 1.0 if w >= 0 else -1.0
+        from_rest = _centre(dev, lead, m) - _centre(dev, lag, m)
+        sig = self._pe_sigma
+        floor = mm * math.sqrt(float((sig[lead] ** 2).sum()) / m_c ** 2 + float((sig[lag] ** 2).sum()) / m_n ** 2)
+        pushes = []
+        for accel in (pa, h.pa_schedule):
+            known = np.isfinite(accel)
+            if not (known[lead].any() and known[lag].any()):
+                return self  # a group with no measured power: its acceleration is not known
+            acc = [float(np.nansum(accel[side])) / float(m[side][known[side]].sum()) for side in (lead, lag)]
+            pushes.append(s * mm * (acc[0] - acc[1]))
+        push = min(pushes)  # pu, accelerating power along the motion, the less of the two
+        z = push / floor if floor > 0 else math.inf
+        self.confidence_ = z / self.z_alarm
+        if not (math.cos(d) < 0 and s * from_rest > 0 and w != 0 and z >= self.z_alarm):
+            return self
+        ke = 0.5 * mm * self.machines.omega_base * w ** 2
+        self.margin_ = -math.inf  # no decelerating area ahead
+        slip_in = self._slip_in(np.array([0.0, 0.0, s * push]), s, ke, from_rest, mm)
+        self.groups_[lag if lag.min() > lead.min() else lead] = 1
+        self.separates_, self.first_slip_s_ = True, h.last_t + slip_in
+        self.swing_start_s_ = h.last_t
         return self
 
     def verdict(self, lead, lag) -> OmibVerdict:
@@ -476,6 +578,10 @@ class SIMEPredictor:
         The critical split is refined inside each side while that side's own split is confidently unstable.
         """
         groups, undecided = [], False
+        m = self.machines.m_s
+        # The critical machines: the side of the critical split with the smaller inertia (the machines that swing
+        # out; the other side is the bulk of the grid they swing against).
+        critical = top[0] if m[top[0]].sum() <= m[top[1]].sum() else top[1]
         pending = [np.sort(top[0]), np.sort(top[1])]
         while pending:
             side = pending.pop()
@@ -487,8 +593,35 @@ class SIMEPredictor:
                 pending += [np.sort(lead), np.sort(lag)]
                 continue
             undecided |= 0.0 < verdict.z < self.z_alarm
+            if np.array_equal(side, np.sort(critical)):
+                undecided |= self._carried(side, lead, lag, delta, omega, pa, dev)
             groups.append(side)
         return groups, undecided
+
+    def _carried(self, side, lead, lag, delta, omega, pa, dev) -> bool:
+        """Whether part of the critical machines may only be carried along by the rest (step 8: the alarm waits).
+
+        The widest gap can put a machine that swings out with the critical group, and will come back, in that
+        group (IEEE 39 case 2, G3 cut long: G2 ran out with it, G3 alone slipped). The critical side's part
+        further from the other machines ('far') is judged against everything else; if that separates with
+        confidence while the nearer part, judged against the machines outside the side, leans to coming back
+        (its margin above zero, z < 0, without confidence yet: G2 went -1.4, -2.4, -0.2, -0.4), where the nearer
+        part ends is not known yet: with the far part, or with the others. A nearer part with no verdict, or one
+        in doubt (z = 0: the cubic sees no unstable equilibrium), does not hold the alarm: on IEEE 39 G6-G7 with
+        delayed frames, G6's own OMIB had none at times while it slipped with G7. Asked of the critical side
+        only: asked of the bulk, the same question comes back as the nearer part against the critical machines
+        alone, an OMIB of machines that moved together, which has no verdict.
+        """
+        everyone = np.arange(len(self.machines.names))
+        rest = np.setdiff1d(everyone, side)
+        if not len(rest):
+            return False
+        m = self.machines.m_s
+        far, near = (lead, lag) if _centre(dev, side, m) > _centre(dev, rest, m) else (lag, lead)
+        alone = self._omib(np.sort(far), np.setdiff1d(everyone, far), delta, omega, pa, dev)
+        if not alone.z >= self.z_alarm:
+            return False
+        return self._omib(np.sort(near), rest, delta, omega, pa, dev).z < 0
 
     def _omib(self, lead: np.ndarray, lag: np.ndarray, delta, omega, pa, dev) -> OmibVerdict:
         """Return the equal-area verdict of lead vs lag on the present swing (module docstring, steps 3 to 7)."""

@@ -488,7 +488,9 @@ Runs that separate where neither predictor alarms before the first pole slip:
 
 A slip within about 0.1 s of the clearing comes with the machines already past their unstable equilibrium when
 the fault clears: a prediction from the faulted network is no prediction, since the monitor cannot know when
-protection will clear, and only protection acting on the fault itself (out-of-step tripping) is in time there. A
+protection will clear. SIME judges the first frame after the clearing on its own (core/stability.py, step 10: past
+the crest, moving apart and accelerating is past the unstable equilibrium), which names the separation a frame
+or two before such a slip; faster, only protection acting on the fault itself (out-of-step tripping) is in time. A
 slip on a later swing, after the first has come back (a second swing, or an oscillation that grows), is beyond
 the forecast, which judges first swings, and SIME judges a later swing only once it decelerates. And where the
 clearing leaves the terminal voltages where the fault held them (the electrical centre of the separation at the

@@ -38,7 +38,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from controlled_islanding.core.coherency import DTWCoherency, decimation_factor
-from controlled_islanding.core.final_grouping import SwingWatch, final_groups, warm_up
+from controlled_islanding.core.final_grouping import STAMP_ROUNDING_S, SwingWatch, final_groups, warm_up
 from controlled_islanding.core.k_rules import DEFAULT_RULE, RULES
 from controlled_islanding.core.stability import MachineSet, StabilityError
 from controlled_islanding.ros.clock_gate import ClockGate
@@ -307,14 +307,23 @@ class CoherencyNode(Node):
         self.pending.add(msg)
 
     def _has_data_for(self, request: IslandingRequest) -> bool:
-        return bool(self.t_s) and self.t_s[-1] >= stamp_s(request.header.stamp) - self.tolerance_s
+        t = stamp_s(request.header.stamp)
+        if not (self.t_s and self.t_s[-1] >= t - self.tolerance_s):
+            return False
+        # The prediction standing at T is known once the watch has taken a frame at or after T: the monitor
+        # raises its request at a frame's own time tag, and the frame before (within sample_tolerance_s at 60
+        # frames/s) has no alarm yet. At most a frame period's wait, or request_wait_s if none comes.
+        return self.watch is None or self.watch.frames_ == 0 or self.watch.last_t_s >= t - STAMP_ROUNDING_S
 
     def _serve(self, request: IslandingRequest) -> None:
         t = stamp_s(request.header.stamp)
         if not self.t_s or self.t_s[0] > t:
             self.diag.reject('no_data', f'request {request.request_id}: no rotor angles before its stamp')
             return
-        if abs(self.computed_end_s - t) <= self.tolerance_s and not self._changed_before(t):
+        # The latched groups answer only when they end at the request or just after it: groups of the frame
+        # before it were computed before that frame's prediction (a monitor's request at 5.617 s was decided on the
+        # periodic groups of 5.600 s, made before the alarm, and nothing was split).
+        if -STAMP_ROUNDING_S <= self.computed_end_s - t <= self.tolerance_s and not self._changed_before(t):
             return  # the latched groups end at this request: nothing new to compute
         # Groups ending later than the request are no answer to it: partitioning takes only groups whose
         # samples end at the request, so that a grouping stamped ahead of it can never be the one used.
@@ -349,7 +358,14 @@ class CoherencyNode(Node):
     def _compute(self, end_s: float, request_id: str = '') -> None:
         hi = bisect.bisect_right(self.t_s, end_s)
         lo = bisect.bisect_left(self.t_s, end_s - self.window_s)
-        if hi - lo < self.min_samples:
+        # The DTW rule needs min_samples to see a shape; the predicted groups of an alarm standing at end_s do
+        # not (the predictor judged the swing since its switching). A request raised less than min_samples
+        # frames after the data began (the PMUs' first 5 s missing, the first frame at the fault: the monitor's
+        # request at 5.38 s found no groups and the grid was lost) is answered with them: a machine is then
+        # observed if every sample of the short window has its angle.
+        alarm = self.watch.at(end_s) if self.watch is not None and self.watch.frames_ else None
+        short = hi - lo < self.min_samples
+        if short and (alarm is None or hi - lo < 1):
             self.diag.counts['skipped_short_window'] += 1
             return
         t0 = time.perf_counter()
@@ -362,7 +378,7 @@ class CoherencyNode(Node):
         suspect: dict[int, str] = {}
         for marks in self.suspect[lo:hi]:
             suspect.update(marks)
-        seen = np.flatnonzero(np.isfinite(block).sum(axis=0) >= self.min_samples)
+        seen = np.flatnonzero(np.isfinite(block).sum(axis=0) >= min(self.min_samples, hi - lo))
         seen = np.array([j for j in seen if j not in suspect], dtype=int)
         observed = set(seen.tolist())
         unobserved = [name for j, name in enumerate(self.names) if j not in observed]
@@ -373,6 +389,9 @@ class CoherencyNode(Node):
         try:
             if len(seen) == 1:
                 labels, k, distance = [0], 1, [0.0]
+            elif short:
+                labels = self._final(end_s, seen, np.zeros(len(seen), dtype=int))  # the alarm's groups
+                k, distance = max(labels) + 1, []
             else:
                 model = DTWCoherency(max_groups=self.max_groups, window=self.band, k_rule=self.k_rule,
                                      decimate=decimate, all_pairs=self.all_pairs).fit(list(block[:, seen].T))
