@@ -38,7 +38,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from controlled_islanding.core.coherency import DTWCoherency, decimation_factor
-from controlled_islanding.core.final_grouping import STAMP_ROUNDING_S, SwingWatch, final_groups, warm_up
+from controlled_islanding.core.final_grouping import SwingWatch, final_groups, warm_up
 from controlled_islanding.core.k_rules import DEFAULT_RULE, RULES
 from controlled_islanding.core.stability import MachineSet, StabilityError
 from controlled_islanding.ros.clock_gate import ClockGate
@@ -307,23 +307,14 @@ class CoherencyNode(Node):
         self.pending.add(msg)
 
     def _has_data_for(self, request: IslandingRequest) -> bool:
-        t = stamp_s(request.header.stamp)
-        if not (self.t_s and self.t_s[-1] >= t - self.tolerance_s):
-            return False
-        # The prediction standing at T is known once the watch has taken a frame at or after T: the monitor
-        # raises its request at a frame's own time tag, and the frame before (within sample_tolerance_s at 60
-        # frames/s) has no alarm yet. At most a frame period's wait, or request_wait_s if none comes.
-        return self.watch is None or self.watch.frames_ == 0 or self.watch.last_t_s >= t - STAMP_ROUNDING_S
+        return bool(self.t_s) and self.t_s[-1] >= stamp_s(request.header.stamp) - self.tolerance_s
 
     def _serve(self, request: IslandingRequest) -> None:
         t = stamp_s(request.header.stamp)
         if not self.t_s or self.t_s[0] > t:
             self.diag.reject('no_data', f'request {request.request_id}: no rotor angles before its stamp')
             return
-        # The latched groups answer only when they end at the request or just after it: groups of the frame
-        # before it were computed before that frame's prediction (a monitor's request at 5.617 s was decided on the
-        # periodic groups of 5.600 s, made before the alarm, and nothing was split).
-        if -STAMP_ROUNDING_S <= self.computed_end_s - t <= self.tolerance_s and not self._changed_before(t):
+        if abs(self.computed_end_s - t) <= self.tolerance_s and not self._changed_before(t):
             return  # the latched groups end at this request: nothing new to compute
         # Groups ending later than the request are no answer to it: partitioning takes only groups whose
         # samples end at the request, so that a grouping stamped ahead of it can never be the one used.
