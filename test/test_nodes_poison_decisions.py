@@ -451,6 +451,30 @@ def test_a_periodic_grouping_a_frame_before_the_request_never_answers_it_before_
     g.healthy()
 
 
+def test_a_periodic_grouping_of_the_frame_before_held_before_the_request_never_answers_it(graph_under_test):
+    """At 60 frames/s the frame before is 16.7 ms, within groups_exact_s; its grouping is still no answer.
+
+    Found in `testbed --trigger monitor` on IEEE 39 G6-G7 (loss, silent PMU): coherency's periodic grouping of the
+    frame before the monitor's request, made before that request's own frame raised the alarm, was already held
+    when the request came, and decided it: no split.
+    """
+    g = graph_under_test
+    last = g.bag['groups'].generator_names[-1]
+    t = g.step()
+    g.publish(topics.COHERENT_GROUPS, g.groups(t - 1 / 60, alone=last))
+    g.taken('partitioning')
+    request = g.request(t)
+    g.publish(topics.ISLANDING_REQUEST, request)
+    g.probe.spin_for(0.2)
+    answer = g.groups(t)
+    answer.request_id = request.request_id
+    g.publish(topics.COHERENT_GROUPS, answer)
+    decision = g.decision_for(request)
+    g.assert_baseline(decision, g.breaker_record(decision), 'periodic groups 1/60 s before the request with '
+                                                            f'{last} alone, held before it')
+    g.healthy()
+
+
 def test_the_requests_own_grouping_a_frame_before_it_answers_it_before_the_wait_ends(graph_under_test):
     """Where the request's own frame is missing, coherency's answer ends a frame earlier and carries its id.
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import math
+import time
 import uuid
 from pathlib import Path
 
@@ -165,6 +166,51 @@ def test_a_request_soon_after_the_data_begins_is_answered_with_the_predicted_gro
     assert answer.request_id == request.request_id
     assert blocks(answer.generator_names, answer.group) == blocks(request.generator_names, request.group)
     assert not answer.unobserved_generator_names
+
+
+def test_coherency_answers_the_monitors_request_from_its_own_frame_not_the_one_before(kundur):
+    """A request raised at a frame's time tag is answered once coherency has that frame, with its prediction.
+
+    The frame before lies within sample_tolerance_s at 60 frames/s (here widened to the 30 frames/s bag's frame
+    period): its groups, periodic ones latched before the alarm, are no answer (IEEE 39 G6-G7 loss, silent PMU:
+    the monitor's request was decided on them, and nothing was split).
+    """
+    from rclpy.parameter import Parameter
+
+    from controlled_islanding.nodes.coherency import CoherencyNode
+    from controlled_islanding.nodes.stability_monitor import StabilityMonitorNode
+
+    snapshot, angles = kundur
+    monitor = StabilityMonitorNode()
+    requests = caught(monitor, 'pub')
+    monitor._take_snapshot(snapshot)
+    for sample in angles:
+        monitor._take_angles(sample)
+    monitor.destroy_node()
+    request = requests[0]
+    t = stamp_s(request.header.stamp)
+    coherency = CoherencyNode(parameter_overrides=[Parameter('sample_tolerance_s', value=0.05)])
+    groups = caught(coherency, 'pub')
+    coherency._take_snapshot(snapshot)
+    before = [a for a in angles if stamp_s(a.header.stamp) < t - 1e-6]
+    for sample in before:
+        coherency._take_angles(sample)
+    coherency.on_period()  # the periodic groups of the frame before, latched
+    assert groups and not groups[-1].request_id
+    coherency.arrived[request.request_id] = time.monotonic()
+    assert not coherency._has_data_for(request), 'the frame of the request is not in yet'
+    # No frame within a frame period of wall time (lockstep holds the next one for the answer): ready, as for a
+    # request stamped between frames (Kundur's scenario request at 1.5667 s once waited out partitioning).
+    coherency.arrived[request.request_id] = time.monotonic() - 0.2
+    assert coherency._has_data_for(request)
+    coherency.arrived[request.request_id] = time.monotonic()
+    coherency._take_angles(angles[len(before)])
+    assert coherency._has_data_for(request)
+    coherency._serve(request)
+    coherency.destroy_node()
+    answer = groups[-1]
+    assert answer.request_id == request.request_id
+    assert blocks(answer.generator_names, answer.group) == blocks(request.generator_names, request.group)
 
 
 def test_partitioning_refuses_an_altered_monitor_request_and_takes_an_unsigned_operator_one(kundur):

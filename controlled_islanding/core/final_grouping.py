@@ -141,6 +141,11 @@ class SwingWatch:
             self._states.popleft()
         return raised
 
+    @property
+    def last_t_s(self) -> float:
+        """Return the time tag of the latest frame taken, s (-inf before any)."""
+        return self._last_s
+
     def at(self, t_s: float) -> Alarm | None:
         """Return the alarm that stood after the newest frame at or before t_s (None: none, or not remembered).
 

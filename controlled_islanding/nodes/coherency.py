@@ -38,7 +38,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from controlled_islanding.core.coherency import DTWCoherency, decimation_factor
-from controlled_islanding.core.final_grouping import SwingWatch, final_groups, warm_up
+from controlled_islanding.core.final_grouping import STAMP_ROUNDING_S, SwingWatch, final_groups, warm_up
 from controlled_islanding.core.k_rules import DEFAULT_RULE, RULES
 from controlled_islanding.core.stability import MachineSet, StabilityError
 from controlled_islanding.ros.clock_gate import ClockGate
@@ -50,6 +50,13 @@ from controlled_islanding.ros.pending import PendingRequests
 from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.messages import MAX_REQUEST_ID, MONITOR_FIELDS, sample_columns, split_stamp, stamp_s
+
+# A frame period is the median spacing of the newest samples; C37.118.1's slowest reporting rate is 10 frames/s,
+# so no frame period is longer than 0.1 s (a gap in the data is not a period).
+_PERIOD_SAMPLES = 9
+_MAX_FRAME_WAIT_S = 0.1
+# Arrival times kept for requests still waiting; a request waits at most request_wait_s, few are ever held.
+_ARRIVALS_KEPT = 64
 
 
 class CoherencyNode(Node):
@@ -136,6 +143,7 @@ class CoherencyNode(Node):
         self.diag.subscribe(IslandingRequest, topics.ISLANDING_REQUEST, self.on_request)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(float(self.get_parameter('period_s').value), self.diag.guard(self.on_period), clock=steady)
+        self.arrived: dict[str, float] = {}  # request id -> wall arrival, time.monotonic s
         self.pending = PendingRequests(self, self.diag.guard, self.request_wait_s, self._has_data_for, self._serve)
         self._warm_up_engine()
 
@@ -304,17 +312,35 @@ class CoherencyNode(Node):
 
     def _take_request(self, msg: IslandingRequest) -> None:
         """Queue a request; it is served once data up to its stamp is in (or the wait ends)."""
+        self.arrived[msg.request_id] = time.monotonic()
+        while len(self.arrived) > _ARRIVALS_KEPT:
+            del self.arrived[next(iter(self.arrived))]
         self.pending.add(msg)
 
     def _has_data_for(self, request: IslandingRequest) -> bool:
-        return bool(self.t_s) and self.t_s[-1] >= stamp_s(request.header.stamp) - self.tolerance_s
+        t = stamp_s(request.header.stamp)
+        if not (self.t_s and self.t_s[-1] >= t - self.tolerance_s):
+            return False
+        # The prediction standing at T is known once the watch has taken a frame at or after T: the monitor
+        # raises its request at a frame's own time tag, and the frame before (within sample_tolerance_s at 60
+        # frames/s) has no alarm yet. A request stamped between frames (the scenario's 1.5667 s at 30 frames/s)
+        # has no frame at T, and in lockstep none comes until it is answered: the frame at T, if any, follows
+        # its predecessor within a frame period, so the wait for it is one frame period of wall time.
+        if self.watch is None or self.watch.frames_ == 0 or self.watch.last_t_s >= t - STAMP_ROUNDING_S:
+            return True
+        period_s = float(np.median(np.diff(self.t_s[-_PERIOD_SAMPLES:]))) if len(self.t_s) > 1 else 0.0
+        waited_s = time.monotonic() - self.arrived.get(request.request_id, -math.inf)
+        return waited_s >= min(max(period_s, 0.0), _MAX_FRAME_WAIT_S)
 
     def _serve(self, request: IslandingRequest) -> None:
         t = stamp_s(request.header.stamp)
         if not self.t_s or self.t_s[0] > t:
             self.diag.reject('no_data', f'request {request.request_id}: no rotor angles before its stamp')
             return
-        if abs(self.computed_end_s - t) <= self.tolerance_s and not self._changed_before(t):
+        # The latched groups answer only when they end at the request or just after it: groups of the frame
+        # before it were computed before that frame's prediction (a monitor's request at 5.617 s was decided on the
+        # periodic groups of 5.600 s, made before the alarm, and nothing was split).
+        if -STAMP_ROUNDING_S <= self.computed_end_s - t <= self.tolerance_s and not self._changed_before(t):
             return  # the latched groups end at this request: nothing new to compute
         # Groups ending later than the request are no answer to it: partitioning takes only groups whose
         # samples end at the request, so that a grouping stamped ahead of it can never be the one used.

@@ -8,10 +8,11 @@ a trip stamped just before the request can arrive after it.
 
 Freshness is a precondition: a request stamped T is decided only on groups computed from samples ending at T
 (stamped within `groups_tolerance_s` of T, on either side; the coherency node computes them on every request).
-A grouping within `groups_exact_s` of T answers at once; one further before T (say a frame period) only when
-coherency computed it for this request (its `request_id`), over every sample up to T: at 30 frames/s the grouping
-of the frame before a request at a frame's time split nothing where the request's own frame showed the
-separation, and a periodic grouping can reach this node after the request while the request's own is still
+A grouping ending at T, or up to `groups_exact_s` after it, answers at once; one before T (say a frame period)
+only when coherency computed it for this request (its `request_id`), over every sample up to T: at 30 frames/s
+the grouping of the frame before a request at a frame's time split nothing where the request's own frame showed
+the separation (at 60 frames/s too, the frame before within groups_exact_s: the monitor's request raised by its
+own frame), and a periodic grouping can reach this node after the request while the request's own is still
 being computed. The node waits at most `groups_wait_s` of wall time, then takes any grouping within
 `groups_tolerance_s`, or refuses. The network is the newest snapshot
 stamped at or before T with every branch status change stamped after it and at or before T
@@ -42,6 +43,7 @@ from controlled_islanding_msgs.srv import RequestIslanding
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 
+from controlled_islanding.core.final_grouping import STAMP_ROUNDING_S
 from controlled_islanding.core.islanding import IslandingDecision as Decision
 from controlled_islanding.core.islanding import decide, warm_up
 from controlled_islanding.core.portfolio import PortfolioPartition
@@ -116,8 +118,9 @@ class PartitioningNode(Node):
         self.refuse_any_suspect = bool(self.get_parameter('refuse_any_suspect').value)
         self.exact_s = float(declare_bounded(
             self, 'groups_exact_s', 0.02, 0.0, 10.0,
-            "groups whose newest sample is within this of the request stamp answer it at once; others within "
-            "groups_tolerance_s only when computed for the request (coherency's sample_tolerance_s), s", True))
+            "groups whose newest sample is at the request stamp or up to this after it answer it at once; others "
+            "within groups_tolerance_s only when computed for the request (coherency's sample_tolerance_s), s",
+            True))
         self.wait_s = float(declare_bounded(
             self, 'groups_wait_s', 0.5, 0.0, 60.0,
             "wait at most this long (wall) for the request's groups, then refuse as stale, s", True))
@@ -316,13 +319,15 @@ class PartitioningNode(Node):
         stamped further ahead could otherwise be served before the honest one arrives. The tolerance is two-sided
         because coherency answers a request with groups it already holds when they end within its own
         sample_tolerance_s of the stamp, which can be just after it. With `request_id` (before the wait ends), a
-        grouping further than groups_exact_s before t_s counts only if coherency computed it for that request,
-        and one further than groups_exact_s after t_s not at all: a grouping stamped ahead that arrives first
-        must not win over the honest one held.
+        grouping ending before t_s (beyond the stamps' rounding) counts only if coherency computed it for that
+        request, and one further than groups_exact_s after t_s not at all: a grouping stamped ahead that arrives
+        first must not win over the honest one held. A periodic grouping of the frame before, 16.7 ms at 60
+        frames/s and so within groups_exact_s, was computed before that frame's prediction: the monitor's request
+        at 5.617 s on IEEE 39 G6-G7 was decided on the groups of 5.600 s, before the alarm, and nothing was split.
         """
         return next((g for g in self.groups if abs(g.stamp_s - t_s) <= self.tolerance_s and (
             request_id is None or (g.stamp_s - t_s <= self.exact_s and (
-                t_s - g.stamp_s <= self.exact_s or g.request_id == request_id)))), None)
+                t_s - g.stamp_s <= STAMP_ROUNDING_S or g.request_id == request_id)))), None)
 
     def _decide(self, groups: Groups, t_s: float) -> tuple[Decision, float]:
         grid, out = self.topology.grid_at(t_s)
