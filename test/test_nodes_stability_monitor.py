@@ -29,7 +29,7 @@ from controlled_islanding.sim.bag import START_TIME_UNIX_S
 from controlled_islanding.sim.manifest import manifest_entries
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.interfaces import typestore
-from controlled_islanding.wire.messages import sample_columns, stamp_s
+from controlled_islanding.wire.messages import sample_columns, split_stamp, stamp_s
 
 REPO = Path(__file__).resolve().parents[1]
 ENTRIES = {e['name']: e for e in manifest_entries() if (REPO / 'bags' / e['bag']).exists()}
@@ -40,6 +40,15 @@ STABLE = ENTRIES.get('ieee39_paper_case2')
 def caught(node, attribute: str) -> list:
     out: list = []
     getattr(node, attribute).publish = out.append
+    return out
+
+
+def fed(node, snapshot, samples) -> list:
+    """Catch what node publishes, give it the snapshot, then the samples in order; return what it published."""
+    out = caught(node, 'pub')
+    node._take_snapshot(snapshot)
+    for sample in samples:
+        node._take_angles(sample)
     return out
 
 
@@ -102,10 +111,7 @@ def test_the_monitor_asks_once_before_the_slip_for_the_final_groups_and_coherenc
 
     snapshot, angles = kundur
     monitor = StabilityMonitorNode()
-    requests = caught(monitor, 'pub')
-    monitor._take_snapshot(snapshot)
-    for sample in angles:
-        monitor._take_angles(sample)
+    requests = fed(monitor, snapshot, angles)
     assert len(requests) == 1, 'one request for the one swing that separates'
     request = requests[0]
     at_s = stamp_s(request.header.stamp) - START_TIME_UNIX_S
@@ -119,10 +125,7 @@ def test_the_monitor_asks_once_before_the_slip_for_the_final_groups_and_coherenc
     monitor.destroy_node()
 
     coherency = CoherencyNode()
-    groups = caught(coherency, 'pub')
-    coherency._take_snapshot(snapshot)
-    for sample in angles:
-        coherency._take_angles(sample)
+    groups = fed(coherency, snapshot, angles)
     coherency._compute(stamp_s(request.header.stamp), request.request_id)
     answer = groups[-1]
     assert answer.k == max(request.group) + 1
@@ -144,18 +147,12 @@ def test_a_request_soon_after_the_data_begins_is_answered_with_the_predicted_gro
     snapshot, angles = kundur
     late = [a for a in angles if stamp_s(a.header.stamp) - START_TIME_UNIX_S >= 0.95]  # 50 ms before the fault
     monitor = StabilityMonitorNode()
-    requests = caught(monitor, 'pub')
-    monitor._take_snapshot(snapshot)
-    for sample in late:
-        monitor._take_angles(sample)
+    requests = fed(monitor, snapshot, late)
     monitor.destroy_node()
     assert len(requests) == 1
     request = requests[0]
     coherency = CoherencyNode()
-    groups = caught(coherency, 'pub')
-    coherency._take_snapshot(snapshot)
-    for sample in late:
-        coherency._take_angles(sample)
+    groups = fed(coherency, snapshot, late)
     stamp = stamp_s(request.header.stamp)
     behind = sum(1 for a in late if stamp_s(a.header.stamp) <= stamp)
     assert behind < coherency.min_samples, 'the case this test is about: a window too short for the DTW rule'
@@ -182,10 +179,7 @@ def test_coherency_answers_the_monitors_request_from_its_own_frame_not_the_one_b
 
     snapshot, angles = kundur
     monitor = StabilityMonitorNode()
-    requests = caught(monitor, 'pub')
-    monitor._take_snapshot(snapshot)
-    for sample in angles:
-        monitor._take_angles(sample)
+    requests = fed(monitor, snapshot, angles)
     monitor.destroy_node()
     request = requests[0]
     t = stamp_s(request.header.stamp)
@@ -197,20 +191,24 @@ def test_coherency_answers_the_monitors_request_from_its_own_frame_not_the_one_b
         coherency._take_angles(sample)
     coherency.on_period()  # the periodic groups of the frame before, latched
     assert groups and not groups[-1].request_id
-    coherency.arrived[request.request_id] = time.monotonic()
-    assert not coherency._has_data_for(request), 'the frame of the request is not in yet'
-    # No frame within a frame period of wall time (lockstep holds the next one for the answer): ready, as for a
-    # request stamped between frames (Kundur's scenario request at 1.5667 s once waited out partitioning).
-    coherency.arrived[request.request_id] = time.monotonic() - 0.2
-    assert coherency._has_data_for(request)
-    coherency.arrived[request.request_id] = time.monotonic()
+    coherency.pending.add(request)
+    assert len(coherency.pending) == 1 and not coherency._has_data_for(request), 'its frame is not in yet'
     coherency._take_angles(angles[len(before)])
     assert coherency._has_data_for(request)
-    coherency._serve(request)
-    coherency.destroy_node()
+    coherency.pending.serve()
     answer = groups[-1]
     assert answer.request_id == request.request_id
     assert blocks(answer.generator_names, answer.group) == blocks(request.generator_names, request.group)
+    # A request stamped between frames has no frame at its stamp, and in lockstep none comes until it is answered
+    # (Kundur's scenario request at 1.5667 s once waited out partitioning): held one frame period of wall time.
+    between = copy.deepcopy(request)
+    between.request_id = 'between frames'
+    between.header.stamp.sec, between.header.stamp.nanosec = split_stamp(t + 0.01)
+    coherency.pending.add(between)
+    assert len(coherency.pending) == 1 and not coherency._has_data_for(between)
+    time.sleep(0.2)
+    assert coherency._has_data_for(between)
+    coherency.destroy_node()
 
 
 def test_partitioning_refuses_an_altered_monitor_request_and_takes_an_unsigned_operator_one(kundur):
@@ -258,10 +256,7 @@ def test_a_snapshot_without_nominal_frequency_is_judged_by_nobody_and_says_why(k
     blind = copy.deepcopy(snapshot)
     blind.nominal_frequency_hz = 0.0
     monitor = StabilityMonitorNode()
-    requests = caught(monitor, 'pub')
-    monitor._take_snapshot(blind)
-    for sample in angles:
-        monitor._take_angles(sample)
+    requests = fed(monitor, blind, angles)
     assert not requests and 'nominal frequency' in monitor.diag.faults['cannot_judge']
     assert monitor.diag.counts['unjudged_frames'] == len(angles)
     # Garbage is counted and dropped, the node keeps running.

@@ -55,8 +55,6 @@ from controlled_islanding.wire.messages import MAX_REQUEST_ID, MONITOR_FIELDS, s
 # so no frame period is longer than 0.1 s (a gap in the data is not a period).
 _PERIOD_SAMPLES = 9
 _MAX_FRAME_WAIT_S = 0.1
-# Arrival times kept for requests still waiting; a request waits at most request_wait_s, few are ever held.
-_ARRIVALS_KEPT = 64
 
 
 class CoherencyNode(Node):
@@ -143,7 +141,6 @@ class CoherencyNode(Node):
         self.diag.subscribe(IslandingRequest, topics.ISLANDING_REQUEST, self.on_request)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(float(self.get_parameter('period_s').value), self.diag.guard(self.on_period), clock=steady)
-        self.arrived: dict[str, float] = {}  # request id -> wall arrival, time.monotonic s
         self.pending = PendingRequests(self, self.diag.guard, self.request_wait_s, self._has_data_for, self._serve)
         self._warm_up_engine()
 
@@ -312,9 +309,6 @@ class CoherencyNode(Node):
 
     def _take_request(self, msg: IslandingRequest) -> None:
         """Queue a request; it is served once data up to its stamp is in (or the wait ends)."""
-        self.arrived[msg.request_id] = time.monotonic()
-        while len(self.arrived) > _ARRIVALS_KEPT:
-            del self.arrived[next(iter(self.arrived))]
         self.pending.add(msg)
 
     def _has_data_for(self, request: IslandingRequest) -> bool:
@@ -329,8 +323,7 @@ class CoherencyNode(Node):
         if self.watch is None or self.watch.frames_ == 0 or self.watch.last_t_s >= t - STAMP_ROUNDING_S:
             return True
         period_s = float(np.median(np.diff(self.t_s[-_PERIOD_SAMPLES:]))) if len(self.t_s) > 1 else 0.0
-        waited_s = time.monotonic() - self.arrived.get(request.request_id, -math.inf)
-        return waited_s >= min(max(period_s, 0.0), _MAX_FRAME_WAIT_S)
+        return self.pending.waited_s(request) >= min(max(period_s, 0.0), _MAX_FRAME_WAIT_S)
 
     def _serve(self, request: IslandingRequest) -> None:
         t = stamp_s(request.header.stamp)

@@ -39,6 +39,11 @@ class PendingRequests:
     def __iter__(self) -> Iterator[object]:
         return (request for request, _ in self._held)
 
+    def waited_s(self, request: object) -> float:
+        """Return how long a held request has waited so far, wall s (0 for one not held)."""
+        deadline = next((d for r, d in self._held if r is request), None)
+        return 0.0 if deadline is None else time.monotonic() - (deadline - self.wait_s)
+
     def add(self, request: object) -> None:
         """Hold a request for at most wait_s, and serve at once what can be."""
         self._held.append((request, time.monotonic() + self.wait_s))
