@@ -142,7 +142,7 @@ def test_an_attack_needs_a_known_station():
         attack(_bag('kundur_bus9_unstable'), 'ramp', ['PMU_999'], 1.0)
 
 
-@pytest.mark.parametrize('name', ['ieee39_case2_g3_unstable', 'pjm5bus_three_groups'])
+@pytest.mark.parametrize('name', ['ieee39_case2_g3_unstable', 'pjm5bus_bus3_unstable'])
 @pytest.mark.parametrize('integer', [False, True], ids=['float', 'int16'])
 def test_a_clean_bag_over_c37118_flags_no_station(name, integer):
     """A clean bag as a PDC receives it flags nothing.

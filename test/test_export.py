@@ -94,8 +94,8 @@ def _pair(branch_id: str) -> tuple[tuple[str, ...], str]:
     return tuple(sorted(ends.split('-'))), n
 
 
-# A 3-island cut with an outage (through the command); IEEE 39's transformers with their taps at the low side.
-PANDAPOWER_BAGS = ('pjm5bus_three_groups', 'ieee39_case2_g3_unstable')
+# A cut with an outage (through the command); IEEE 39's transformers with their taps at the low side.
+PANDAPOWER_BAGS = ('pjm5bus_bus3_unstable', 'ieee39_case2_g3_unstable')
 
 
 @pytest.mark.slow

@@ -226,3 +226,50 @@ case: matpower/case14.m
 end_s: 1.0
 islanding_request_s: 1.0
 """)), progress=False)
+
+
+# PJM 5-bus, a 100 ms fault at bus 4 cleared by tripping 0-4 (the former pjm5bus_three_groups): ANDES reaches the
+# end, but from the clearing buses 3 and 4 sit at 1e-17 pu with their machines in service and no machine carries
+# power (measured; clearing the fault alone does not converge).
+COLLAPSING = """\
+case: 5bus/pjm5bus.xlsx
+case_events: disable
+end_s: 1.4
+events:
+  - {type: fault, bus: 4, start_s: 1.0, clear_s: 1.1}
+  - {type: trip, branch: 0-4, t_s: 1.1}
+islanding_request_s: 1.3
+"""
+
+
+def test_collapsed_at_tells_a_collapse_from_a_fault_and_a_slip():
+    from controlled_islanding.sim.andes_sim import COLLAPSED_FOR_S, collapsed_at
+
+    t = np.arange(0.0, 2.0, 0.01)
+    v = np.ones((t.size, 3))
+    v[(t >= 0.5) & (t <= 0.7), 0] = 1e-3  # a bolted fault
+    v[[90, 91], 1] = 0.0  # the electrical centre of a slip passing a terminal
+    assert collapsed_at(t, v, [0, 1, 2], [(0.5, 0.7)]) is None
+    assert collapsed_at(t, v, [0, 1, 2], []) == (pytest.approx(0.5), [0])  # the same dip with no fault
+    v[150:, 2] = -1e-11
+    v[150:, 1] = 1e-17
+    assert collapsed_at(t, v, [0, 1, 2], [(0.5, 0.7)]) == (pytest.approx(1.5), [1, 2])
+    assert collapsed_at(t, v, [0], [(0.5, 0.7)]) is None  # a bus without a machine may be dead
+    end = 150 + round(COLLAPSED_FOR_S / 0.01)
+    v[150:end, 0] = 0.0
+    assert collapsed_at(t[:end], v[:end], [0], [(0.5, 0.7)]) is None  # shorter than COLLAPSED_FOR_S
+    v[end, 0] = 0.0
+    assert collapsed_at(t[:end + 1], v[:end + 1], [0], [(0.5, 0.7)]) == (pytest.approx(1.5), [0])
+
+
+def test_a_run_on_a_collapsed_network_is_refused_and_nothing_is_written(tmp_path: Path,
+                                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    from controlled_islanding.sim.andes_sim import SimulationError, simulate
+
+    path = _case(tmp_path, COLLAPSING)
+    with pytest.raises(SimulationError, match=r'from t = 1\.1\d\d s, with no fault applied, bus\(es\) 3, 4 of '
+                                              r'machines in service .* collapsed network'):
+        simulate(load_scenario(path), progress=False)
+    out = tmp_path / 'bag'
+    assert cli.main(['simulate', str(path), '--out', str(out)]) != 0
+    assert not out.exists() and 'collapsed network' in capsys.readouterr().err

@@ -343,16 +343,14 @@ Nordic 44 and the Kundur runs, and were not searched. Why it, as the tables stoo
   distinct modes.
 
 Limits, measured above and not hidden:
-- pjm5bus_three_groups holds no rotor-angle information after its fault: every bus voltage stays at 0.0 to 0.11
-  pu once the fault is cleared (the machines then run free), and the terminal phasors of a machine at a dead
-  bus do not show its rotor angle (the estimate departs from ANDES by up to 3 rad). No rule can be right on it;
-  on ANDES' own angles this rule finds its three groups. Other PJM 5-bus separations (issue 11 search, 30 runs
-  of 3 to 4 s): every multi-group one tried (faults of 50 to 300 ms at buses 0 to 4, some cleared by
-  tripping 0-1, 1-2, 2-3 or 3-4) stopped ANDES' solver or ended with bus voltages at 0.00 to 0.06 pu. The clean
-  ones leave the bus-3 machine (the slack, least inertia) alone at 0.4 to 0.8 pu: a 100 ms fault at bus 3 (90 deg
-  at 1.18 s, slip at 1.33 s; the rule finds it at 1.30 s, the pair decelerating after clearing until 1.25 s as a
-  stable swing would), and 150 ms cleared by tripping 0-3 (90 deg at 1.167 s, slip at 1.233 s; found at 1.183 s,
-  one frame later, lost again at 1.217 s; 50 ms with the same trip stays synchronous).
+- pjm5bus_bus3_unstable asks 47 ms after its clearing (1.167 s, the bus-3 machine 122 deg from the others by
+  the PMU estimate), when the machine has moved away for three frames only; the rule finds its two groups from
+  1.233 s, four frames later and two before the first slip (1.267 s). The PJM 5-bus bag it replaces
+  (pjm5bus_three_groups, a fault at bus 4 cleared by tripping 0-4) was no solution of the grid: ANDES
+  converged to a collapsed network at the clearing (buses 3 and 4 at 1e-17 pu with their machines in service),
+  which simulate now refuses (sim/andes_sim.py). Of the PJM 5-bus bus faults tried (each bus, cleared by each of
+  its lines, 50 to 200 ms), only those at bus 3 cleared after 100 to 150 ms neither stop ANDES' solver nor
+  collapse; each leaves the bus-3 machine (the slack, least inertia) alone.
 - nordic44_bus6000_three_groups asks at the clearing instant, when the machines of buses 5300 and 6100 are 20
   to 30 deg from their pre-fault angles: they are pulled out of step later, at their own slower rate. The rule
   finds all three groups at 1.60 s (0.3 s after the request), and keeps them from 3.60 s. No rule can find them

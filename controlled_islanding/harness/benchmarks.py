@@ -157,7 +157,7 @@ def simulate_cached(scenario_path: Path, end_s: float | None = None):
 
 
 DSE_SCENARIOS = ('ieee39_case2_g3_unstable', 'ieee39_paper_case2', 'ieee39_g6g7_unstable', 'ieee14_g1_unstable',
-                 'ieee14_psse_g1_borderline', 'pjm5bus_three_groups')
+                 'ieee14_psse_g1_borderline', 'pjm5bus_bus3_unstable')
 # At this terminal voltage a machine's phasors carry no angle (ANDES sets the voltage of buses it drops to 0):
 # samples there count for no estimator.
 DEAD_TERMINAL_PU = 1e-3

@@ -21,6 +21,14 @@ parser gives the lines it makes from them no Sn, so ANDES takes them as per unit
 to SBASE. With SBASE = 100 MVA (ieee14.raw) nothing changes; with SBASE = 1000 MVA (nordic44's N44_BC.raw)
 every line came out 10 times too long and the power flow diverged. `_psse_line_base` sets those lines' Sn to
 SBASE before setup; the power flow of N44_BC.raw then converges in 3 iterations.
+
+A run that reaches its end can still be no solution of the grid. At a fault's clearing ANDES' Newton may
+converge to a collapsed network: on PJM 5-bus (GENCLS) the buses of two machines in service sat at 1e-17 pu,
+every other bus near 0.1 pu, and no machine carried power, for the rest of the run and whichever line cleared
+the fault, while clearing the fault alone did not converge at all. No fault was applied by then, so nothing
+held those buses down: a machine's EMF behind its reactance drives its terminal, and only the electrical centre
+of a slipping pair passes zero, for an instant. `collapsed_at` finds such a solution and `simulate` refuses
+it, as it refuses a run that stopped.
 """
 
 from __future__ import annotations
@@ -43,6 +51,11 @@ log = logging.getLogger(__name__)
 _SYNGEN_GROUP = 'SynGen'
 _PROGRESS_CHUNK_S = 1.0
 _FAULT_REACTANCE_PU = 1e-4
+# A collapsed solution (module docstring): a machine's terminal at most this far above 0 pu, with no fault
+# applied, for at least this long. A bolted fault through _FAULT_REACTANCE_PU leaves its bus about 1e-3 pu;
+# the electrical centre of a slip at f_s Hz stays below 0.01 pu for about 0.01 / (pi f_s) s, 3 ms at 1 Hz.
+COLLAPSED_V_PU = 0.01
+COLLAPSED_FOR_S = 0.1
 
 
 class SimulationError(RuntimeError):
@@ -87,6 +100,35 @@ class Simulation:
     trip_branch_ids: tuple[str, ...]
     wall_s: float
     case_branch_changes: tuple[tuple[float, str, bool], ...] = ()
+
+
+def collapsed_at(t_s: np.ndarray, bus_v_pu: np.ndarray, machine_cols: list[int],
+                 fault_windows_s: list[tuple[float, float]]) -> tuple[float, list[int]] | None:
+    """Find a collapsed network solution: no solution of the grid, though the solver converged.
+
+    Args:
+        t_s: Sample times, s, increasing.
+        bus_v_pu: Bus voltage magnitudes, pu, one row per sample.
+        machine_cols: Columns of the buses with a machine in service.
+        fault_windows_s: (start, clear) of every fault, s; inside them a bus may sit at 0 pu.
+
+    Returns:
+        (when it began, s; the columns below COLLAPSED_V_PU at that time) for the first machine bus below
+        COLLAPSED_V_PU for COLLAPSED_FOR_S or more with no fault applied, or None.
+
+    """
+    t = np.asarray(t_s, dtype=float)
+    low = np.abs(np.asarray(bus_v_pu, dtype=float)[:, machine_cols]) < COLLAPSED_V_PU
+    for start, clear in fault_windows_s:
+        low[(t >= start) & (t <= clear)] = False
+    since = np.full(len(machine_cols), np.nan)
+    for k in range(len(t)):
+        since[~low[k]] = np.nan
+        since[low[k] & np.isnan(since)] = t[k]
+        long = low[k] & (t[k] - since >= COLLAPSED_FOR_S)
+        if long.any():
+            return float(np.nanmin(since[long])), [machine_cols[j] for j in np.flatnonzero(low[k])]
+    return None
 
 
 def pycode_dir() -> Path:
@@ -433,6 +475,15 @@ def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
         delta.append(np.asarray(ts.get_data(model.delta))[keep][:, on])
         pe.append(np.asarray(ts.get_data(model.Pe))[keep][:, on])
         qe.append(np.asarray(ts.get_data(model.Qe))[keep][:, on])
+    collapsed = collapsed_at(t[keep], bus_v, sorted({bus_numbers.index(b) for b in gbus}),
+                             [(f.start_s, f.clear_s) for f in scenario.faults])
+    if collapsed is not None:
+        at_s, cols = collapsed
+        raise SimulationError(
+            f'{where}: from t = {at_s:.3f} s, with no fault applied, bus(es) '
+            f'{", ".join(str(bus_numbers[c]) for c in cols)} of machines in service stayed below '
+            f'{COLLAPSED_V_PU} pu for {COLLAPSED_FOR_S} s or more: ANDES converged to a collapsed network, not a '
+            'solution of the grid (sim/andes_sim.py); try another fault duration, clearing or case')
     return Simulation(
         t_s=t[keep], freq_hz=float(ss.config.freq), bus_numbers=tuple(bus_numbers), bus_v_pu=bus_v,
         bus_angle_rad=bus_a, generator_names=tuple(names), generator_buses=tuple(gbus),

@@ -83,12 +83,13 @@ A simulator failure is its own outcome. If ANDES stops before the end (it does n
 switching: it zeroes the voltage of a bus left with no in-service branch, so an island of one bus is numerically
 fragile) or raises, the run says "simulation failed at t s: reason" (Outcome.simulation_failed). Its islands are
 judged neither survived nor lost (survived None) and no load is counted lost or served: the simulation cannot
-say what happened, and a failed solver is not a blackout. Before that, run_offline tries the remedies in
-REMEDIES, each a whole new run of the same actions at the same times: the step divided by 4, then by 16 (ANDES
-shrinks a failing step itself, down to a floor; a smaller fixed step gives Newton a start nearer the solution
-across the switching). Every opening already re-initialises the new islands' voltages (_warm_start) and restarts
-buses left at the trivial root (_reseed_trivial_roots). The outcome names the remedy that worked
-(Outcome.remedy), or the failure with the remedies tried.
+say what happened, and a failed solver is not a blackout. So is a run that reached its end on a collapsed
+network (sim/andes_sim.py: machines in service whose terminals sat at 0 pu with no fault applied). Before
+that, run_offline tries the remedies in REMEDIES, each a whole new run of the same actions at the same times:
+the step divided by 4, then by 16 (ANDES shrinks a failing step itself, down to a floor; a smaller fixed step
+gives Newton a start nearer the solution across the switching). Every opening already re-initialises the new
+islands' voltages (_warm_start) and restarts buses left at the trivial root (_reseed_trivial_roots). The
+outcome names the remedy that worked (Outcome.remedy), or the failure with the remedies tried.
 """
 
 from __future__ import annotations
@@ -104,7 +105,7 @@ from typing import Any
 import numpy as np
 
 from controlled_islanding.core.remedial import RemedialActions, remedial_actions
-from controlled_islanding.sim.andes_sim import prepare_case
+from controlled_islanding.sim.andes_sim import COLLAPSED_FOR_S, COLLAPSED_V_PU, collapsed_at, prepare_case
 from controlled_islanding.sim.scenario import Scenario
 
 log = logging.getLogger(__name__)
@@ -935,6 +936,20 @@ class GridRun:
             self.failure = raised or 'ANDES did not converge (its step reduced to its floor)'
 
 
+    def _collapsed(self, t_s: np.ndarray, bus_v_pu: np.ndarray) -> tuple[float, str] | None:
+        """When and how ANDES converged to a collapsed network (sim/andes_sim.py), or None.
+
+        Only machines still in service at the end count: a tripped machine's island may be dead.
+        """
+        cols = sorted({self.bus_numbers.index(int(m.bus.v[k])) for m, on in zip(self._syn, self._on, strict=True)
+                       for k in np.flatnonzero(on) if m.u.v[k]})
+        found = collapsed_at(t_s, bus_v_pu, cols, [(f.start_s, f.clear_s) for f in self.scenario.faults])
+        if found is None:
+            return None
+        buses = ', '.join(str(self.bus_numbers[c]) for c in found[1])
+        return found[0], (f'ANDES converged to a collapsed network: bus(es) {buses} of machines in service below '
+                          f'{COLLAPSED_V_PU} pu for {COLLAPSED_FOR_S} s or more with no fault applied')
+
     def machines_tripped(self) -> tuple[str, ...]:
         """Return machines in service at the start that protection tripped, but not rejected.
 
@@ -990,6 +1005,9 @@ class GridRun:
         failed = None
         if self.stopped_s is not None:
             failed = f'simulation failed at {self.stopped_s:.3f} s: {self.failure}'
+        elif (collapsed := self._collapsed(t, volts)) is not None:
+            failed = f'simulation failed at {collapsed[0]:.3f} s: {collapsed[1]}'
+        if failed:
             islands = [replace(i, survived=None) for i in islands]  # undetermined: neither lost nor served
         lost = None if failed else _load_lost_mw(islands)
         return Outcome(label=label, cut_branch_ids=tuple(cut_branch_ids), request_s=self.scenario.request_s,
