@@ -72,7 +72,7 @@ class MonitorRun:
     def loop(self, loops: dict[str, ClosedLoop]) -> ClosedLoop | None:
         """Return this scenario's closed loop: by its scenario file, else by name where either file is not known.
 
-        A bag and a scenario file elsewhere may share a name (ieee14_g1_unstable): different files, different runs.
+        A bag and a scenario file elsewhere may share a name: different files, different runs.
         """
         if self.scenario_path is not None and str(self.scenario_path.resolve()) in loops:
             return loops[str(self.scenario_path.resolve())]
