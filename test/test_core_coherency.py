@@ -9,7 +9,13 @@ import pytest
 import yaml
 from test_sim_bags import MISSED_BY_THE_K_RULE
 
-from controlled_islanding.core.coherency import CoherencyError, DTWCoherency, block_means, decimation_factor
+from controlled_islanding.core.coherency import (
+    CoherencyError,
+    DTWCoherency,
+    block_means,
+    decimation_factor,
+    frame_period_s,
+)
 from controlled_islanding.core.k_rules import RULES, pair_drift_rad
 from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
 
@@ -121,6 +127,8 @@ def test_decimation_factor_follows_the_stream_not_a_nominal_rate() -> None:
     assert decimation_factor(np.arange(0.0, 3.0, 1 / 60), 0.0) == 1
     assert decimation_factor(np.arange(0.0, 3.0, 1 / 5), 10.0) == 1
     assert decimation_factor([1.0], 10.0) == 1
+    assert frame_period_s(lost) == pytest.approx(1 / 60)  # a lost frame does not lengthen the period
+    assert frame_period_s([1.0]) == frame_period_s([]) == 0.0
 
 
 @pytest.mark.parametrize('how', ['complete', 'first second lost', '20% frames dropped', 'unequal lengths'])

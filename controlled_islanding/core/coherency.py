@@ -40,7 +40,7 @@ import numpy as np
 from controlled_islanding.core.dtw import clean_series, dtw_distance, dtw_distance_matrix
 from controlled_islanding.core.k_rules import DEFAULT_RULE, Evidence, KRuleError, canonical, make_rule, silhouette
 
-__all__ = ['CoherencyError', 'DTWCoherency', 'block_means', 'decimation_factor', 'silhouette']
+__all__ = ['CoherencyError', 'DTWCoherency', 'block_means', 'decimation_factor', 'frame_period_s', 'silhouette']
 
 
 class CoherencyError(ValueError):
@@ -72,13 +72,20 @@ def decimation_factor(t_s: np.ndarray | Sequence[float], target_fps: float) -> i
     The stream's own spacing (the median step between tags) decides, not a nominal rate: a 30 frames/s stream
     under a 60 frames/s setting gets half the factor.
     """
-    if not target_fps > 0:
+    period_s = frame_period_s(t_s)
+    if not target_fps > 0 or period_s == 0.0:
         return 1
+    return max(1, int(round(1.0 / (target_fps * period_s))))
+
+
+def frame_period_s(t_s: np.ndarray | Sequence[float]) -> float:
+    """Return a stream's frame period, s: the median step between increasing time tags t_s (0.0 with none).
+
+    The median, so that a lost frame (a step of two periods) or a gap does not lengthen it.
+    """
     steps = np.diff(np.asarray(t_s, dtype=float))
     steps = steps[steps > 0]
-    if steps.size == 0:
-        return 1
-    return max(1, int(round(1.0 / (target_fps * float(np.median(steps))))))
+    return float(np.median(steps)) if steps.size else 0.0
 
 
 def _on_one_grid(series: Sequence[np.ndarray]) -> np.ndarray:

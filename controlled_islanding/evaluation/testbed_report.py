@@ -113,9 +113,8 @@ def _extremes(run: dict) -> tuple[str, str]:
     live = [i for i in islands if set(i['generators']) - set(i.get('rejected', ()))]
     if not all('f_nadir_hz' in i for i in islands) or not islands:  # islands without their own figures
         live = [run]
-    f_lo = [i['f_nadir_hz'] for i in live if i['f_nadir_hz'] is not None and math.isfinite(i['f_nadir_hz'])]
-    f_hi = [i['f_peak_hz'] for i in live if i['f_peak_hz'] is not None and math.isfinite(i['f_peak_hz'])]
-    v_lo = [i['v_min_pu'] for i in live if i['v_min_pu'] is not None and math.isfinite(i['v_min_pu'])]
+    f_lo, f_hi, v_lo = ([i[key] for i in live if i[key] is not None and math.isfinite(i[key])]
+                        for key in ('f_nadir_hz', 'f_peak_hz', 'v_min_pu'))
     if not f_lo or not f_hi:
         return 'no machine', _fmt(min(v_lo, default=None), '.3f')
     return f'{min(f_lo):.2f} / {max(f_hi):.2f}', _fmt(min(v_lo, default=None), '.3f')

@@ -37,7 +37,7 @@ from controlled_islanding_msgs.msg import CoherentGroups, IslandingRequest, Netw
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
-from controlled_islanding.core.coherency import DTWCoherency, decimation_factor
+from controlled_islanding.core.coherency import DTWCoherency, decimation_factor, frame_period_s
 from controlled_islanding.core.final_grouping import STAMP_ROUNDING_S, SwingWatch, final_groups, warm_up
 from controlled_islanding.core.k_rules import DEFAULT_RULE, RULES
 from controlled_islanding.core.stability import MachineSet, StabilityError
@@ -322,8 +322,8 @@ class CoherencyNode(Node):
         # its predecessor within a frame period, so the wait for it is one frame period of wall time.
         if self.watch is None or self.watch.frames_ == 0 or self.watch.last_t_s >= t - STAMP_ROUNDING_S:
             return True
-        period_s = float(np.median(np.diff(self.t_s[-_PERIOD_SAMPLES:]))) if len(self.t_s) > 1 else 0.0
-        return self.pending.waited_s(request) >= min(max(period_s, 0.0), _MAX_FRAME_WAIT_S)
+        period_s = frame_period_s(self.t_s[-_PERIOD_SAMPLES:])
+        return self.pending.waited_s(request) >= min(period_s, _MAX_FRAME_WAIT_S)
 
     def _serve(self, request: IslandingRequest) -> None:
         t = stamp_s(request.header.stamp)
@@ -373,9 +373,8 @@ class CoherencyNode(Node):
         # frames after the data began (the PMUs' first 5 s missing, the first frame at the fault: the monitor's
         # request at 5.38 s found no groups and the grid was lost) is answered with them: a machine is then
         # observed if every sample of the short window has its angle.
-        alarm = self.watch.at(end_s) if self.watch is not None and self.watch.frames_ else None
         short = hi - lo < self.min_samples
-        if short and (alarm is None or hi - lo < 1):
+        if short and (hi - lo < 1 or self.watch is None or not self.watch.frames_ or self.watch.at(end_s) is None):
             self.diag.counts['skipped_short_window'] += 1
             return
         t0 = time.perf_counter()

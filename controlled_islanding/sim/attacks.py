@@ -22,6 +22,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from controlled_islanding.core.coherency import frame_period_s
+
 __all__ = ['ATTACKS', 'AttackError', 'attack', 'with_tve_noise']
 
 ATTACKS = ('ramp', 'replay', 'frozen', 'current', 'step', 'ramp2', 'ramp_back')
@@ -69,7 +71,7 @@ def attack(channels, name: str, stations: Sequence[str], start_s: float):
         out['i_mag_pu'][idx] *= CURRENT_FACTOR
     else:
         if name == 'replay':
-            period_s = float(np.median(np.diff(tags))) if len(tags) > 1 else 0.0
+            period_s = frame_period_s(tags)
             source = rows - int(round(REPLAY_LAG_S / period_s)) if period_s > 0 else rows
             if len(rows) and source.min() < 0:
                 raise AttackError(f'replay: no frame {REPLAY_LAG_S:g} s before {start_s:.3f} s to take')
