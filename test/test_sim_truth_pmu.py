@@ -141,3 +141,29 @@ def test_time_tags_and_branch_ids() -> None:
     assert time_tags(1.0, 30).tolist() == [k / 30 for k in range(31)]
     assert len(time_tags(0.99, 60)) == math.floor(0.99 * 60) + 1
     assert branch_ids([(1, 2), (2, 3), (2, 1), (1, 2)]) == ['1-2', '2-3', '2-1#2', '1-2#3']
+
+
+def test_a_negative_andes_voltage_is_reported_as_a_pmu_reports_it_in_the_bag_and_the_live_stream() -> None:
+    """ANDES may carry a bus at V < 0 (the phasor turned by pi): a PMU reports |V| and the turned angle."""
+    from controlled_islanding.sim.closed_loop import Sample
+    from controlled_islanding.sim.pmu import PmuStream
+
+    sim = _simulation()
+    flip = sim.t_s >= 2.0
+    v = np.where(flip[:, None] & (np.arange(3) == 1), -1.5, 1.0)  # bus 2 at -1.5 pu from 2 s, as IEEE 39's bus 32
+    sim = replace(sim, bus_v_pu=v)
+    scenario = replace(_scenario(), noise_tve=0.0)
+    pmu = measure(sim, scenario)
+    truth = np.interp(pmu.tag_s, sim.t_s, v[:, 1]) * np.exp(1j * np.interp(pmu.tag_s, sim.t_s, sim.bus_angle_rad[:, 1]))
+    late = pmu.tag_s >= 2.0 + 1 / 60
+    assert (pmu.v_mag_pu >= 0).all()
+    assert np.allclose(pmu.v_mag_pu[late, 1], 1.5)
+    assert np.allclose(pmu.v_mag_pu[:, 1] * np.exp(1j * pmu.v_angle_rad[:, 1]), truth)
+
+    stream = PmuStream(scenario, sim.generator_names, sim.generator_buses, sim.bus_numbers, 60.0)
+    frames = [f for k in range(len(sim.t_s)) for f in stream.feed(Sample(
+        t_s=float(sim.t_s[k]), bus_v_pu=v[k], bus_angle_rad=sim.bus_angle_rad[k], delta_rad=sim.delta_rad[k],
+        omega_pu=np.ones(2), p_pu=sim.p_pu[k], q_pu=sim.q_pu[k]))]
+    live = np.array([f.v_mag_pu[1] * np.exp(1j * f.v_angle_rad[1]) for f in frames])
+    assert min(f.v_mag_pu.min() for f in frames) >= 0
+    assert np.allclose(live, truth[:len(live)])

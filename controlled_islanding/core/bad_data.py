@@ -29,9 +29,8 @@ The tests, each judged on one station's own channel, frame by frame:
   frequency (a machine slipping poles moves more than pi between frames), so the test sees a lie of up to pi per
   frame. A frame whose voltage is below ``angle_floor_pu`` breaks the chain as a lost frame does: near the
   electrical centre of a pole slip the terminal voltage passes through zero, its phasor turns by pi between two
-  frames and no frequency estimate follows it. A PMU reports that turn (a magnitude is never negative); the
-  simulator's unwrapped angle with a negative magnitude hides it, so without the floor the same honest swing was
-  flagged over C37.118 and not from the bag (the default bag's PMU_32 at 6.63 s).
+  frames and no frequency estimate follows it (a PMU's magnitude is never negative: the phasor turns; without the
+  floor the default bag's honest PMU_32 at 6.63 s was flagged).
 - ``frozen``: the station's six values (phasors, frequency, ROCOF) repeat exactly for ``frozen_frames``
   frames while another station's values changed. Float phasors carrying TVE noise, or a grid in motion,
   never repeat bit for bit; a network at rest repeats everywhere at once, which is not a frozen station.

@@ -111,7 +111,7 @@ def load_bag_stream(bag: str | Path, *, idcode: int = 1, base_kv: float = 345.0,
             order.setdefault(m.station_id, len(order))
             bus.setdefault(m.station_id, int(m.bus))
             if math.isfinite(m.voltage_magnitude_pu) and math.isfinite(m.current_magnitude_pu):
-                # abs: a simulated magnitude may be negative (the phasor turned by pi); the wire's is not.
+                # abs: bags simulated before sim/pmu.py turned the phasor carry ANDES' V < 0; the wire's is not.
                 peak_v[m.station_id] = max(peak_v.get(m.station_id, 0.0), abs(m.voltage_magnitude_pu))
                 peak_i[m.station_id] = max(peak_i.get(m.station_id, 0.0), abs(m.current_magnitude_pu))
             if math.isfinite(m.frequency_hz):

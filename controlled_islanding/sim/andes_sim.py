@@ -70,7 +70,8 @@ class Simulation:
         t_s: Simulation times, s, non-uniform, strictly increasing, shape (nt,).
         freq_hz: System nominal frequency, Hz.
         bus_numbers: Case buses, in case order (helper buses for mid-line faults excluded).
-        bus_v_pu: Voltage magnitude, pu, shape (nt, n_bus).
+        bus_v_pu: ANDES' voltage variable, pu, shape (nt, n_bus): the magnitude, negative where ANDES carries
+            the phasor turned by pi (sim/pmu.py reports |V| and turns the angle).
         bus_angle_rad: Voltage angle, rad, continuous, shape (nt, n_bus).
         generator_names: Synchronous generator names from the case.
         generator_buses: Terminal bus of each generator.

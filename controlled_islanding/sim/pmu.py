@@ -9,7 +9,8 @@ changes nothing else):
   bus with several generators the PMU has one channel per generator, station id `PMU_<bus>/<generator name>`,
   each with the current that generator injects: a bus total belongs to none of them, and the rotor angle
   estimate V + (ra + j xq) I needs the machine's own current.
-- The voltage phasor is the bus voltage, one measurement per bus shared by its channels (one PMU, one PT).
+- The voltage phasor is the bus voltage, one measurement per bus shared by its channels (one PMU, one PT),
+  its magnitude never negative (where ANDES' is, the angle is turned by pi instead, as a PMU's phasor turns).
 - Each phasor is multiplied by (1 + e) with e complex Gaussian, |e| clipped to noise_tve, so the total
   vector error never exceeds noise_tve (<= 1 %).
 - Frequency is f0 + (d angle / dt) / (2 pi) of the noise-free voltage angle plus 1 mHz rms noise;
@@ -69,6 +70,16 @@ def _interp(t_new: np.ndarray, t: np.ndarray, values: np.ndarray) -> np.ndarray:
     return np.column_stack([np.interp(t_new, t, values[:, j]) for j in range(values.shape[1])])
 
 
+def _as_measured(v: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ANDES' signed voltage and continuous angle as a PMU reports the same phasor: |V|, the angle turned by pi.
+
+    Why: past a pole slip's electrical centre ANDES may carry a bus at V < 0 (IEEE 39 G3's bus 32 down to -1.6
+    pu for seconds); a PMU's magnitude is never negative, and a bag that said otherwise differed from the same
+    frames sent over C37.118.
+    """
+    return np.abs(v), np.where(v < 0, a + np.pi, a)
+
+
 def _noisy(rng: np.random.Generator, mag: np.ndarray, ang: np.ndarray, tve: float) -> tuple[np.ndarray, np.ndarray]:
     e = (rng.standard_normal(mag.shape) + 1j * rng.standard_normal(mag.shape)) * (tve / 3.0)
     size = np.abs(e)
@@ -113,7 +124,7 @@ def measure(sim: Simulation, scenario: Scenario) -> PmuData:
     i_ang = np.unwrap(np.angle(current), axis=0)
 
     streams = [np.random.default_rng(s) for s in np.random.SeedSequence(scenario.seed).spawn(6)]
-    v_mag, v_ang = _noisy(streams[0], v, a, scenario.noise_tve)
+    v_mag, v_ang = _noisy(streams[0], *_as_measured(v, a), scenario.noise_tve)
     i_mag, i_ang = _noisy(streams[1], i_mag, i_ang, scenario.noise_tve)
     f_clean = sim.freq_hz + np.gradient(a, tags, axis=0) / (2 * np.pi)
     freq = f_clean + streams[2].normal(0.0, FREQUENCY_NOISE_HZ, f_clean.shape)
@@ -200,7 +211,7 @@ class PmuStream:
                 i_ang = self._last_i_angle + np.angle(np.exp(1j * (i_ang - self._last_i_angle)))
             self._last_i_angle = i_ang
             s = self.streams
-            v_mag, v_ang = _noisy(s[0], v, a, self.scenario.noise_tve)
+            v_mag, v_ang = _noisy(s[0], *_as_measured(v, a), self.scenario.noise_tve)
             i_mag, i_ang_n = _noisy(s[1], np.abs(current), i_ang, self.scenario.noise_tve)
             f_clean = (np.full(len(v), self.f0_hz) if self._last_angle is None else
                        self.f0_hz + (a - self._last_angle) * rate / (2 * np.pi))
