@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -130,6 +131,13 @@ def collapsed_at(t_s: np.ndarray, bus_v_pu: np.ndarray, machine_cols: list[int],
         if long.any():
             return float(np.nanmin(since[long])), [machine_cols[j] for j in np.flatnonzero(low[k])]
     return None
+
+
+def collapse_text(buses: Sequence[int]) -> str:
+    """Say what collapsed_at found on the given buses (simulate's error and the closed loop's outcome)."""
+    return (f'with no fault applied, bus(es) {", ".join(str(b) for b in buses)} of machines in service stayed below '
+            f'{COLLAPSED_V_PU} pu for {COLLAPSED_FOR_S} s or more: ANDES converged to a collapsed network, not a '
+            'solution of the grid')
 
 
 def pycode_dir() -> Path:
@@ -480,11 +488,8 @@ def simulate(scenario: Scenario, progress: bool = True) -> Simulation:
                              [(f.start_s, f.clear_s) for f in scenario.faults])
     if collapsed is not None:
         at_s, cols = collapsed
-        raise SimulationError(
-            f'{where}: from t = {at_s:.3f} s, with no fault applied, bus(es) '
-            f'{", ".join(str(bus_numbers[c]) for c in cols)} of machines in service stayed below '
-            f'{COLLAPSED_V_PU} pu for {COLLAPSED_FOR_S} s or more: ANDES converged to a collapsed network, not a '
-            'solution of the grid (sim/andes_sim.py); try another fault duration, clearing or case')
+        raise SimulationError(f'{where}: from t = {at_s:.3f} s, {collapse_text([bus_numbers[c] for c in cols])} '
+                              '(sim/andes_sim.py); try another fault duration, clearing or case')
     return Simulation(
         t_s=t[keep], freq_hz=float(ss.config.freq), bus_numbers=tuple(bus_numbers), bus_v_pu=bus_v,
         bus_angle_rad=bus_a, generator_names=tuple(names), generator_buses=tuple(gbus),

@@ -105,7 +105,7 @@ from typing import Any
 import numpy as np
 
 from controlled_islanding.core.remedial import RemedialActions, remedial_actions
-from controlled_islanding.sim.andes_sim import COLLAPSED_FOR_S, COLLAPSED_V_PU, collapsed_at, prepare_case
+from controlled_islanding.sim.andes_sim import collapse_text, collapsed_at, prepare_case
 from controlled_islanding.sim.scenario import Scenario
 
 log = logging.getLogger(__name__)
@@ -945,11 +945,7 @@ class GridRun:
         cols = sorted({self.bus_numbers.index(int(m.bus.v[k])) for m, on in zip(self._syn, self._on, strict=True)
                        for k in np.flatnonzero(on) if m.u.v[k]})
         found = collapsed_at(t_s, bus_v_pu, cols, [(f.start_s, f.clear_s) for f in self.scenario.faults])
-        if found is None:
-            return None
-        buses = ', '.join(str(self.bus_numbers[c]) for c in found[1])
-        return found[0], (f'ANDES converged to a collapsed network: bus(es) {buses} of machines in service below '
-                          f'{COLLAPSED_V_PU} pu for {COLLAPSED_FOR_S} s or more with no fault applied')
+        return None if found is None else (found[0], collapse_text([self.bus_numbers[c] for c in found[1]]))
 
     def machines_tripped(self) -> tuple[str, ...]:
         """Return machines in service at the start that protection tripped, but not rejected.
