@@ -34,13 +34,14 @@ def first_flags(channels, detector: BadDataDetector | None = None) -> dict[str, 
     """Station -> (reason, first time tag flagged, s), frame by frame over the whole bag."""
     det = detector or BadDataDetector()
     first: dict[str, tuple[str, float]] = {}
+    buses = np.asarray(channels.buses)
     for k in range(len(channels.tag_s)):
         idx = np.flatnonzero(np.isfinite(channels.v_mag_pu[k]) & np.isfinite(channels.i_mag_pu[k]))
         if not idx.size:
             continue
         suspects = det.judge(channels.tag_s[k], [channels.station_ids[j] for j in idx], *(
             a[k, idx] for a in (channels.v_mag_pu, channels.v_angle_rad, channels.i_mag_pu, channels.i_angle_rad,
-                                channels.frequency_hz, channels.rocof_hz_per_s)))
+                                channels.frequency_hz, channels.rocof_hz_per_s)), buses=buses[idx])
         for sid, why in suspects.items():
             first.setdefault(sid, (why, float(channels.tag_s[k])))
     return first
@@ -112,6 +113,52 @@ def test_a_suspect_station_returns_only_after_clean_s_of_clean_data():
             back_s = float(channels.tag_s[k])
     assert math.isfinite(flagged_s) and math.isfinite(back_s)
     assert back_s - 0.4 >= det.window_s + det.clean_s - 2 / bag.rate_fps
+
+
+def _judge_bus(v_pu, angle_rad, buses=None) -> dict[str, str]:
+    """One frame of stations S0.., all on bus 7 unless told, each voltage given: only the bus test can flag."""
+    n = len(v_pu)
+    return BadDataDetector().judge(0.0, [f'S{j}' for j in range(n)], v_pu, angle_rad, [0.5] * n, [0.0] * n,
+                                   [60.0] * n, [0.0] * n, buses=[7] * n if buses is None else buses)
+
+
+def test_the_bus_test_names_the_one_station_of_a_bus_that_disagrees_with_the_others():
+    assert _judge_bus([1.0, 1.0, 1.0], [0.1, 0.1, 0.1]) == {}
+    # Three stations each 1 % (the TVE bound) off the bus voltage in different directions: honest, never flagged.
+    honest = 1.0 * np.exp(1j * 0.1) * (1 + 0.01 * np.exp(1j * np.array([0.0, 2.1, 4.2])))
+    assert _judge_bus(np.abs(honest), np.angle(honest)) == {}
+    # A GPS time shift of 1.5 deg on one of three: the two others agree, only it is named.
+    assert _judge_bus([1.0, 1.0, 1.0], [0.1, 0.1, 0.1 + math.radians(1.5)]) == {'S2': 'bus_disagreement'}
+
+
+def test_the_bus_test_flags_both_of_two_that_disagree_and_nothing_below_the_measuring_range():
+    assert _judge_bus([0.09, 0.09], [0.1, 0.5]) == {}  # below 10 % of rated: the standard bounds nothing
+    assert _judge_bus([0.5, 0.5], [0.1, 0.5]) == {'S0': 'bus_disagreement', 'S1': 'bus_disagreement'}
+    assert _judge_bus([0.5, 0.5], [0.1, 0.5], buses=[1, 2]) == {}
+    assert _judge_bus([0.5, 0.5], [0.1, 0.5], buses=[-1, -1]) == {}  # buses not known
+
+
+@pytest.mark.parametrize('name', ['nordic44_bus6000_three_groups', 'gbnetwork_bus73_unstable'])
+def test_clean_bags_with_several_machines_on_a_bus_flag_no_station_with_and_without_noise(name):
+    bag = _bag(name)
+    assert any(n > 1 for n in np.unique(np.asarray(bag.buses), return_counts=True)[1])
+    assert first_flags(bag) == {}
+    assert first_flags(with_tve_noise(bag, 0.01, seed=3)) == {}
+
+
+def test_a_ramp_through_a_fault_on_a_bus_of_four_machines_is_flagged_once_its_voltage_is_back_in_range():
+    """Nordic 44's bus 6000: nothing of the station's own tells the ramp in the fault; its three neighbours do."""
+    bag = _bag('nordic44_bus6000_three_groups')
+    flags = first_flags(attack(bag, 'ramp', ['PMU_6000/GENROU_34'], 1.0))
+    assert flags == {'PMU_6000/GENROU_34': ('bus_disagreement', pytest.approx(1.0 + 10 / 30, abs=1e-6))}
+
+
+def test_a_time_shift_present_from_the_first_frame_is_flagged_at_once_where_the_bus_has_other_stations():
+    """GB bus 425 (four machines): a GPS offset that predates the stream shows in no station's own past."""
+    bag = _bag('gbnetwork_bus73_unstable')
+    station = next(s for s, b in zip(bag.station_ids, bag.buses, strict=True) if b == 425)
+    flags = first_flags(attack(bag, 'step', [station], 0.0))
+    assert flags == {station: ('bus_disagreement', pytest.approx(0.0))}
 
 
 def test_a_network_at_rest_is_not_frozen():

@@ -54,6 +54,15 @@ The tests, each judged on one station's own channel, frame by frame:
   nis_: voltage at least 0.1 pu, the current not slipping against the voltage faster than the frame rate follows,
   not just after the filter's (re)initialisation); a station whose machine has no dynamic data is not judged.
 
+- ``bus_disagreement``: stations that measure one bus (several machines on a bus, each with its own channel, as
+  the snapshot maps them) report one voltage. Two C37.118.1-compliant phasors of the same voltage V differ by at
+  most noise_tve (|V_a| + |V_b|) / (1 - noise_tve) (each within TVE noise_tve of V, |V| at most |V_k| / (1 -
+  noise_tve)): a hard bound, no false-alarm rate to choose. A station that breaks it with more than half of the
+  others at its bus is flagged; of two that disagree neither can be told right, and both are. Judged where both
+  voltages are at least ``MEASURING_RANGE_FLOOR_PU``, the bottom of the standard's range. Unlike every test of a
+  station's own past, it sees a lie present from the station's first frame (a GPS time offset, a recording of
+  another time) and a drag too slow for the frequency test, on every frame in range.
+
 The tests see only frames the caller found usable (pmu_ingestion drops data whose STAT says "do not use" or "PMU
 error" (bits 15-14), "not synchronised" (bit 13), "sorted by arrival" (bit 12: the tag is not the data's own) or
 a time quality worse than its `max_time_error_s` (bits 8-6 and 5-4), and absent frames are not stepped).
@@ -68,12 +77,15 @@ from statistics import NormalDist
 
 import numpy as np
 
-__all__ = ['BadDataDetector', 'BadDataError', 'REASONS', 'StationVerdict']
+__all__ = ['BadDataDetector', 'BadDataError', 'MEASURING_RANGE_FLOOR_PU', 'REASONS', 'StationVerdict']
+
+MEASURING_RANGE_FLOOR_PU = 0.1  # C37.118.1 (class M) specifies accuracy from 10 % of rated voltage up
 
 _MAX_PERIOD_S = 1.0  # C37.118.2's slowest reporting rate is one frame a second
 _PERIOD_SAMPLES = 512  # spacings the period is judged on: a few frames of a few hundred stations
 
-REASONS = ('frequency_mismatch', 'frozen', 'replayed', 'innovation', 'schedule_mismatch', 'new_station')
+REASONS = ('frequency_mismatch', 'frozen', 'replayed', 'innovation', 'schedule_mismatch', 'bus_disagreement',
+           'new_station')
 _NOMINALS_HZ = (50.0, 60.0)
 
 
@@ -235,7 +247,7 @@ class BadDataDetector:
             self._grow(len(self.ids))
 
     def judge(self, t_s: float, station_ids, v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, frequency_hz,
-              rocof_hz_per_s, scheduled_p_pu=None) -> dict[str, str]:
+              rocof_hz_per_s, scheduled_p_pu=None, buses=None) -> dict[str, str]:
         """Take one frame's usable measurements (one value per station) and return the suspects after it.
 
         Frames must come in time-tag order per station; an older or repeated tag is ignored for that station.
@@ -243,6 +255,8 @@ class BadDataDetector:
         Args:
             scheduled_p_pu: Per station, the network snapshot's dispatch of the machine(s) whose current it
                 measures, pu on the system base (NaN: none); None: no schedule test.
+            buses: Per station, the bus whose voltage it measures, as the network snapshot maps it (negative: not
+                known); None: no bus test.
 
         Returns:
             Station id -> reason, for every station suspect after this frame.
@@ -257,6 +271,7 @@ class BadDataDetector:
         late = {self.row[sid] for sid in new} if t - self.t_first >= self.clean_s - 1e-9 else set()
         sched = (np.full(len(ids), np.nan) if scheduled_p_pu is None
                  else np.asarray(scheduled_p_pu, dtype=float).reshape(-1))
+        bus = np.full(len(ids), -1) if buses is None else np.asarray(buses, dtype=np.int64).reshape(-1)
         values = np.column_stack([np.asarray(a, dtype=float).reshape(-1) for a in
                                   (v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, frequency_hz, rocof_hz_per_s)])
         rows = np.array([self.row[sid] for sid in ids], dtype=int)
@@ -265,7 +280,7 @@ class BadDataDetector:
         once = np.zeros(len(rows), dtype=bool)
         once[first] = True
         keep = fresh & once
-        rows, values, sched = rows[keep], values[keep], sched[keep]
+        rows, values, sched, bus = rows[keep], values[keep], sched[keep], bus[keep]
         if not len(rows):
             return self.suspects()
         gaps = t - self.last_t[rows]
@@ -274,6 +289,7 @@ class BadDataDetector:
         freq_bad = self._frequency_test(t, rows, values, gaps)
         reason = np.where((reason == '') & freq_bad, 'frequency_mismatch', reason)
         reason = np.where((reason == '') & self._schedule_test(rows, values, sched), 'schedule_mismatch', reason)
+        reason = np.where((reason == '') & self._bus_test(values, bus), 'bus_disagreement', reason)
         # A station that joins a running stream brings no history to check its frames against (a recording of
         # another second passes every test of its own): it is used once it has shown clean_s of clean data.
         reason = np.where((reason == '') & np.isin(rows, list(late)), 'new_station', reason)
@@ -357,6 +373,20 @@ class BadDataDetector:
             bound = ((2 * self.noise_tve + self.noise_tve ** 2) * np.abs(values[:, 0] * values[:, 2])
                      + self.schedule_tolerance * np.abs(sched))
             return np.abs(p - sched) > bound
+
+    def _bus_test(self, values: np.ndarray, bus: np.ndarray) -> np.ndarray:
+        bad = np.zeros(len(bus), dtype=bool)
+        mag = np.abs(values[:, 0])
+        with np.errstate(invalid='ignore'):
+            ok = (bus >= 0) & np.isfinite(values[:, 1]) & (mag >= MEASURING_RANGE_FLOOR_PU)
+        shared, counts = np.unique(bus[ok], return_counts=True)
+        for b in shared[counts >= 2]:
+            at = np.flatnonzero(ok & (bus == b))
+            v = values[at, 0] * np.exp(1j * values[at, 1])
+            gap = np.abs(v[:, None] - v[None, :])
+            allowed = self.noise_tve / (1.0 - self.noise_tve) * (mag[at][:, None] + mag[at][None, :])
+            bad[at] = 2 * (gap > allowed).sum(axis=1) > len(at) - 1
+        return bad
 
     def _frequency_test(self, t: float, rows: np.ndarray, values: np.ndarray, gaps: np.ndarray) -> np.ndarray:
         angle, freq = values[:, 1], values[:, 4]

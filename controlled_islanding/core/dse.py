@@ -60,11 +60,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from controlled_islanding.core.bad_data import MEASURING_RANGE_FLOOR_PU
+
 __all__ = ['DSEError', 'MODELS', 'MachineData', 'RotorAngleDSE', 'StreamingDSE', 'nominal_hz',
            'saturation_coefficients']
 
 MODELS = ('steady_state', 'classical', 'two_axis', 'genrou')
-_JUDGE_MIN_VOLTAGE_PU = 0.1  # C37.118.1 (class M) specifies accuracy from 10 % of rated voltage up
 _HALF_PI = 0.5 * np.pi
 
 
@@ -577,7 +578,7 @@ class RotorAngleDSE:
         run = bank.live & ~start
         with np.errstate(invalid='ignore'):
             turn = np.abs(np.angle(v * np.conj(i) * np.conj(bank.v_last * np.conj(bank.i_last))))
-            judged = ((np.abs(v) >= _JUDGE_MIN_VOLTAGE_PU) & (turn <= 2 * np.arccos(1 - self.measurement_tve))
+            judged = ((np.abs(v) >= MEASURING_RANGE_FLOOR_PU) & (turn <= 2 * np.arccos(1 - self.measurement_tve))
                       & (t - bank.init_t >= self.judge_after_s - 1e-9))
         if dt is not None and run.any():
             # Lost data: the last inputs are held; valid data: inputs go linearly from the last to this frame's,

@@ -123,6 +123,7 @@ def screen(bag, channels, *, params: dict, until_s: float = math.inf) -> tuple[n
     for g, sid in zip(gens, station_of, strict=True):
         scheduled[sid] = scheduled.get(sid, 0.0) + g.p_mw / bag.grid.base_mva
     sched = np.array([scheduled.get(sid, np.nan) for sid in channels.station_ids])
+    buses = np.asarray(channels.buses, dtype=np.int64)
     flagged: dict[str, tuple[str, float]] = {}
     tags = np.asarray(channels.tag_s, dtype=float)
     rows = np.flatnonzero(np.asarray(bag.frame_present) & (tags <= until_s + 1e-9))
@@ -133,7 +134,7 @@ def screen(bag, channels, *, params: dict, until_s: float = math.inf) -> tuple[n
         usable = np.isfinite(values[0]) & np.isfinite(values[2])
         idx = np.flatnonzero(usable)
         if idx.size:
-            det.judge(t, [channels.station_ids[j] for j in idx], *(v[idx] for v in values), sched[idx])
+            det.judge(t, [channels.station_ids[j] for j in idx], *(v[idx] for v in values), sched[idx], buses[idx])
         bad = np.array([s in det.suspects() for s in station_of])
         a = dse.update(t, values[0][cols], values[1][cols], values[2][cols], values[3][cols], usable[cols] & ~bad)
         suspects = det.innovations(t, station_of, dse.nis_)

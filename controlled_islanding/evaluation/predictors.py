@@ -153,8 +153,8 @@ def monitor_inputs(run: ScenarioRun) -> MonitorInputs:
         values = [np.asarray(getattr(channels, f))[k] for f in _FIELDS]
         usable = np.isfinite(values[0]) & np.isfinite(values[2]) & ((stat[k] & 0x8000) == 0)
         idx = np.flatnonzero(usable)
-        suspects = detector.judge(t, [channels.station_ids[j] for j in idx], *(v[idx] for v in values)) \
-            if idx.size else detector.suspects()
+        suspects = detector.judge(t, [channels.station_ids[j] for j in idx], *(v[idx] for v in values),
+                                  buses=np.asarray(channels.buses)[idx]) if idx.size else detector.suspects()
         flagged |= set(suspects)
         bad = np.array([s in suspects for s in station_of])
         ok = usable[cols] & ~bad
