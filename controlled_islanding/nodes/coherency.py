@@ -116,7 +116,6 @@ class CoherencyNode(Node):
             raise NodeSetupError(f'max_window_samples={self.max_window_samples} < min_samples={self.min_samples}: '
                                  'no window could ever be grouped')
         self.early: deque[RotorAngles] = deque()  # samples that overtook the snapshot
-        self.snapshot_stamp_s = -math.inf
         self.names: tuple[str, ...] | None = None  # the snapshot's generators, in window column order
         self.column: dict[str, int] = {}
         self.buses: list[int] = []
@@ -158,15 +157,9 @@ class CoherencyNode(Node):
         self.inputs.admit('network snapshot', stamp_s(msg.header.stamp), ('snapshot', msg))
 
     def _take_snapshot(self, msg: NetworkSnapshot) -> None:
-        grid = self.intake.grid(msg)
+        grid = self.intake.newer(msg)
         if grid is None:
             return
-        t = stamp_s(msg.header.stamp)
-        if t < self.snapshot_stamp_s:
-            self.diag.reject('time_backwards', f'network snapshot stamped {t:.3f} s, older than the one held '
-                                               f'({self.snapshot_stamp_s:.3f} s)')
-            return
-        self.snapshot_stamp_s = t
         bus_of = {g.name: g.bus for g in grid.generators}
         if self.names is None or set(self.names) != set(bus_of):
             if self.names is not None:

@@ -142,7 +142,6 @@ class PmuIngestionNode(Node):
         self.intake = SnapshotIntake(self, self.diag)
         self.diag.values['estimator'] = self.estimator
         self.grid: Grid | None = None
-        self.grid_stamp_s = -math.inf
         self.buses: frozenset[int] = frozenset()
         # Topics are not ordered against each other: frames may overtake the snapshot. Hold them until it comes.
         self.early: deque[PmuFrame] = deque()
@@ -179,17 +178,12 @@ class PmuIngestionNode(Node):
         self.inputs.admit('network snapshot', stamp_s(msg.header.stamp), ('snapshot', msg))
 
     def _take_snapshot(self, msg: NetworkSnapshot) -> None:
-        grid = self.intake.grid(msg)
+        grid = self.intake.newer(msg)
         if grid is None:
-            return
-        t = stamp_s(msg.header.stamp)
-        if t < self.grid_stamp_s:
-            self.diag.reject('time_backwards', f'network snapshot stamped {t:.3f} s, older than the one held '
-                                               f'({self.grid_stamp_s:.3f} s)')
             return
         if self.estimator == 'dse' and not self._start_dse(grid, grid.freq_hz):
             return
-        self.grid, self.grid_stamp_s, self.buses = grid, t, frozenset(grid.buses)
+        self.grid, self.buses = grid, frozenset(grid.buses)
         # Memory follows the network: nothing is kept for a generator or a bus the snapshot no longer has.
         names = {g.name for g in grid.generators}
         self.last_angle_rad = {n: a for n, a in self.last_angle_rad.items() if n in names}

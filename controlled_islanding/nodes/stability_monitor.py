@@ -125,7 +125,6 @@ class StabilityMonitorNode(Node):
         self.names: tuple[str, ...] = ()
         self.column: dict[str, int] = {}
         self.watch: SwingWatch | None = None
-        self.snapshot_stamp_s = -math.inf
         self.early: deque[RotorAngles] = deque()
         self.changes: list[tuple[float, str]] = []  # (stamp s, branch id) of status changes, sorted
         self.requests = 0
@@ -182,15 +181,9 @@ class StabilityMonitorNode(Node):
         self.inputs.admit('rotor angles', t, ('angles', msg))
 
     def _take_snapshot(self, msg: NetworkSnapshot) -> None:
-        grid = self.intake.grid(msg)
+        grid = self.intake.newer(msg)
         if grid is None:
             return
-        t = stamp_s(msg.header.stamp)
-        if t < self.snapshot_stamp_s:
-            self.diag.reject('time_backwards', f'network snapshot stamped {t:.3f} s, older than the one held '
-                                               f'({self.snapshot_stamp_s:.3f} s)')
-            return
-        self.snapshot_stamp_s = t
         machines = self._machines(grid)
         if machines is None:
             return
@@ -268,7 +261,7 @@ class StabilityMonitorNode(Node):
     # --- output -------------------------------------------------------------------------------------------------
     def _request(self, alarm: Alarm) -> None:
         self.requests += 1
-        since = bisect.bisect_right(self.changes, (self.snapshot_stamp_s, '\uffff'))
+        since = bisect.bisect_right(self.changes, (self.intake.stamp_s, '\uffff'))
         upto = bisect.bisect_right(self.changes, (alarm.t_s, '\uffff'))
         msg = request_msg(alarm, self.names, f'{self.get_fully_qualified_name()}/{alarm.t_s:.6f}',
                           max(0, upto - since), self.settings['z_alarm'])
