@@ -35,13 +35,15 @@ def first_flags(channels, detector: BadDataDetector | None = None) -> dict[str, 
     det = detector or BadDataDetector()
     first: dict[str, tuple[str, float]] = {}
     buses = np.asarray(channels.buses)
+    at_rest = channels.grid.bus_angles_at(buses) if hasattr(channels, 'grid') else None
     for k in range(len(channels.tag_s)):
         idx = np.flatnonzero(np.isfinite(channels.v_mag_pu[k]) & np.isfinite(channels.i_mag_pu[k]))
         if not idx.size:
             continue
         suspects = det.judge(channels.tag_s[k], [channels.station_ids[j] for j in idx], *(
             a[k, idx] for a in (channels.v_mag_pu, channels.v_angle_rad, channels.i_mag_pu, channels.i_angle_rad,
-                                channels.frequency_hz, channels.rocof_hz_per_s)), buses=buses[idx])
+                                channels.frequency_hz, channels.rocof_hz_per_s)), buses=buses[idx],
+            bus_angle_rad=None if at_rest is None else at_rest[idx])
         for sid, why in suspects.items():
             first.setdefault(sid, (why, float(channels.tag_s[k])))
     return first
@@ -154,11 +156,59 @@ def test_a_ramp_through_a_fault_on_a_bus_of_four_machines_is_flagged_once_its_vo
 
 
 def test_a_time_shift_present_from_the_first_frame_is_flagged_at_once_where_the_bus_has_other_stations():
-    """GB bus 425 (four machines): a GPS offset that predates the stream shows in no station's own past."""
+    """GB bus 425 (four machines): a GPS offset that predates the stream shows in no station's own past.
+
+    With the snapshot's angles the angle test names it at rest; without them (a snapshot that carries none) the
+    other stations of its bus do, on every frame.
+    """
     bag = _bag('gbnetwork_bus73_unstable')
     station = next(s for s, b in zip(bag.station_ids, bag.buses, strict=True) if b == 425)
-    flags = first_flags(attack(bag, 'step', [station], 0.0))
-    assert flags == {station: ('bus_disagreement', pytest.approx(0.0))}
+    attacked = attack(bag, 'step', [station], 0.0)
+    assert first_flags(attacked) == {station: ('angle_mismatch', pytest.approx(0.0))}
+    blind = dataclasses.replace(attacked, grid=dataclasses.replace(bag.grid, bus_angle_rad=None))
+    assert first_flags(blind) == {station: ('bus_disagreement', pytest.approx(0.0))}
+
+
+def _judge_angles(angle_rad, snapshot_rad, v_pu=None) -> dict[str, str]:
+    """One frame at rest of stations S0.. on buses 0.., against the snapshot's angles: only the angle test can flag."""
+    n = len(angle_rad)
+    return BadDataDetector().judge(0.0, [f'S{j}' for j in range(n)], v_pu or [1.0] * n, angle_rad, [0.5] * n,
+                                   [0.0] * n, [60.0] * n, [0.0] * n, bus_angle_rad=snapshot_rad)
+
+
+def test_the_angle_test_at_rest_names_a_station_offset_from_the_snapshot_against_the_others():
+    snapshot = [0.0, -0.2, 0.3, 0.1]
+    # The PMUs' reference is not the snapshot's: one angle for all is no offset.
+    assert _judge_angles([a + 2.0 for a in snapshot], snapshot) == {}
+    shifted = [a + 2.0 for a in snapshot]
+    shifted[2] += math.radians(20.0)  # a GPS time shift of 0.9 ms at 60 Hz
+    assert _judge_angles(shifted, snapshot) == {'S2': 'angle_mismatch'}
+    # Within the deployment's tolerance (0.1 rad), and unknown or out-of-range buses, nothing.
+    shifted[2] = snapshot[2] + 2.0 + 0.09
+    assert _judge_angles(shifted, snapshot) == {}
+    assert _judge_angles([0.0, 0.5], [0.0, math.nan]) == {}
+    assert _judge_angles([0.0, 0.5], [0.0, 0.0], v_pu=[1.0, 0.05]) == {}
+    assert _judge_angles([0.0, 0.5], [0.0, 0.0]) == {'S0': 'angle_mismatch', 'S1': 'angle_mismatch'}
+
+
+def test_the_angle_test_ends_with_the_rest():
+    det = BadDataDetector()
+    args = (['A', 'B', 'C'], [1.0, 1.0, 1.0])
+    assert det.judge(0.0, *args, [0.0, 0.0, 0.0], [0.5] * 3, [0.0] * 3, [60.0] * 3, [0.0] * 3,
+                     bus_angle_rad=[0.0, 0.0, 0.0]) == {}
+    # A fault moves the voltages: from then on angles stand where the swing takes them.
+    assert det.judge(1 / 30, args[0], [0.5, 0.6, 0.7], [0.0, 0.3, 0.6], [2.0] * 3, [0.0] * 3, [60.0] * 3,
+                     [0.0] * 3, bus_angle_rad=[0.0, 0.0, 0.0]) == {}
+
+
+@pytest.mark.parametrize('name,station', [('ieee39_g6g7_initial_gap', 'PMU_39'), ('ieee39_g6g7_initial_gap', 'PMU_35'),
+                                          ('kundur_bus9_unstable', 'PMU_2'), ('ieee14_g1_unstable', 'PMU_3')])
+def test_a_time_shift_from_a_streams_first_frame_is_flagged_against_the_snapshot(name, station):
+    """The step (20 deg) from the first frame: no past of the station's own to tell it from (the initial gap's 5 s)."""
+    bag = _bag(name)
+    first = float(bag.tag_s[np.flatnonzero(bag.frame_present)[0]])
+    flags = first_flags(attack(bag, 'step', [station], first))
+    assert flags == {station: ('angle_mismatch', pytest.approx(first))}
 
 
 def test_a_network_at_rest_is_not_frozen():
@@ -261,10 +311,11 @@ def _screened_flags(name: str, kind: str, station: str, start_s: float):
 
 
 @pytest.mark.parametrize('name,kind,station,start_s', [
-    # the faulted area's machine: its voltage below the frequency test's floor from the fault on
-    ('ieee39_g6g7_unstable', 'step', 'PMU_35', 5.0), ('kundur_bus9_unstable', 'step', 'PMU_4', 1.0),
-    # a CT ratio error from the fault's first frame on (the frame at its time tag is still at rest, where the
-    # dispatch test sees it): x_s I moves the machine's internal voltage
+    # the faulted area's machine: its voltage below the frequency test's floor from the fault on; from the fault's
+    # first frame (the frame at its time tag is still at rest, where the angle test against the snapshot sees it)
+    ('ieee39_g6g7_unstable', 'step', 'PMU_35', 5.0 + 1 / 60), ('kundur_bus9_unstable', 'step', 'PMU_4', 1.0 + 1 / 30),
+    # a CT ratio error from the fault's first frame on (at rest, the dispatch test sees it): x_s I moves the
+    # machine's internal voltage
     ('ieee39_g6g7_unstable', 'current', 'PMU_35', 5.0 + 1 / 60),
     ('ieee14_g1_unstable', 'current', 'PMU_1', 1.0 + 1 / 60)])
 def test_the_innovation_test_flags_what_the_frequency_test_cannot_see_before_the_request(name, kind, station,

@@ -168,8 +168,22 @@ def test_machine_model_names_are_one_per_generator_and_short():
     assert reason(grid_from_snapshot, msg) == 'bad_value'
 
 
+def test_bus_angles_are_optional_one_per_bus_and_finite():
+    msg = snapshot()
+    assert grid_from_snapshot(msg).bus_angle_rad is None  # a message from before the field
+    msg.bus_voltage_angle_rad = []
+    assert grid_from_snapshot(msg).bus_angle_rad is None
+    msg.bus_voltage_angle_rad = [0.0, -0.1, -0.2]
+    grid = grid_from_snapshot(msg)
+    assert list(grid.bus_angles_at([3, 1, 99])[:2]) == [-0.2, 0.0] and math.isnan(grid.bus_angles_at([99])[0])
+    msg.bus_voltage_angle_rad = [0.0, -0.1]
+    assert reason(grid_from_snapshot, msg) == 'array_length'
+    msg.bus_voltage_angle_rad = [0.0, math.nan, -0.2]
+    assert reason(grid_from_snapshot, msg) == 'nan_value'
+
+
 SNAPSHOT_CAPS = {
-    'max_buses': ('bus_numbers',),
+    'max_buses': ('bus_numbers', 'bus_voltage_angle_rad'),
     'max_branches': ('branch_ids', 'branch_breaker_ids', 'branch_from_bus', 'branch_to_bus', 'branch_in_service',
                      'branch_p_from_mw', 'branch_p_to_mw'),
     'max_generators': ('generator_names', 'generator_bus', 'generator_p_mw', 'generator_p_max_mw',

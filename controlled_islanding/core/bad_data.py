@@ -63,6 +63,13 @@ The tests, each judged on one station's own channel, frame by frame:
   station's own past, it sees a lie present from the station's first frame (a GPS time offset, a recording of
   another time) and a drag too slow for the frequency test, on every frame in range.
 
+- ``angle_mismatch``: while the grid is at rest (no event yet, as the schedule test), the stations' voltage angles
+  against the network snapshot's angles of their buses. The PMUs' reference and the snapshot's differ by one angle
+  for all, so two stations' differences agree within ``angle_tolerance_rad`` plus both phasors' TVE angle (2
+  asin(noise_tve)); a station that breaks it with more than half of the others is flagged (of two, both): a GPS
+  time offset in place before the event, which shows in no station's own past (the step attack on a stream whose
+  first frame is the fault's). Judged where the voltage is in the measuring range.
+
 The tests see only frames the caller found usable (pmu_ingestion drops data whose STAT says "do not use" or "PMU
 error" (bits 15-14), "not synchronised" (bit 13), "sorted by arrival" (bit 12: the tag is not the data's own) or
 a time quality worse than its `max_time_error_s` (bits 8-6 and 5-4), and absent frames are not stepped).
@@ -84,8 +91,8 @@ MEASURING_RANGE_FLOOR_PU = 0.1  # C37.118.1 (class M) specifies accuracy from 10
 _MAX_PERIOD_S = 1.0  # C37.118.2's slowest reporting rate is one frame a second
 _PERIOD_SAMPLES = 512  # spacings the period is judged on: a few frames of a few hundred stations
 
-REASONS = ('frequency_mismatch', 'frozen', 'replayed', 'innovation', 'schedule_mismatch', 'bus_disagreement',
-           'new_station')
+REASONS = ('frequency_mismatch', 'frozen', 'replayed', 'innovation', 'schedule_mismatch', 'angle_mismatch',
+           'bus_disagreement', 'new_station')
 _NOMINALS_HZ = (50.0, 60.0)
 
 
@@ -133,6 +140,10 @@ class BadDataDetector:
         schedule_tolerance: How far, as a share of its scheduled power, a machine's output may stand from the
             network snapshot's dispatch while the grid is at rest (regulation between snapshots, the snapshot's
             own error): the deployment's figure, from its EMS; the bags' machines stand on it exactly.
+        angle_tolerance_rad: How far the angle between two buses may stand from the snapshot's while the grid is
+            at rest (the snapshot's state-estimate error and the drift since it): the deployment's figure, from its
+            EMS; the bags' buses stand on it exactly. 0.1 rad is 5.7 deg, a time error of 0.26 ms at 60 Hz; a GPS
+            shift of 0.9 ms moves an angle 20 deg.
 
     Attributes:
         nis_bound: The largest normalised innovation squared an honest frame is allowed (give it to
@@ -143,17 +154,17 @@ class BadDataDetector:
     def __init__(self, noise_tve: float = 0.01, frequency_error_hz: float = 0.005, window_s: float = 0.5,
                  false_alarm: float = 1e-9, frozen_frames: int = 3, history_s: float = 2.0,
                  clean_s: float = 1.0, angle_floor_pu: float = 0.2, innovation_false_alarm: float = 1e-12,
-                 schedule_tolerance: float = 0.1) -> None:
+                 schedule_tolerance: float = 0.1, angle_tolerance_rad: float = 0.1) -> None:
         if not (0 < noise_tve < 1 and frequency_error_hz >= 0 and window_s > 0 and 0 < false_alarm < 0.5
                 and frozen_frames >= 1 and history_s >= 0 and clean_s >= 0 and 0 <= angle_floor_pu < 1
-                and 0 < innovation_false_alarm < 0.5 and schedule_tolerance >= 0):
+                and 0 < innovation_false_alarm < 0.5 and schedule_tolerance >= 0 and angle_tolerance_rad >= 0):
             raise BadDataError(f'bad settings: noise_tve={noise_tve}, frequency_error_hz={frequency_error_hz}, '
                                f'window_s={window_s}, false_alarm={false_alarm}, frozen_frames={frozen_frames}, '
                                f'history_s={history_s}, clean_s={clean_s}, angle_floor_pu={angle_floor_pu}, '
                                f'innovation_false_alarm={innovation_false_alarm}, '
-                               f'schedule_tolerance={schedule_tolerance}')
+                               f'schedule_tolerance={schedule_tolerance}, angle_tolerance_rad={angle_tolerance_rad}')
         self.nis_bound = -2.0 * math.log(innovation_false_alarm)  # chi-square(2) is exponential of mean 2
-        self.schedule_tolerance = schedule_tolerance
+        self.schedule_tolerance, self.angle_tolerance_rad = schedule_tolerance, angle_tolerance_rad
         self.t_first = math.nan  # the first frame judged, s
         self.at_rest = True  # no frame since the first has shown an event (see _schedule_test)
         self.noise_tve, self.frequency_error_hz, self.window_s = noise_tve, frequency_error_hz, window_s
@@ -247,7 +258,7 @@ class BadDataDetector:
             self._grow(len(self.ids))
 
     def judge(self, t_s: float, station_ids, v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, frequency_hz,
-              rocof_hz_per_s, scheduled_p_pu=None, buses=None) -> dict[str, str]:
+              rocof_hz_per_s, scheduled_p_pu=None, buses=None, bus_angle_rad=None) -> dict[str, str]:
         """Take one frame's usable measurements (one value per station) and return the suspects after it.
 
         Frames must come in time-tag order per station; an older or repeated tag is ignored for that station.
@@ -257,6 +268,8 @@ class BadDataDetector:
                 measures, pu on the system base (NaN: none); None: no schedule test.
             buses: Per station, the bus whose voltage it measures, as the network snapshot maps it (negative: not
                 known); None: no bus test.
+            bus_angle_rad: Per station, the network snapshot's voltage angle of that bus, rad (NaN: not known);
+                None: no angle test.
 
         Returns:
             Station id -> reason, for every station suspect after this frame.
@@ -272,6 +285,8 @@ class BadDataDetector:
         sched = (np.full(len(ids), np.nan) if scheduled_p_pu is None
                  else np.asarray(scheduled_p_pu, dtype=float).reshape(-1))
         bus = np.full(len(ids), -1) if buses is None else np.asarray(buses, dtype=np.int64).reshape(-1)
+        snap = (np.full(len(ids), np.nan) if bus_angle_rad is None
+                else np.asarray(bus_angle_rad, dtype=float).reshape(-1))
         values = np.column_stack([np.asarray(a, dtype=float).reshape(-1) for a in
                                   (v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, frequency_hz, rocof_hz_per_s)])
         rows = np.array([self.row[sid] for sid in ids], dtype=int)
@@ -280,7 +295,7 @@ class BadDataDetector:
         once = np.zeros(len(rows), dtype=bool)
         once[first] = True
         keep = fresh & once
-        rows, values, sched, bus = rows[keep], values[keep], sched[keep], bus[keep]
+        rows, values, sched, bus, snap = rows[keep], values[keep], sched[keep], bus[keep], snap[keep]
         if not len(rows):
             return self.suspects()
         gaps = t - self.last_t[rows]
@@ -289,6 +304,7 @@ class BadDataDetector:
         freq_bad = self._frequency_test(t, rows, values, gaps)
         reason = np.where((reason == '') & freq_bad, 'frequency_mismatch', reason)
         reason = np.where((reason == '') & self._schedule_test(rows, values, sched), 'schedule_mismatch', reason)
+        reason = np.where((reason == '') & self._angle_test(values, snap), 'angle_mismatch', reason)
         reason = np.where((reason == '') & self._bus_test(values, bus), 'bus_disagreement', reason)
         # A station that joins a running stream brings no history to check its frames against (a recording of
         # another second passes every test of its own): it is used once it has shown clean_s of clean data.
@@ -373,6 +389,20 @@ class BadDataDetector:
             bound = ((2 * self.noise_tve + self.noise_tve ** 2) * np.abs(values[:, 0] * values[:, 2])
                      + self.schedule_tolerance * np.abs(sched))
             return np.abs(p - sched) > bound
+
+    def _angle_test(self, values: np.ndarray, snap: np.ndarray) -> np.ndarray:
+        """While at rest (set by _schedule_test on this frame), each voltage angle against the snapshot's."""
+        bad = np.zeros(len(snap), dtype=bool)
+        if not self.at_rest:
+            return bad
+        with np.errstate(invalid='ignore'):
+            ok = np.isfinite(snap) & np.isfinite(values[:, 1]) & (np.abs(values[:, 0]) >= MEASURING_RANGE_FLOOR_PU)
+        if ok.sum() < 2:
+            return bad
+        d = values[ok, 1] - snap[ok]
+        apart = np.abs(np.angle(np.exp(1j * (d[:, None] - d[None, :]))))
+        bad[ok] = 2 * (apart > self.angle_tolerance_rad + 2 * math.asin(self.noise_tve)).sum(axis=1) > ok.sum() - 1
+        return bad
 
     def _bus_test(self, values: np.ndarray, bus: np.ndarray) -> np.ndarray:
         bad = np.zeros(len(bus), dtype=bool)

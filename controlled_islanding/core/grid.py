@@ -138,6 +138,8 @@ class Grid:
         p_to_mw: Active power entering each branch at its to end, MW (None if unknown).
         matpower: The MATPOWER ppc the grid came from (None if built otherwise); used by `with_flows`.
         freq_hz: Nominal frequency f0, Hz (NaN if unknown): a machine's speed in pu is of 2 pi f0 rad/s.
+        bus_angle_rad: Voltage angle of each bus (parallel to buses) as the flows saw it, rad, any reference
+            (None if unknown).
 
     """
 
@@ -151,11 +153,14 @@ class Grid:
     p_to_mw: np.ndarray | None = field(default=None, compare=False)
     matpower: Mapping[str, Any] | None = field(default=None, compare=False, repr=False)
     freq_hz: float = field(default=float('nan'), compare=False)
+    bus_angle_rad: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         bus_set = set(self.buses)
         if len(bus_set) != len(self.buses):
             raise GridError(f'grid {self.name!r}: duplicate bus numbers')
+        if self.bus_angle_rad is not None and len(self.bus_angle_rad) != len(self.buses):
+            raise GridError(f'grid {self.name!r}: {len(self.bus_angle_rad)} bus angles for {len(self.buses)} buses')
         ids = [b.branch_id for b in self.branches]
         if len(set(ids)) != len(ids):
             dup = sorted({i for i in ids if ids.count(i) > 1})
@@ -205,6 +210,11 @@ class Grid:
     def has_flows(self) -> bool:
         """Whether branch flows at both ends are known."""
         return self.p_from_mw is not None
+
+    def bus_angles_at(self, buses: Iterable[int]) -> np.ndarray:
+        """Return the voltage angle of each given bus as the flows saw it, rad (NaN: not known, or not a bus)."""
+        at = {} if self.bus_angle_rad is None else dict(zip(self.buses, self.bus_angle_rad, strict=True))
+        return np.array([at.get(int(b), np.nan) for b in buses], dtype=float)
 
     def generator_by_bus(self) -> dict[int, list[Generator]]:
         """Return the generators at each bus that has any."""

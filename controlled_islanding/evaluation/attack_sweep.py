@@ -124,6 +124,7 @@ def screen(bag, channels, *, params: dict, until_s: float = math.inf) -> tuple[n
         scheduled[sid] = scheduled.get(sid, 0.0) + g.p_mw / bag.grid.base_mva
     sched = np.array([scheduled.get(sid, np.nan) for sid in channels.station_ids])
     buses = np.asarray(channels.buses, dtype=np.int64)
+    angles_at_rest = bag.grid.bus_angles_at(buses)
     flagged: dict[str, tuple[str, float]] = {}
     tags = np.asarray(channels.tag_s, dtype=float)
     rows = np.flatnonzero(np.asarray(bag.frame_present) & (tags <= until_s + 1e-9))
@@ -134,7 +135,8 @@ def screen(bag, channels, *, params: dict, until_s: float = math.inf) -> tuple[n
         usable = np.isfinite(values[0]) & np.isfinite(values[2])
         idx = np.flatnonzero(usable)
         if idx.size:
-            det.judge(t, [channels.station_ids[j] for j in idx], *(v[idx] for v in values), sched[idx], buses[idx])
+            det.judge(t, [channels.station_ids[j] for j in idx], *(v[idx] for v in values), sched[idx], buses[idx],
+                      angles_at_rest[idx])
         bad = np.array([s in det.suspects() for s in station_of])
         a = dse.update(t, values[0][cols], values[1][cols], values[2][cols], values[3][cols], usable[cols] & ~bad)
         suspects = det.innovations(t, station_of, dse.nis_)
@@ -252,7 +254,9 @@ def _effect(bag, attacked, stations, start_s: float, request_s: float, outcome: 
     if outcome.angles_rad.shape != clean.angles_rad.shape or not gens:
         return math.nan, low
     rows = outcome.tags_s >= start_s - 1e-9
-    moved = np.abs(outcome.angles_rad[np.ix_(rows, gens)] - clean.angles_rad[np.ix_(rows, gens)])
+    # Wrapped: estimates whole turns apart are one angle (a 20 deg step read as 701 deg moved).
+    moved = np.abs(np.angle(np.exp(1j * (outcome.angles_rad[np.ix_(rows, gens)]
+                                         - clean.angles_rad[np.ix_(rows, gens)]))))
     return (float(np.degrees(np.nanmax(moved))) if np.isfinite(moved).any() else math.nan), low
 
 

@@ -142,6 +142,8 @@ def monitor_inputs(run: ScenarioRun) -> MonitorInputs:
         raise PredictionStudyError(f'{run.source}: {exc}; a predictor needs every generator') from None
     stream = StreamingDSE(MachineData.of_generators(gens), run.rate_fps, 0.1, history_s=1.0, freq_hz=f0)
     detector = BadDataDetector()
+    buses = np.asarray(channels.buses)
+    angles_at_rest = run.grid.bus_angles_at(buses)
     station_of = [channels.station_ids[c] for c in cols]
     present = np.flatnonzero(np.asarray(run.frame_present))
     order = present[np.argsort(np.asarray(channels.delivery_s)[present], kind='stable')]
@@ -154,7 +156,8 @@ def monitor_inputs(run: ScenarioRun) -> MonitorInputs:
         usable = np.isfinite(values[0]) & np.isfinite(values[2]) & ((stat[k] & 0x8000) == 0)
         idx = np.flatnonzero(usable)
         suspects = detector.judge(t, [channels.station_ids[j] for j in idx], *(v[idx] for v in values),
-                                  buses=np.asarray(channels.buses)[idx]) if idx.size else detector.suspects()
+                                  buses=buses[idx], bus_angle_rad=angles_at_rest[idx]) \
+            if idx.size else detector.suspects()
         flagged |= set(suspects)
         bad = np.array([s in suspects for s in station_of])
         ok = usable[cols] & ~bad

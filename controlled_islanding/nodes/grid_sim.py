@@ -93,7 +93,7 @@ from controlled_islanding.sim.closed_loop import (
 from controlled_islanding.sim.pmu import Frame, PmuStream
 from controlled_islanding.sim.scenario import ScenarioError, load_scenario
 from controlled_islanding.wire import topics
-from controlled_islanding.wire.messages import dynamic_data_fields, nominal_frequency_hz
+from controlled_islanding.wire.messages import bus_voltage_angles, dynamic_data_fields, nominal_frequency_hz
 
 ASSESSMENT_TOPIC = '/grid/assessment'
 _CLOCK_HEARTBEAT_S = 0.05
@@ -114,7 +114,7 @@ def snapshot_msg(grid: Grid) -> NetworkSnapshot:
     """Return the NetworkSnapshot of a grid, stamped at sim time 0 (as sim/bag.py writes it)."""
     msg = NetworkSnapshot(
         case_name=grid.name, base_mva=float(grid.base_mva), nominal_frequency_hz=nominal_frequency_hz(grid),
-        bus_numbers=[int(b) for b in grid.buses],
+        bus_numbers=[int(b) for b in grid.buses], bus_voltage_angle_rad=bus_voltage_angles(grid),
         branch_ids=[b.branch_id for b in grid.branches], branch_breaker_ids=[b.breaker for b in grid.branches],
         branch_from_bus=[b.from_bus for b in grid.branches], branch_to_bus=[b.to_bus for b in grid.branches],
         branch_in_service=[b.in_service for b in grid.branches],

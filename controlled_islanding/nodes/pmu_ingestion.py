@@ -22,13 +22,14 @@ steady-state estimate; /diagnostics names them (`dse_fallback`). With 'dse', `va
 had usable data for the generator": where it is false the angle is the filter's prediction.
 
 Bad data (core/bad_data.py): every station's usable data are judged frame by frame (reported frequency against
-its angles' own rate, frozen and replayed content, the dispatch while at rest, the voltage against the other
-stations of the same bus (the snapshot's bus of each station's machine) and, with 'dse', the filter's innovation:
-the phasors against the machine model's prediction). A suspect station is excluded: its generator gets
-`valid = false` with the test in `suspect_reason`, the filter steps it as lost (its data still compared with the
-prediction, never taken), /diagnostics warns naming it (`suspect_stations`, counted in `suspect_flags`), and it
-returns after `bad_data_clean_s` of clean data. The filter takes a frame up to `dse_reorder_s` after it came, so
-a station flagged by its innovation is marked from the frame in which the filter took the offending one.
+its angles' own rate, frozen and replayed content, the dispatch and the snapshot's bus angles while the grid is
+at rest, the voltage against the other stations of the same bus (the snapshot's bus of each station's machine)
+and, with 'dse', the filter's innovation: the phasors against the machine model's prediction). A suspect station
+is excluded: its generator gets `valid = false` with the test in `suspect_reason`, the filter steps it as lost
+(its data still compared with the prediction, never taken), /diagnostics warns naming it (`suspect_stations`,
+counted in `suspect_flags`), and it returns after `bad_data_clean_s` of clean data. The filter takes a frame up to
+`dse_reorder_s` after it came, so a station flagged by its innovation is marked from the frame in which the filter
+took the offending one.
 
 Time tags are bounded by the node's own clock (sim time in replay): a frame or snapshot stamped more than
 `future_tolerance_s` ahead of it is refused, so it never becomes "the newest" that every honest frame would
@@ -361,7 +362,8 @@ class PmuIngestionNode(Node):
                 bus[m.station_id] = g.bus
         suspects = self.detector.judge(t, [m.station_id for m in ms], *(
             [getattr(m, f) for m in ms] for f in (*_FIELDS, 'frequency_hz', 'rocof_hz_per_s')),
-            [scheduled.get(m.station_id, math.nan) for m in ms], [bus.get(m.station_id, -1) for m in ms])
+            [scheduled.get(m.station_id, math.nan) for m in ms], [bus.get(m.station_id, -1) for m in ms],
+            self.grid.bus_angles_at(bus.get(m.station_id, -1) for m in ms))
         out = {}
         for g in self.grid.generators:
             m = by_generator.get(g.name) or by_bus.get(g.bus)

@@ -705,4 +705,4 @@ def _snapshot(ss: Any, case_name: str, bus_numbers: list[int], ids: list[str], p
         name = name.removesuffix(suffix)
     return Grid(name=name, base_mva=mva, buses=tuple(bus_numbers), branches=branches,
                 generators=tuple(generators), loads=loads, p_from_mw=p_from, p_to_mw=p_to,
-                freq_hz=float(ss.config.freq))
+                freq_hz=float(ss.config.freq), bus_angle_rad=np.array([float(a[b]) for b in bus_numbers]))

@@ -40,7 +40,12 @@ from controlled_islanding.sim.truth import final_separation, truth_groups
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.bagmeta import set_ros_distro
 from controlled_islanding.wire.interfaces import msg_type_name, typestore
-from controlled_islanding.wire.messages import MONITOR_FIELDS, dynamic_data_fields, nominal_frequency_hz
+from controlled_islanding.wire.messages import (
+    MONITOR_FIELDS,
+    bus_voltage_angles,
+    dynamic_data_fields,
+    nominal_frequency_hz,
+)
 from controlled_islanding.wire.qos import bag_qos
 
 log = logging.getLogger(__name__)
@@ -103,6 +108,7 @@ def _snapshot_msg(m: _Messages, grid: Grid, stamp_ns: int) -> Any:
         'NetworkSnapshot', header=m.header(stamp_ns, 'andes_power_flow'), case_name=grid.name,
         base_mva=float(grid.base_mva), nominal_frequency_hz=nominal_frequency_hz(grid),
         bus_numbers=np.array(grid.buses, dtype=np.uint32),
+        bus_voltage_angle_rad=np.array(bus_voltage_angles(grid), dtype=np.float64),
         branch_ids=[b.branch_id for b in grid.branches], branch_breaker_ids=[b.breaker for b in grid.branches],
         branch_from_bus=np.array([b.from_bus for b in grid.branches], dtype=np.uint32),
         branch_to_bus=np.array([b.to_bus for b in grid.branches], dtype=np.uint32),

@@ -210,10 +210,12 @@ def _grid_from_snapshot(msg: object) -> Grid:
                                                            msg.generator_p_max_mw, xq, ra, strict=True)))
     loads = tuple(Load(bus=int(b), p_mw=float(p), q_mvar=float(q))
                   for b, p, q in zip(msg.load_bus, msg.load_p_mw, msg.load_q_mvar, strict=True))
+    angles = np.asarray(getattr(msg, 'bus_voltage_angle_rad', ()), dtype=float)  # bags from before the field
     return Grid(name=str(msg.case_name), base_mva=base, buses=tuple(int(b) for b in msg.bus_numbers),
                 branches=branches, generators=generators, loads=loads,
                 p_from_mw=np.asarray(msg.branch_p_from_mw, dtype=float),
-                p_to_mw=np.asarray(msg.branch_p_to_mw, dtype=float), freq_hz=f0)
+                p_to_mw=np.asarray(msg.branch_p_to_mw, dtype=float), freq_hz=f0,
+                bus_angle_rad=angles if angles.size and angles.size == len(msg.bus_numbers) else None)
 
 
 def load_bag(path: str | Path) -> BagData:

@@ -147,6 +147,11 @@ def nominal_frequency_hz(grid: Grid) -> float:
     return f0 if np.isfinite(f0) and f0 > 0 else 0.0
 
 
+def bus_voltage_angles(grid: Grid) -> list[float]:
+    """Return a grid's bus angles for NetworkSnapshot.bus_voltage_angle_rad: rad, empty when not known."""
+    return [] if grid.bus_angle_rad is None else [float(a) for a in grid.bus_angle_rad]
+
+
 def snapshot_frequency_hz(msg: object) -> float:
     """Return a NetworkSnapshot's nominal frequency, Hz, NaN when not known (0, or a message from before the field).
 
@@ -176,7 +181,7 @@ def grid_from_snapshot(msg: object, limits: Limits = Limits()) -> Grid:
             length than the generators.
 
     """
-    _at_most(msg, 'network snapshot', ('bus_numbers',), limits.max_buses)
+    _at_most(msg, 'network snapshot', ('bus_numbers', 'bus_voltage_angle_rad'), limits.max_buses)
     _at_most(msg, 'network snapshot', _BRANCH_FIELDS, limits.max_branches)
     _at_most(msg, 'network snapshot', _GENERATOR_FIELDS, limits.max_generators)
     _at_most(msg, 'network snapshot', _LOAD_FIELDS, limits.max_loads)
@@ -199,6 +204,10 @@ def grid_from_snapshot(msg: object, limits: Limits = Limits()) -> Grid:
     xq = _finite_non_negative(msg.generator_xq_pu, 'generator_xq_pu')
     ra = _finite_non_negative(msg.generator_ra_pu, 'generator_ra_pu')
     models, dynamic = decode_dynamic_data(msg, len(msg.generator_names))
+    angles = _finite(getattr(msg, 'bus_voltage_angle_rad', ()), 'bus_voltage_angle_rad')
+    if angles.size and angles.size != len(msg.bus_numbers):
+        raise MessageError('array_length', f'bus_voltage_angle_rad has {angles.size} entries for '
+                                           f'{len(msg.bus_numbers)} buses; give one per bus or none')
     load_p = _finite(msg.load_p_mw, 'load_p_mw')
     load_q = _finite(msg.load_q_mvar, 'load_q_mvar')
     base = float(msg.base_mva)
@@ -219,7 +228,7 @@ def grid_from_snapshot(msg: object, limits: Limits = Limits()) -> Grid:
                                                             xq, ra, strict=True))),
             loads=tuple(Load(int(b), float(p), float(q))
                         for b, p, q in zip(msg.load_bus, load_p, load_q, strict=True)),
-            p_from_mw=p_from, p_to_mw=p_to, freq_hz=f0)
+            p_from_mw=p_from, p_to_mw=p_to, freq_hz=f0, bus_angle_rad=angles if angles.size else None)
     except GridError as exc:
         raise MessageError('unknown_id', str(exc)) from exc
 
