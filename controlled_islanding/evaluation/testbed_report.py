@@ -212,7 +212,8 @@ def render(results: list[dict]) -> str:
 # Notes under the table: (scenario name prefixes they are about, none = every page; text). A page carries only
 # the notes about its own scenarios. The diagnoses were made on 2026-12-01 under the judge before PRC-024's.
 NOTES: tuple[tuple[tuple[str, ...], str], ...] = (
-    ((), '"V min" is ANDES\' voltage variable. A bus left with no in-service branch (an island of one bus) is '
+    ((), '"V min" is the magnitude of ANDES\' voltage variable (which may carry a bus at V < 0, the phasor turned '
+         'by pi). A bus left with no in-service branch (an island of one bus) is '
          "outside ANDES' network equations: its voltage, and the machine on it, are not physical. New islands "
          "start from the pre-fault voltages turned with their machines' mean rotor-angle advance "
          "(GridRun._warm_start), and a bus left at 0 V next to a live one restarts from that neighbour ('solver "
