@@ -637,3 +637,22 @@ def test_with_the_monitor_as_the_trigger_grid_sim_asks_nothing_and_the_monitor_r
     assert result['closed_loop']['request_s'] == pytest.approx(request['at_s'])
     assert sorted(map(sorted, result['coherent_groups']['groups'])) == [['GENROU_1', 'GENROU_2'],
                                                                          ['GENROU_3', 'GENROU_4']]
+
+
+def test_a_later_shed_at_a_bus_takes_only_what_the_earlier_decisions_did_not():
+    """The monitor may ask again as a swing goes on; each decision plans its shed from the pre-fault loads."""
+    from dataclasses import replace
+
+    from controlled_islanding.sim.closed_loop import GridRun
+    from controlled_islanding.sim.scenario import load_scenario
+
+    scenario = load_scenario(REPO / 'bags' / 'kundur_bus9_unstable.yaml')
+    run = GridRun(replace(scenario, faults=(), trips=(), end_s=0.5))
+    load_mw = run.island_load_mw([7])
+    for at_s, mw in ((0.1, 100.0), (0.2, 100.0), (0.3, 60.0), (0.4, 250.0)):
+        run.shed_loads({7: mw}, at_s, why=f'shed {at_s}')
+    run.run()
+    applied = {a.what: a.detail['shed_mw_by_bus'][7] for a in run.actions if a.what.startswith('shed')}
+    assert applied == {'shed 0.1': pytest.approx(100.0), 'shed 0.2': 0.0, 'shed 0.3': 0.0,
+                       'shed 0.4': pytest.approx(150.0)}
+    assert run.shed_mw([7]) == pytest.approx(250.0) and load_mw > 250.0

@@ -561,6 +561,7 @@ class GridRun:
         self._reseeds: dict[int, int] = {}  # bus uid -> times restarted off the trivial root
         self.overspeed: dict[str, tuple[float, float]] = {}  # machine -> (when tripped, s; its speed then, pu)
         self._load_left = np.ones(self.ss.PQ.n)  # each load's share of its pre-fault value still connected
+        self._decided_shed_mw: dict[int, float] = {}  # bus -> the most the decisions shed there, MW of its load
         self._load_p0_mw = np.asarray(self.ss.PQ.p0.v, dtype=float) * float(self.ss.config.mva)
         self._ufls_below: dict[tuple[frozenset[int], int], float] = {}  # (island's loads, stage) -> below since, s
         self._ufls_done: set[tuple[int, int]] = set()  # (load row, stage)
@@ -596,7 +597,11 @@ class GridRun:
         A shed of S MW at a bus whose pre-fault load is L MW disconnects the share S / L of what is still connected
         of each of its loads (its feeders): every PQ row of the bus is scaled by (1 - S / L). After the grid's UFLS
         has disconnected part of a load, the shed takes that share of the rest, so no MW is shed twice, and it
-        removes less than S. The MW it removed, by bus, are in the action's detail once applied.
+        removes less than S. S is what the decisions shed at the bus in all, as an open feeder breaker opens no
+        more: after an earlier shed of S0 there, a later one takes the share (S - S0) / (L - S0), and none when S
+        <= S0 (each decision plans its islands' shed from the pre-fault loads, and the monitor may ask again as a
+        swing goes on: IEEE 39 case 2 got four decisions, two with the first's shed again). The MW it removed, by
+        bus, are in the action's detail once applied.
 
         Raises:
             ClosedLoopError: A bus carries no load in the case, or the amount is not in (0, its load].
@@ -604,21 +609,24 @@ class GridRun:
         """
         ss = self.ss
         mva = float(ss.config.mva)
-        plan: list[tuple[int, list[int], float]] = []
+        plan: list[tuple[int, list[int], float, float]] = []  # bus, its PQ rows, S and L, MW
         for bus, mw in sorted(shed_mw_by_bus.items()):
             rows = [i for i in range(ss.PQ.n) if ss.PQ.u.v[i] and int(ss.PQ.bus.v[i]) == int(bus)]
             load_mw = float(sum(ss.PQ.p0.v[i] for i in rows)) * mva
             if load_mw <= 0 or not 0 < float(mw) <= load_mw * (1 + 1e-9) + 1e-9:
                 raise ClosedLoopError(f'shed {mw} MW at bus {bus} of {self.scenario.case.name}: its load is '
                                       f'{load_mw:.3f} MW')
-            plan.append((int(bus), rows, min(1.0, float(mw) / load_mw)))
+            plan.append((int(bus), rows, min(float(mw), load_mw), load_mw))
         action = Applied(what=why, scheduled_s=float(at_s),
                          detail={'planned_mw_by_bus': {int(b): float(mw) for b, mw in shed_mw_by_bus.items()},
                                  'shed_mw_by_bus': {}, 'shed_mw': 0.0})
 
         def do() -> None:
             by_bus = {}
-            for bus, rows, fraction in plan:
+            for bus, rows, target_mw, load_mw in plan:
+                done_mw = self._decided_shed_mw.get(bus, 0.0)
+                fraction = min(1.0, (target_mw - done_mw) / (load_mw - done_mw)) if target_mw > done_mw else 0.0
+                self._decided_shed_mw[bus] = max(done_mw, target_mw)
                 by_bus[bus] = fraction * float(sum(self._load_p0_mw[i] * self._load_left[i] for i in rows))
                 self._scale_loads(rows, 1.0 - fraction)
             action.detail.update(shed_mw_by_bus=by_bus, shed_mw=sum(by_bus.values()))
