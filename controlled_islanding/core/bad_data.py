@@ -4,7 +4,7 @@ Why: C37.118.2 carries no authentication and a spoofer leaves STAT "good". A sta
 themselves, or repeat, is excluded before its angles can steer a cut; it comes back only after `clean_s` of
 frames that pass every test.
 
-The tests, each judged on one station's own channel, frame by frame:
+The tests, frame by frame (each on one station's own channel, but the last two, which set stations side by side):
 
 - ``frequency_mismatch``: a PMU reports the frequency it measures, f = f0 + (d theta / dt) / (2 pi), theta the
   voltage angle against the nominal-frequency reference. Over a window of ``window_s`` of consecutive frames the
