@@ -376,7 +376,9 @@ def test_a_station_joining_a_running_stream_is_suspect_until_clean_s_of_clean_da
                    'its bus is shorted. -2 rad/s over the 0.3 s fault reads as the machine accelerating with 61 % of '
                    'its pre-fault accelerating power (GB bus 73: 77 % over 0.2 s), a turbine whose power fell that '
                    "much within the fault: the snapshot bounds no turbine's rate, and the filter's torque walk takes "
-                   "it. Nordic 44's cut grows from 4 branches to 7 (docs/attacks.md, ramp_back). Refusing whenever "
+                   "it. Nordic 44's cut grows from 4 branches to 7 (docs/attacks.md, ramp_back); its three neighbours "
+                   "on bus 6000 name it (bus_disagreement) only at 1.333 s, the first frame back in range. Refusing "
+                   "whenever "
                    "such a station's data decide would refuse clean bags too: GB bus 73's clean decision changes "
                    'when that station is left unobserved')
 def test_a_ramp_through_the_fault_on_the_faulted_bus_station_cannot_steer():
