@@ -7,7 +7,16 @@ from pathlib import Path
 
 import pytest
 
-from controlled_islanding.evaluation.monitor_study import ClosedLoop, MonitorRun, Request, read_testbed, report, verdict
+from controlled_islanding.evaluation.monitor_study import (
+    ClosedLoop,
+    MonitorRun,
+    NoiseDraws,
+    Request,
+    read_testbed,
+    report,
+    report_noise,
+    verdict,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 TRUTH = {'G1': 0, 'G2': 0, 'G3': 1}
@@ -37,6 +46,31 @@ def test_acceptance_needs_the_request_in_time_with_the_final_groups_and_90_perce
     assert '| stable runs without any request | 0 / 1 (1 false requests in all) |' in lines
     assert '| ... and at least 0.1 s before it | 1 / 1 |' in lines
     assert '1.75 (+0.25) k=2 | right | 950 | 0 | 1000 | met: met |' in lines
+
+
+def test_the_closed_loops_own_groups_are_judged_too_over_the_machines_it_observed():
+    """A closed loop decides on its own stream: a request right offline can be on other groups there."""
+    right = Request(1.7, 1.75, {'G1': 0, 'G2': 0, 'G3': 1}, 2.0)
+    loop = ClosedLoop('case', True, 1.7, 950.0, 0.0, 1000.0, True, False, True, groups={'G1': 0, 'G2': 1, 'G3': 1})
+    assert verdict(run(requests=[right]), loop) == (False, "the closed loop's first decision on other groups")
+    loop.groups = {'G1': 0, 'G3': 1}  # G2 unobserved: in no group
+    assert verdict(run(requests=[right]), loop) == (True, 'met')
+
+
+def test_noise_draws_count_false_requests_on_stable_runs_and_timely_right_ones_on_separating_runs():
+    right = Request(1.7, 1.75, {'G1': 0, 'G2': 0, 'G3': 1}, 2.0)
+    wrong = Request(1.7, 1.75, {'G1': 0, 'G2': 1, 'G3': 1}, 2.0)
+    late = Request(2.1, 2.15, {'G1': 0, 'G2': 0, 'G3': 1}, 2.0)
+    stable = {'G1': 0, 'G2': 0, 'G3': 0}
+    draws = [NoiseDraws('split', 0.005, (1, 2, 3), [run(requests=[right]), run(requests=[wrong]),
+                                                    run(requests=[late])]),
+             NoiseDraws('quiet', 0.005, (1, 2, 3), [run(stable, None), run(stable, None, [right]), run(stable, None)])]
+    lines = '\n'.join(report_noise(draws))
+    assert '| stable draws with a request | 1 / 3 (in 1 of 1 scenarios) |' in lines
+    assert '| separating draws asked before the first pole slip | 2 / 3 |' in lines
+    assert '| ... with the final groups | 1 / 3 |' in lines
+    assert '| split | 2 | 0.005 | 3 | 2 | 1 | 0.25 (0.25) |' in lines
+    assert '| quiet | 1 | 0.005 | 3 | 1 | - | - |' in lines
 
 
 def test_the_closed_loop_is_read_from_a_testbed_folder_and_a_run_not_triggered_by_the_monitor_is_named(tmp_path):
@@ -122,6 +156,7 @@ def test_a_borderline_swing_that_returns_raises_no_request():
     run = watch_run(run_from_scenario(path))
     assert run.stable
     assert run.requests == []
+
 
 
 def test_a_machine_carried_out_by_the_critical_one_is_not_named_with_it():

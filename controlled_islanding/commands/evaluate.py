@@ -74,7 +74,9 @@ slip, false alarms, groups at the alarm (docs/prediction.md).
 angles of the bags and --andes scenarios, as the node would: every request against the first pole slip, false
 requests on runs that stay one group, the groups of the first request against the final grouping; with --testbed
 RESULTS (a `testbed --trigger monitor` results folder, repeatable) also the closed loop's load served against no
-action and the oracle, from that folder or from a `testbed --oracle` folder of any trigger (docs/monitor.md).
+action and the oracle, from that folder or from a `testbed --oracle` folder of any trigger (docs/monitor.md);
+with --noise-seeds N also every scenario simulated once and measured again under seeds 1 to N: how often the PMUs'
+noise tips the monitor into a false request, a late one, or other groups (about a minute per seed).
 
 --k-rules FILE.md instead compares every k rule (core/k_rules.py) on the bags and on --andes scenarios
 (simulated here, the simulator's own rotor angles), and writes the table (docs/coherency_rules.md).
@@ -125,6 +127,10 @@ def add_arguments(parser) -> None:
     parser.add_argument('--testbed', action='append', type=Path, metavar='RESULTS', default=[],
                         help='with --monitor: a `testbed --trigger monitor` results folder whose closed loops the page '
                              'shows, or a `testbed --oracle` one whose oracle they are judged against (repeatable)')
+    parser.add_argument('--noise-seeds', type=int, default=0, metavar='N',
+                        help='with --monitor: also simulate each scenario once and measure it again under seeds 1 to '
+                             'N (PMU noise and impairments), the monitor run on every draw: how often noise tips '
+                             'its verdict (default: 0, none)')
     parser.add_argument('--draws', type=int, default=5, help='random placements per coverage (--observability)')
     parser.add_argument('--seed', type=int, default=0, help='seed of the random placements (--observability)')
     parser.add_argument('--andes', action='append', type=Path, metavar='SCENARIO.yaml', default=[],
@@ -154,8 +160,8 @@ def run(args) -> int:
         return compare_predictors(args, args.bags)
     if args.monitor:
         return judge_monitor(args, args.bags)
-    if args.testbed:
-        raise CliError('--testbed is for --monitor')
+    if args.testbed or args.noise_seeds:
+        raise CliError('--testbed and --noise-seeds are for --monitor')
     from controlled_islanding.wire.bagdata import BagDataError, load_bag
 
     bags = []

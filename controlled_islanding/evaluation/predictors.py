@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -206,16 +206,29 @@ def run_from_bag(path: str | Path) -> ScenarioRun:
 
 def run_from_scenario(path: str | Path) -> ScenarioRun:
     """Simulate a scenario YAML in ANDES and measure it as its PMUs would (sim/pmu.py); truth by sim/truth.py."""
+    scenario, sim = simulate_scenario(path)
+    return measured_run(scenario, sim, path)
+
+
+def simulate_scenario(path: str | Path):
+    """Return (scenario, ANDES simulation) of a scenario YAML."""
     from controlled_islanding.sim.andes_sim import SimulationError, simulate
-    from controlled_islanding.sim.pmu import measure
     from controlled_islanding.sim.scenario import ScenarioError, load_scenario
-    from controlled_islanding.sim.truth import first_pole_slip_s, truth_groups
 
     try:
         scenario = load_scenario(path)
-        sim = simulate(scenario, progress=False)
+        return scenario, simulate(scenario, progress=False)
     except (ScenarioError, SimulationError) as exc:
         raise PredictionStudyError(f'{path}: {exc}') from exc
+
+
+def measured_run(scenario, sim, path: str | Path, seed: int | None = None) -> ScenarioRun:
+    """Return a simulation measured as the scenario's PMUs would, under its own seed or `seed` (noise, impairments)."""
+    from controlled_islanding.sim.pmu import measure
+    from controlled_islanding.sim.truth import first_pole_slip_s, truth_groups
+
+    if seed is not None:
+        scenario = replace(scenario, seed=int(seed))
     data = measure(sim, scenario)
     labels = truth_groups(data.tag_s, data.truth_delta_rad)
     truth = {n: int(k) for n, k in zip(sim.generator_names, labels, strict=True)}
