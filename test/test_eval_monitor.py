@@ -201,3 +201,16 @@ def test_a_machine_carried_out_is_not_named_with_the_critical_one_under_other_no
 
     draws = noise_draws(REPO / 'bags' / 'ieee39_case2_g3_unstable.yaml', (2, 5))
     assert [(r.lead_s > 0, r.groups_right) for r in draws.runs] == [(True, True), (True, True)]
+
+
+def test_a_curve_that_accelerates_the_machines_all_the_way_to_the_slip_is_a_verdict():
+    """Kundur, bus 9 (slip at 1.83 s), measured under seeds 5 and 9 (ANDES once, a few seconds).
+
+    Pa of G3-G4 against G1-G2 still rose along the swing, more and more slowly, with no zero ahead: the margin had
+    no unstable equilibrium to be taken at, and no verdict came until 2.00 s, after the slip. The slip lies nearer
+    than the swing has travelled by 1.6 s, and the curve accelerates the OMIB all the way there.
+    """
+    from controlled_islanding.evaluation.monitor_study import noise_draws
+
+    draws = noise_draws(REPO / 'bags' / 'kundur_bus9_unstable.yaml', (5, 9))
+    assert [(r.lead_s > 0, r.groups_right) for r in draws.runs] == [(True, True), (True, True)]

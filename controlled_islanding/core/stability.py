@@ -40,7 +40,9 @@ Approach to Assessment and Control", 2000: emergency SIME):
    (where s Pa turns from decelerating to accelerating) with kinetic energy left iff the margin
    eta = -(1/2 M omega_base omega_now^2 + integral from delta_now to delta_u of Pa d delta) < 0 (pu rad).
    No delta_u ahead: the swing returns. Past delta_u already (accelerating again after decelerating): SIME's
-   measured instability, with the same margin taken at delta_u behind.
+   measured instability, with the same margin taken at delta_u behind. The pole slip (pi rad from rest) nearer
+   than the swing has travelled, and the curve accelerating the OMIB all the way to it beyond its error: it
+   separates, whatever the curve does past the slip (z: the least of s Pa over its standard error there).
 6. What a verdict needs, each for a physical reason (``_omib``): a decelerating sample in the present swing,
    unless it is the first swing after a switching that raised the voltages (a cleared fault: a curve that never
    decelerates after clearing has no decelerating area at all); delta_u no further ahead than the swing has
@@ -686,6 +688,19 @@ class SIMEPredictor:
             return OmibVerdict()
         coef, cov = fit
         eta, y_u = _margin(coef, s, ke, behind)
+        reach = POLE_SLIP_RAD - s * from_rest
+        if 0 < reach <= behind and (math.isnan(eta) or y_u > reach):
+            # The pole slip lies nearer than the swing has travelled, where the quadratic is still a fair
+            # expansion, and no delta_u before it: if the curve accelerates the OMIB all the way there (beyond
+            # its error), it slips before anything could decelerate it. Kundur, bus 9: a rise of Pa that slows
+            # without turning gave no verdict, and under 2 of 10 noise draws the request came after the slip.
+            y = np.linspace(0.0, reach, 40)
+            design = np.column_stack([y ** 2, s * y, np.ones_like(y)])
+            along = s * (design @ coef)
+            error = np.sqrt(np.maximum(np.einsum('ij,jk,ik->i', design, cov, design), 1e-30))
+            z_reach = float(np.min(along / error))
+            if z_reach >= self.z_alarm:
+                return OmibVerdict(-math.inf, z_reach, self._slip_in(coef, s, ke, from_rest, mm))
         if math.isnan(eta) or y_u > behind:
             # No verdict; or delta_u further ahead than the swing has travelled: the quadratic is a Taylor
             # expansion of the curve about the samples, and so far beyond them its remainder would decide.
