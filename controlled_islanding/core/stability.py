@@ -622,8 +622,9 @@ class SIMEPredictor:
         confidence, the far part alone is evidence enough for the side's verdict, and the nearer part belongs
         with it only on its own evidence: its OMIB against the machines outside the side separating with
         confidence too. Until then, where the nearer part ends is not known: with the far part, or with the
-        others. G2's own verdict went -1.4, -2.4, -0.2, -0.4 on the bag, and under other noise draws 0.5, or
-        none on the frame that counted (the alarm then named G2 with G3 in 6 of 10 draws, waiting only for z < 0).
+        others. G2's own verdict went -1.4, -2.4, -0.2, -0.4 on the bag, and under other noise draws 0.2 to 0.6,
+        or none, on the frame that counted (the alarm then named G2 with G3 in 6 of 10 draws, waiting only for
+        z < 0).
         While the far part alone is not confidently separating, the side's verdict is not the far part's alone,
         and nothing is held: on IEEE 39 G6-G7 with delayed frames, G6's own OMIB had none at times while it
         slipped with G7. Asked of the critical side only: asked of the bulk, the same question comes back as the
