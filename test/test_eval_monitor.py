@@ -214,3 +214,17 @@ def test_a_curve_that_accelerates_the_machines_all_the_way_to_the_slip_is_a_verd
 
     draws = noise_draws(REPO / 'bags' / 'kundur_bus9_unstable.yaml', (5, 9))
     assert [(r.lead_s > 0, r.groups_right) for r in draws.runs] == [(True, True), (True, True)]
+
+
+def test_noise_seeds_measure_each_scenario_again_and_the_page_counts_the_draws(tmp_path, capsys):
+    """The --andes scenario's own simulation is measured again under each seed (a few seconds)."""
+    from controlled_islanding.cli import main
+
+    page = tmp_path / 'monitor.md'
+    scenario = REPO / 'docs' / 'coherency_rules' / 'pjm5bus_stable_trip.yaml'
+    assert main(['evaluate', '--andes', str(scenario), '--noise-seeds', '-1', '--monitor', str(page)]) != 0
+    assert '--noise-seeds must be 0 or more' in capsys.readouterr().err and not page.exists()
+    assert main(['evaluate', '--andes', str(scenario), '--noise-seeds', '2', '--monitor', str(page)]) == 0
+    text = page.read_text()
+    assert '--noise-seeds 2 --monitor' in text and '## Under other noise draws' in text
+    assert '| pjm5bus_stable_trip | 1 | 0.005 | 2 | 0 | - | - |' in text

@@ -26,29 +26,25 @@ def judge_monitor(args, bag_paths) -> int:
     if missing:
         raise CliError(f'--testbed folders do not exist: {", ".join(missing)}')
     loops = monitor_study.read_testbed(args.testbed)
-    runs = []
+    runs, draws, drawn = [], [], set()
+    seeds = range(1, args.noise_seeds + 1)
     start, load_start = time.monotonic(), load_average()
     with progress_bar(len(sources), 'monitor', 'scenario') as bar:
         for kind, path in sources:
             log.info('%s: %s', path, 'simulating in ANDES' if kind == 'andes' else 'reading the bag')
             try:
-                runs.append(monitor_study.watch_run(study.run_from_bag(path) if kind == 'bag'
-                                                    else study.run_from_scenario(path)))
+                simulated = study.simulate_scenario(path) if kind == 'andes' else None
+                runs.append(monitor_study.watch_run(study.run_from_bag(path) if simulated is None
+                                                    else study.measured_run(*simulated, path)))
+                scenario_path = runs[-1].scenario_path
+                if seeds and scenario_path is not None and scenario_path.resolve() not in drawn:
+                    drawn.add(scenario_path.resolve())
+                    log.info('%s: measuring under seeds %d to %d', scenario_path, seeds[0], seeds[-1])
+                    # A bag's scenario is simulated here; an --andes one reuses the simulation above.
+                    draws.append(monitor_study.noise_draws(scenario_path, seeds, simulated))
             except study.PredictionStudyError as exc:
                 raise CliError(str(exc)) from exc
             bar.update()
-    draws = []
-    if args.noise_seeds > 0:
-        paths = list(dict.fromkeys(r.scenario_path.resolve() for r in runs if r.scenario_path is not None))
-        seeds = range(1, args.noise_seeds + 1)
-        with progress_bar(len(paths), 'noise draws', 'scenario') as bar:
-            for path in paths:
-                log.info('%s: simulating in ANDES, measuring under seeds %d to %d', path, seeds[0], seeds[-1])
-                try:
-                    draws.append(monitor_study.noise_draws(path, seeds))
-                except study.PredictionStudyError as exc:
-                    raise CliError(str(exc)) from exc
-                bar.update()
     note = f'{time.monotonic() - start:.0f} s wall, {load_start} at the start and {load_average()} at the end'
     print('\n'.join(monitor_study.report(runs, loops, note)))
     if draws:

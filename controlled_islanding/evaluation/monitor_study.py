@@ -155,11 +155,14 @@ class NoiseDraws:
         return [r for r in self.runs if (r.lead_s or 0) > 0]
 
 
-def noise_draws(path: Path, seeds: Sequence[int]) -> NoiseDraws:
-    """Simulate a scenario YAML once, measure it under each seed, and run the monitor's core on every draw."""
+def noise_draws(path: Path, seeds: Sequence[int], simulated=None) -> NoiseDraws:
+    """Simulate a scenario YAML once, measure it under each seed, and run the monitor's core on every draw.
+
+    simulated: the scenario's (scenario, simulation) from predictors.simulate_scenario, where already run.
+    """
     from controlled_islanding.evaluation.predictors import measured_run, simulate_scenario
 
-    scenario, sim = simulate_scenario(path)
+    scenario, sim = simulated if simulated is not None else simulate_scenario(path)
     runs = [watch_run(measured_run(scenario, sim, path, seed)) for seed in seeds]
     return NoiseDraws(scenario.name, float(scenario.noise_tve), tuple(seeds), runs)
 
