@@ -98,6 +98,11 @@ class MonitorRun:
         return self.first_pole_slip_s - self.requests[0].delivery_s
 
     @property
+    def in_time(self) -> bool:
+        """Whether the first request came before the first pole slip."""
+        return (self.lead_s or 0) > 0
+
+    @property
     def groups_right(self) -> bool:
         """Whether the first request's groups are the final grouping."""
         from controlled_islanding.evaluation.coherency_rules import blocks
@@ -150,9 +155,9 @@ class NoiseDraws:
         """Whether the scenario ends in one group."""
         return self.runs[0].stable
 
-    def in_time(self) -> list[MonitorRun]:
+    def timely(self) -> list[MonitorRun]:
         """Return the draws whose first request came before the first pole slip."""
-        return [r for r in self.runs if (r.lead_s or 0) > 0]
+        return [r for r in self.runs if r.in_time]
 
 
 def noise_draws(path: Path, seeds: Sequence[int], simulated=None) -> NoiseDraws:
@@ -173,8 +178,8 @@ def report_noise(draws: Sequence[NoiseDraws]) -> list[str]:
     unstable = [d for d in draws if not d.stable]
     n = len(draws[0].seeds) if draws else 0
     false = sum(bool(r.requests) for d in stable for r in d.runs)
-    asked = sum(len(d.in_time()) for d in unstable)
-    right = sum(r.groups_right for d in unstable for r in d.in_time())
+    asked = sum(len(d.timely()) for d in unstable)
+    right = sum(r.groups_right for d in unstable for r in d.timely())
     lines = ['| figure | value |', '|---|---|',
              f'| stable draws with a request | {false} / {n * len(stable)} (in '
              f'{sum(any(r.requests for r in d.runs) for d in stable)} of {len(stable)} scenarios) |',
@@ -187,7 +192,7 @@ def report_noise(draws: Sequence[NoiseDraws]) -> list[str]:
         if d.stable:
             hits, right_cell, lead = sum(bool(r.requests) for r in d.runs), '-', '-'
         else:
-            timely = d.in_time()
+            timely = d.timely()
             leads = [r.lead_s for r in timely]
             hits, right_cell = len(timely), str(sum(r.groups_right for r in timely))
             lead = f'{np.median(leads):.2f} ({min(leads):.2f})' if leads else '-'
@@ -308,8 +313,7 @@ def verdict(run: MonitorRun, loop: ClosedLoop | None) -> tuple[bool | None, str]
             return False, 'closed-loop load served differs from no action'
         return True, 'quiet'
     why = []
-    lead = run.lead_s
-    if lead is None or lead <= 0:
+    if not run.in_time:
         why.append('no request before the first slip')
     elif not run.groups_right:
         why.append('groups not the final ones')
@@ -331,7 +335,7 @@ def report(runs: Sequence[MonitorRun], loops: dict[str, ClosedLoop], run_note: s
     """Return the figures and the per-scenario table as Markdown lines."""
     stable = [r for r in runs if r.stable]
     unstable = [r for r in runs if not r.stable]
-    in_time = [r for r in unstable if (r.lead_s or 0) > 0]
+    in_time = [r for r in unstable if r.in_time]
     right = [r for r in in_time if r.groups_right]
     to_act = [r for r in right if r.lead_s >= TIME_TO_ACT_S - 1e-9]
     leads = [r.lead_s for r in in_time]
@@ -400,7 +404,7 @@ def write_page(runs: Sequence[MonitorRun], loops: dict[str, ClosedLoop], path: P
     notes = list(dict.fromkeys(n for loop in loops.values() for n in loop.notes))
     missed = []
     for r in runs:
-        if not r.stable and (r.lead_s or 0) <= 0:
+        if not r.stable and not r.in_time:
             cleared = [c for c in r.clearings_s if c <= (r.first_pole_slip_s or math.inf)]
             after = (f'{r.first_pole_slip_s - cleared[-1]:.2f} s after its last fault cleared' if cleared
                      else 'no fault cleared before it')
