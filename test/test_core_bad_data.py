@@ -327,6 +327,60 @@ def test_the_innovation_test_flags_what_the_frequency_test_cannot_see_before_the
     assert why == 'innovation' and start_s - 1e-9 <= at_s < float(_bag(name).request_t_s[0])
 
 
+def test_a_spoofed_speed_inside_a_bolted_fault_at_the_stations_own_terminal_is_flagged_on_its_first_frame():
+    """GB bus 73: every frame before the request is inside the fault, the voltage at 0.003 pu (no angle to judge).
+
+    The fault current still carries z = V + j x_s I, and the machine, with no electrical output, accelerates as its
+    model says: 2 rad/s more stands out at once. (-2 rad/s does not: the first frame's honest innovation leads by
+    about as much, the filter having taken the power's drop as linear over the frame, and the later frames of the
+    fault turn the current against the voltage faster than the filter's chord follows, so are not judged.)
+    """
+    flags = _screened_flags('gbnetwork_bus73_unstable', 'ramp', 'PMU_73', 1.0)
+    assert flags == {'PMU_73': ('innovation', pytest.approx(1.0 + 1 / 30, abs=1e-6))}
+
+
+@pytest.mark.parametrize('name', ['pjm5bus_bus3_unstable', 'nordic44_bus6000_three_groups',
+                                  'ei33_bus101048_pair_unstable'])
+@pytest.mark.parametrize('noise_tve', [0.0, 0.01])
+def test_honest_frames_inside_bolted_faults_are_judged_and_pass(name, noise_tve):
+    """Frames whose voltage is below the measuring range, where z is not, are judged; honest ones stay in bound."""
+    from controlled_islanding.core.dse import MachineData, RotorAngleDSE
+
+    bag = _bag(name)
+    channels = with_tve_noise(bag, noise_tve, seed=3, present_tve=0.005) if noise_tve else bag
+    gens = bag.grid.generators
+    cols = [bag.pmu_column(g.name, g.bus) for g in gens]
+    dse = RotorAngleDSE().fit(MachineData.of_generators(gens))
+    below = []
+    for k in np.flatnonzero(np.asarray(bag.frame_present)):
+        v = np.asarray(channels.v_mag_pu)[k][cols]
+        dse.update(float(bag.tag_s[k]), v, np.asarray(channels.v_angle_rad)[k][cols],
+                   np.asarray(channels.i_mag_pu)[k][cols], np.asarray(channels.i_angle_rad)[k][cols])
+        below += list(dse.nis_[(v < 0.1) & np.isfinite(dse.nis_)])
+    assert len(below) >= 3
+    assert max(below) < BadDataDetector().nis_bound / 2
+
+
+def test_a_dead_bus_is_not_judged():
+    """V and I both near zero (a machine's breaker and its bus both open): z is out of range, no model to hold."""
+    from controlled_islanding.core.dse import MachineData, RotorAngleDSE
+
+    bag = _bag('kundur_bus9_unstable')
+    gens = bag.grid.generators
+    cols = [bag.pmu_column(g.name, g.bus) for g in gens]
+    dse = RotorAngleDSE().fit(MachineData.of_generators(gens))
+    rows = np.flatnonzero(np.asarray(bag.frame_present) & (np.asarray(bag.tag_s) < 0.9))
+    for k in rows:
+        dse.update(float(bag.tag_s[k]), *(np.asarray(getattr(bag, f))[k][cols]
+                                          for f in ('v_mag_pu', 'v_angle_rad', 'i_mag_pu', 'i_angle_rad')))
+    k = rows[-1]
+    v, i = np.asarray(bag.v_mag_pu)[k][cols].copy(), np.asarray(bag.i_mag_pu)[k][cols].copy()
+    v[0], i[0] = 1e-3, 1e-3
+    dse.update(float(bag.tag_s[k]) + 1 / 30, v, np.asarray(bag.v_angle_rad)[k][cols], i,
+               np.asarray(bag.i_angle_rad)[k][cols])
+    assert math.isnan(dse.nis_[0]) and np.isfinite(dse.nis_[1:]).all()
+
+
 @pytest.mark.parametrize('name', sorted(CASES))
 @pytest.mark.parametrize('noise_tve', [0.0, 0.01])
 def test_clean_bags_flag_no_station_with_the_filter_with_and_without_noise(name, noise_tve):

@@ -34,7 +34,9 @@ time constants. The torque of the swing equation is the measured electrical torq
 
 The filter is the unscented transform with kappa = 0 (the cubature rule: 2n equally weighted points), which needs
 no tuning and never has negative weights. Process noise is additive, scaled per machine by its initial output;
-measurement noise follows the total vector error (C37.118 allows 1 %) of V and of I seen through x_s.
+measurement noise follows the total vector error (C37.118 allows 1 %) of V and of I seen through x_s; below the
+bottom of the measuring range (10 % of rated, where the standard sets no accuracy) V's error is taken as at that
+magnitude, since a converter's error floor is in volts.
 
 Between frames the inputs are taken to change linearly, but a fault or a switching makes them jump at an unknown
 instant within the frame; the covariance is widened by that uncertainty (the change of the state derivative
@@ -381,7 +383,10 @@ class RotorAngleDSE:
             against the filter's prediction, weighed by their covariance (chi-square with 2 degrees of freedom
             where the model and the noise hold). Judged also where ``valid`` is False but the data are present
             (a suspect station: compared, never corrected), and only where the frame is within the noise model:
-            the voltage at least 0.1 pu (below 10 % of rated C37.118.1 sets no accuracy at all), and the current
+            z at least 0.1 pu (the bottom of C37.118.1's measuring range; inside a bolted fault at the terminal V
+            is below it but z, carried by the fault current, is not, and a spoofed speed there shows at once: the
+            machine accelerates at Pm / M with no electrical output, which the model knows; a dead bus, V and I both
+            near zero, is not judged), and the current
             turned against the voltage since the last frame by at most 2 acos(1 - measurement_tve) rad (half-way
             along the chord the filter takes between frames, a phasor turning by phi falls short by
             1 - cos(phi / 2): within the TVE only up to that turn; a machine slipping poles turns further), and
@@ -578,7 +583,8 @@ class RotorAngleDSE:
         run = bank.live & ~start
         with np.errstate(invalid='ignore'):
             turn = np.abs(np.angle(v * np.conj(i) * np.conj(bank.v_last * np.conj(bank.i_last))))
-            judged = ((np.abs(v) >= MEASURING_RANGE_FLOOR_PU) & (turn <= 2 * np.arccos(1 - self.measurement_tve))
+            z = v + (bank.p['ra_pu'] + 1j * bank.model.stator_x(bank.p)) * i
+            judged = ((np.abs(z) >= MEASURING_RANGE_FLOOR_PU) & (turn <= 2 * np.arccos(1 - self.measurement_tve))
                       & (t - bank.init_t >= self.judge_after_s - 1e-9))
         if dt is not None and run.any():
             # Lost data: the last inputs are held; valid data: inputs go linearly from the last to this frame's,
@@ -591,7 +597,7 @@ class RotorAngleDSE:
             steps = max(1, int(np.ceil(dt / bank.step_s - 1e-9)))
             bank.filter_frame(bank.kind, bank.x, bank.cov, bank.aux, bank.q_rate, bank.par, run, run & ok,
                               ~ok | resumed, bank.v_last, v_end, bank.i_last, i_end, v, i, dt, steps,
-                              2 * np.pi * self.freq_hz, self.measurement_tve / 3.0,
+                              2 * np.pi * self.freq_hz, self.measurement_tve / 3.0, MEASURING_RANGE_FLOOR_PU,
                               self.blind_speed_walk_pu_per_sqrt_s, run & seen & judged, self.innovation_gate,
                               bank.nis)
             self.nis_[bank.rows] = bank.nis

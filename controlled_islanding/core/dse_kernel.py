@@ -255,7 +255,7 @@ def _sigma_points(x, cov, root, pts):
 
 @numba.njit(cache=True)
 def filter_frame(kind, x, cov, aux, q_rate, par, run, correct, blind, v0, v_end, i0, i_end, v, i, dt, steps,
-                  omega_base, sigma_tve, blind_walk, judge, gate, nis):
+                  omega_base, sigma_tve, v_floor, blind_walk, judge, gate, nis):
     """One frame of the filter for the machines in run: predict over dt, then correct where correct.
 
     Args:
@@ -268,6 +268,8 @@ def filter_frame(kind, x, cov, aux, q_rate, par, run, correct, blind, v0, v_end,
         dt, steps: Step, s, and RK4 sub-steps in it.
         omega_base: 2 pi f, rad/s.
         sigma_tve: Standard deviation of the phasors' relative error.
+        v_floor: Voltage magnitude below which V's error is taken as at that magnitude, pu: the bottom of the PMU's
+            measuring range, below which C37.118.1 sets no accuracy; a converter's error floor is in volts.
         blind_walk: Random walk of the speed while blind, pu / sqrt(s).
         judge: Machines whose measurement (v, i) is compared with the prediction, corrected or not (g,).
         gate: A judged machine whose normalised innovation squared exceeds it is not corrected.
@@ -358,7 +360,7 @@ def filter_frame(kind, x, cov, aux, q_rate, par, run, correct, blind, v0, v_end,
             zm_i += z[k, 1]
         zm_r *= w_pt
         zm_i *= w_pt
-        r_var = sigma_tve ** 2 * (v[m].real ** 2 + v[m].imag ** 2 + zr ** 2 + zi ** 2)
+        r_var = sigma_tve ** 2 * (max(v[m].real ** 2 + v[m].imag ** 2, v_floor ** 2) + zr ** 2 + zi ** 2)
         s00, s01, s11 = 0.0, 0.0, 0.0
         for k in range(npts):
             dz0, dz1 = z[k, 0] - zm_r, z[k, 1] - zm_i
@@ -411,7 +413,7 @@ def warm_up() -> None:
         i = np.full(g, 0.8 - 0.1j)
         on = np.ones(g, dtype=bool)
         filter_frame(kind, x, cov, np.ones(g), np.full((g, n), 1e-6), par, on, on, ~on, v, v, i, i, v, i,
-                      1.0 / 60.0, 1, 2 * np.pi * 60.0, 0.01 / 3, 0.005, on, np.inf, np.empty(g))
+                      1.0 / 60.0, 1, 2 * np.pi * 60.0, 0.01 / 3, 0.1, 0.005, on, np.inf, np.empty(g))
 
 
 warm_up()
