@@ -8,7 +8,13 @@ from pathlib import Path
 import pytest
 
 from controlled_islanding.commands import replay
-from controlled_islanding.graph.rosenv import FIRST_DOMAIN_ID, LAST_DOMAIN_ID, RosEnvError, graph_environment
+from controlled_islanding.graph.rosenv import (
+    FIRST_DOMAIN_ID,
+    LAST_DOMAIN_ID,
+    RosEnvError,
+    graph_environment,
+    reserved_domain_id,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -32,6 +38,17 @@ def test_isolated_when_asked_or_unset(monkeypatch: pytest.MonkeyPatch, tmp_path:
         assert FIRST_DOMAIN_ID <= int(env['ROS_DOMAIN_ID']) <= LAST_DOMAIN_ID
         assert env['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'LOCALHOST'
         assert env['ROS_LOG_DIR'] == str(tmp_path)
+
+
+def test_a_run_never_gets_the_domain_the_run_before_it_just_left() -> None:
+    """Its DDS discovery data outlive it; one after another, reservations walk the range."""
+    taken = []
+    for _ in range(3):
+        with reserved_domain_id() as domain_id:
+            taken.append(domain_id)
+    assert taken[0] != taken[1] != taken[2]
+    with reserved_domain_id() as outer, reserved_domain_id() as inner:  # held at once: distinct, as before
+        assert outer != inner
 
 
 @pytest.mark.parametrize('bad', ['abc', '-1', '233', '1.5'])

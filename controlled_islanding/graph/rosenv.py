@@ -43,13 +43,16 @@ def reserved_domain_id() -> Iterator[int]:
 
     """
     LOCK_DIR.mkdir(parents=True, exist_ok=True)
-    for domain_id in range(FIRST_DOMAIN_ID, LAST_DOMAIN_ID + 1):
+    ids = list(range(FIRST_DOMAIN_ID, LAST_DOMAIN_ID + 1))
+    start = _rotation() % len(ids)
+    for domain_id in ids[start:] + ids[:start]:
         handle = open(LOCK_DIR / f'{domain_id}.lock', 'w')
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             handle.close()
             continue
+        _rotation(domain_id - FIRST_DOMAIN_ID + 1)
         try:
             yield domain_id
         finally:
@@ -57,6 +60,25 @@ def reserved_domain_id() -> Iterator[int]:
             handle.close()
         return
     raise RosEnvError(f'all ROS_DOMAIN_IDs {FIRST_DOMAIN_ID}..{LAST_DOMAIN_ID} are in use on this machine')
+
+
+def _rotation(after: int | None = None) -> int:
+    """Return where the next reservation starts looking; with `after`, set it.
+
+    A run must not get the id the run before it just left: the DDS discovery data of its participants outlive it
+    (a killed process's, until its lease runs out), and the next run's graph then shows their topics (CI: a
+    root /clock in a namespaced testbed's graph).
+    """
+    path = LOCK_DIR / 'next'
+    with open(LOCK_DIR / 'next.lock', 'w') as guard:
+        fcntl.flock(guard, fcntl.LOCK_EX)
+        if after is not None:
+            path.write_text(str(after))
+            return after
+        try:
+            return int(path.read_text())
+        except (OSError, ValueError):
+            return 0
 
 
 def ros_environment(domain_id: int, log_dir: Path, base: dict[str, str] | None = None) -> dict[str, str]:
