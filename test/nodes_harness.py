@@ -130,8 +130,13 @@ class Probe:
         return future.result()
 
     def close(self) -> None:
-        """Destroy the node and shut the context down."""
-        self.node.destroy_node()
+        """Destroy every node on the probe's executor, then shut the context down.
+
+        A node left alive keeps the context's DDS participant, and its endpoints, visible to whatever runs next on
+        the domain (a test's /clock forger was found in a later testbed's graph).
+        """
+        for node in list(self.executor.get_nodes()):
+            node.destroy_node()
         self.context.try_shutdown()
 
 

@@ -67,3 +67,37 @@ def test_help_examples_name_real_bags() -> None:
         assert bags, f'replay --help names {example}, which matches nothing'
         for bag in bags:
             assert (bag / 'metadata.yaml').is_file(), f'replay --help names {example}, and {bag} is not a bag'
+
+
+_TOPICS_SEEN = """
+import sys, time, rclpy
+rclpy.init(domain_id=int(sys.argv[1]))
+node = rclpy.create_node('observer')
+end = time.monotonic() + 2.0
+while time.monotonic() < end:
+    rclpy.spin_once(node, timeout_sec=0.1)
+print(' '.join(name for name, _ in node.get_topic_names_and_types()))
+"""
+
+
+@pytest.mark.ros
+def test_a_closed_probe_leaves_no_endpoint_on_its_domain() -> None:
+    """Nodes a test added to the probe go with it: the next graph on the domain (another process) must not see them."""
+    import os
+    import subprocess
+    import sys
+
+    import rclpy
+    from nodes_harness import Probe
+    from rosgraph_msgs.msg import Clock
+
+    with reserved_domain_id() as domain_id:
+        probe = Probe(domain_id)
+        extra = rclpy.create_node('clock_forger', context=probe.context)
+        probe.executor.add_node(extra)
+        extra.create_publisher(Clock, '/clock', 10)
+        probe.spin_for(0.5)
+        probe.close()
+        seen = subprocess.run([sys.executable, '-c', _TOPICS_SEEN, str(domain_id)], capture_output=True, text=True,
+                              timeout=60, env=dict(os.environ), check=True).stdout.split()
+    assert '/rosout' in seen and '/clock' not in seen, seen
