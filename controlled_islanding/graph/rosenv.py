@@ -65,9 +65,9 @@ def reserved_domain_id() -> Iterator[int]:
 def _rotation(after: int | None = None) -> int:
     """Return where the next reservation starts looking; with `after`, set it.
 
-    A run must not get the id the run before it just left: the DDS discovery data of its participants outlive it
-    (a killed process's, until its lease runs out), and the next run's graph then shows their topics (CI: a
-    root /clock in a namespaced testbed's graph).
+    A run should not get the id a run before it just left: whatever that run left alive there (a node a test
+    never destroyed, a process slow to die) goes on announcing its endpoints, and the next run's graph shows
+    them (CI: a failed test's /clock forger, in a later namespaced testbed's graph).
     """
     path = LOCK_DIR / 'next'
     with open(LOCK_DIR / 'next.lock', 'w') as guard:
