@@ -339,45 +339,47 @@ def test_a_spoofed_speed_inside_a_bolted_fault_at_the_stations_own_terminal_is_f
     assert flags == {'PMU_73': ('innovation', pytest.approx(1.0 + 1 / 30, abs=1e-6))}
 
 
+def _filter_on(bag):
+    """Return the bag's generator channel columns and a filter fitted to its machines."""
+    from controlled_islanding.core.dse import MachineData, RotorAngleDSE
+
+    gens = bag.grid.generators
+    return [bag.pmu_column(g.name, g.bus) for g in gens], RotorAngleDSE().fit(MachineData.of_generators(gens))
+
+
+def _phasors(channels, k: int, cols) -> list[np.ndarray]:
+    """Frame k's V and I magnitudes and angles on the given columns, as RotorAngleDSE.update takes them."""
+    return [np.asarray(getattr(channels, f))[k][cols] for f in ('v_mag_pu', 'v_angle_rad', 'i_mag_pu',
+                                                                 'i_angle_rad')]
+
+
 @pytest.mark.parametrize('name', ['pjm5bus_bus3_unstable', 'nordic44_bus6000_three_groups',
                                   'ei33_bus101048_pair_unstable'])
 @pytest.mark.parametrize('noise_tve', [0.0, 0.01])
 def test_honest_frames_inside_bolted_faults_are_judged_and_pass(name, noise_tve):
     """Frames whose voltage is below the measuring range, where z is not, are judged; honest ones stay in bound."""
-    from controlled_islanding.core.dse import MachineData, RotorAngleDSE
-
     bag = _bag(name)
     channels = with_tve_noise(bag, noise_tve, seed=3, present_tve=0.005) if noise_tve else bag
-    gens = bag.grid.generators
-    cols = [bag.pmu_column(g.name, g.bus) for g in gens]
-    dse = RotorAngleDSE().fit(MachineData.of_generators(gens))
+    cols, dse = _filter_on(bag)
     below = []
     for k in np.flatnonzero(np.asarray(bag.frame_present)):
-        v = np.asarray(channels.v_mag_pu)[k][cols]
-        dse.update(float(bag.tag_s[k]), v, np.asarray(channels.v_angle_rad)[k][cols],
-                   np.asarray(channels.i_mag_pu)[k][cols], np.asarray(channels.i_angle_rad)[k][cols])
-        below += list(dse.nis_[(v < 0.1) & np.isfinite(dse.nis_)])
+        frame = _phasors(channels, k, cols)
+        dse.update(float(bag.tag_s[k]), *frame)
+        below += list(dse.nis_[(frame[0] < 0.1) & np.isfinite(dse.nis_)])
     assert len(below) >= 3
     assert max(below) < BadDataDetector().nis_bound
 
 
 def test_a_dead_bus_is_not_judged():
     """V and I both near zero (a machine's breaker and its bus both open): z is out of range, no model to hold."""
-    from controlled_islanding.core.dse import MachineData, RotorAngleDSE
-
     bag = _bag('kundur_bus9_unstable')
-    gens = bag.grid.generators
-    cols = [bag.pmu_column(g.name, g.bus) for g in gens]
-    dse = RotorAngleDSE().fit(MachineData.of_generators(gens))
+    cols, dse = _filter_on(bag)
     rows = np.flatnonzero(np.asarray(bag.frame_present) & (np.asarray(bag.tag_s) < 0.9))
     for k in rows:
-        dse.update(float(bag.tag_s[k]), *(np.asarray(getattr(bag, f))[k][cols]
-                                          for f in ('v_mag_pu', 'v_angle_rad', 'i_mag_pu', 'i_angle_rad')))
-    k = rows[-1]
-    v, i = np.asarray(bag.v_mag_pu)[k][cols].copy(), np.asarray(bag.i_mag_pu)[k][cols].copy()
+        dse.update(float(bag.tag_s[k]), *_phasors(bag, k, cols))
+    v, v_angle, i, i_angle = (a.copy() for a in _phasors(bag, rows[-1], cols))
     v[0], i[0] = 1e-3, 1e-3
-    dse.update(float(bag.tag_s[k]) + 1 / 30, v, np.asarray(bag.v_angle_rad)[k][cols], i,
-               np.asarray(bag.i_angle_rad)[k][cols])
+    dse.update(float(bag.tag_s[rows[-1]]) + 1 / 30, v, v_angle, i, i_angle)
     assert math.isnan(dse.nis_[0]) and np.isfinite(dse.nis_[1:]).all()
 
 
