@@ -16,15 +16,21 @@ from pathlib import Path
 
 
 def _fsync(path: Path) -> None:
-    if path.is_dir():
-        for child in path.rglob('*'):
-            if child.is_file():
-                _fsync(child)
+    """Fsync one file, or one folder's entries (not what they name)."""
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def _fsync_tree(path: Path) -> None:
+    """Fsync a file, or a folder with everything in it, deepest first."""
+    if path.is_dir() and not path.is_symlink():
+        for child in sorted(path.rglob('*'), key=lambda c: len(c.parts), reverse=True):
+            if not child.is_symlink() and (child.is_file() or child.is_dir()):  # no fifo: opening one blocks
+                _fsync(child)
+    _fsync(path)
 
 
 def _remove(path: Path) -> None:
@@ -45,7 +51,7 @@ def replace(tmp: str | Path, path: str | Path) -> Path:
     """Make the finished `tmp` (a file or a folder) `path`: fsync it, rename it over `path`, fsync the folder."""
     tmp, target = Path(tmp), Path(path)
     try:
-        _fsync(tmp)
+        _fsync_tree(tmp)
         os.replace(tmp, target)
     except BaseException:
         _remove(tmp)
