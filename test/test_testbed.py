@@ -147,10 +147,9 @@ def test_assess_leaves_a_rejected_machine_out_after_its_trip():
     assert dead.v_outside_s is None and dead.v_worst_bus is None
 
 
-@pytest.mark.ros
-@pytest.mark.slow
-def test_one_scenario_closed_loop_commands_opens_and_judges_every_island():
-    """IEEE 14, G1 slipping: the graph decides, breaker_command commands, ANDES opens the cut and keeps going.
+@pytest.fixture(scope='module')
+def ieee14_closed_loop() -> tuple[subprocess.CompletedProcess, Path, float]:
+    """One closed-loop testbed run of IEEE 14, G1 slipping, with its baselines: (the command, its results, wall s).
 
     The graph and grid_sim run in a namespace, clock included; pmu_ingestion runs the steady-state estimate, not
     its default (testbed --estimator steady_state), so an ignored flag shows.
@@ -162,8 +161,15 @@ def test_one_scenario_closed_loop_commands_opens_and_judges_every_island():
                            '--results', str(results), '--run-after-s', '2.5', '--timeout', '300',
                            '--namespace', 'testbed', '--estimator', 'steady_state'],
                           capture_output=True, text=True, timeout=420, env=env, cwd=REPO)
-    wall = time.monotonic() - start
     assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc, results, time.monotonic() - start
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_one_scenario_closed_loop_commands_opens_and_judges_every_island(ieee14_closed_loop):
+    """IEEE 14, G1 slipping: the graph decides, breaker_command commands, ANDES opens the cut and keeps going."""
+    proc, _, wall = ieee14_closed_loop
     (result,) = json.loads(proc.stdout)
     assert result['estimator'] == 'steady_state'  # as pmu_ingestion reported it: the flag reached the node
     outside = [t for t in result['graph_topics'] if not t.startswith('/testbed/') and t not in GLOBAL - {'/clock'}]
@@ -336,16 +342,11 @@ def test_an_interrupted_testbed_ends_every_process_it_started_and_says_it_was_in
 
 @pytest.mark.ros
 @pytest.mark.slow
-def test_a_testbed_result_exports_with_its_cut_open_and_each_island_solving_as_decided(ros_env, tmp_path):
+def test_a_testbed_result_exports_with_its_cut_open_and_each_island_solving_as_decided(ieee14_closed_loop, tmp_path):
     """The testbed's --json output (a list) and the scenario's result.json, each exported and its islands solved."""
     from test_export import check_islands_as_decided
 
-    results = BUILD / 'test_testbed' / f'export-{time.time_ns()}'
-    env = dict(ros_env, CONTROLLED_ISLANDING_KEYS=str(BUILD / 'test_keys'))
-    proc = subprocess.run([sys.executable, '-m', 'controlled_islanding.cli', 'testbed', str(SCENARIO), '--json',
-                           '--results', str(results), '--run-after-s', '1.0', '--no-baselines', '--timeout', '300'],
-                          capture_output=True, text=True, timeout=420, env=env, cwd=REPO)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    proc, results, _ = ieee14_closed_loop
     listing = tmp_path / 'testbed.json'
     listing.write_text(proc.stdout)
     (result,) = json.loads(proc.stdout)
