@@ -6,11 +6,13 @@ withheld, so every PMU value the graph sees crossed TCP as C37.118.2 frames, and
 manifest's.
 
 Time: both sides carry the bag's own time. serve-pmu puts each frame's time tag in SOC/FRACSEC and paces by
-the bag's log times from pdc_client's START; bag_player drives /clock from the same bag. The two start on the
-same event (pdc_client joining the graph), so they agree within a discovery round; the figures record by how
-much. Data that leads /clock is held by pmu_ingestion and coherency until the clock gets there (up to
-max_held_frames = 16 s at 60 frames/s); a stream that lags /clock makes the request wait for its data (at
-most request_wait_s = 2 s), which shows in the request -> command latency.
+the bag's log times from pdc_client's START; bag_player drives /clock from the same bag. The player starts once
+this probe has seen the stream's first frame, so the stream leads /clock by the player's start-up (the figures
+record by how much), never lags it. Data that leads /clock is held by pmu_ingestion and coherency until the clock
+gets there (up to max_held_frames = 16 s at 60 frames/s); data that lags it makes the request wait for its groups,
+at most groups_wait_s = 2 s, then partitioning refuses. Started together, on the same discovery event, the two
+were one discovery round apart, either way: under a loaded full suite the stream once lagged by about 3 s and the
+decision was that refusal, not the manifest's.
 """
 
 from __future__ import annotations
@@ -138,15 +140,14 @@ def test_live_c37118_stream_drives_the_graph_to_the_manifest_decision():
                                      qos_for(topics.BREAKER_COMMANDS))
             arm(probe)
             counts = wired(probe)
-            # The player waits for one more /clock reader than the graph has: pdc_client's (use_sim_time). And
-            # pdc_client connects, so STARTs the stream, once pmu_ingestion and this probe read /pmu/frames. Both
-            # wait for the same newcomer, so /clock and the PMU stream start within a discovery round of each
-            # other.
+            # pdc_client STARTs the stream once pmu_ingestion and this probe read /pmu/frames; the player, started
+            # after the first frame, waits for one more /clock reader than the graph has: pdc_client's.
             counts[topics.CLOCK] += 1
-            sup.start(PLAYER, {'bag': bag, 'withhold_topics': str([topics.PMU_FRAMES]), 'wait_for_subscribers_s': 30.0,
-                               'min_subscribers': str([f'{t}={n}' for t, n in counts.items()])})
             sup.start(PDC_CLIENT, {'servers': str([f'127.0.0.1:{port}']), 'channel_map_file': map_file,
                                    'wait_for_subscribers': 2, 'use_sim_time': True})
+            assert probe.spin_until(lambda: arrivals, 30.0), f'no PMU frame within 30 s: {sup.log_tail("pdc_client")}'
+            sup.start(PLAYER, {'bag': bag, 'withhold_topics': str([topics.PMU_FRAMES]), 'wait_for_subscribers_s': 30.0,
+                               'min_subscribers': str([f'{t}={n}' for t, n in counts.items()])})
             done = probe.spin_until(lambda: decisions and (commands or not entry['expected_decision']['split']), 40.0)
             # The stream is paced in real time and the bag goes on after its request: wait for its last frames.
             probe.spin_until(lambda: len({t for _, t in arrivals}) >= n_bag_frames(bag), 15.0)
