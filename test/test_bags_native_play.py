@@ -22,12 +22,13 @@ from rosbags.highlevel import AnyReader
 
 from controlled_islanding.ros.endpoints import qos_for
 from controlled_islanding.ros.params import message_class
+from controlled_islanding.sim.manifest import manifest_entries
 from controlled_islanding.wire.interfaces import typestore
 
 pytestmark = [pytest.mark.ros]
 
 BAGS = Path(__file__).resolve().parents[1] / 'bags'
-ENTRIES = [e for e in yaml.safe_load((BAGS / 'index.yaml').read_text())['bags'] if (BAGS / e['bag']).is_dir()]
+ENTRIES = [e for e in manifest_entries(BAGS / 'index.yaml') if (BAGS / e['bag']).is_dir()]
 
 
 def rclpy_qos(recorded: object) -> QoSProfile:

@@ -6,7 +6,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 from test_sim_bags import MISSED_BY_THE_K_RULE
 
 from controlled_islanding.core.coherency import (
@@ -18,6 +17,7 @@ from controlled_islanding.core.coherency import (
 )
 from controlled_islanding.core.k_rules import RULES, pair_drift_rad
 from controlled_islanding.core.rotor_angle import estimate_rotor_angle_rad
+from controlled_islanding.sim.manifest import manifest_entries
 
 REPO = Path(__file__).resolve().parents[1]
 RATE_FPS = 60.0
@@ -213,7 +213,7 @@ def _bag_entries() -> list[dict]:
     index = REPO / 'bags' / 'index.yaml'
     if not index.exists():
         return []
-    return [e for e in yaml.safe_load(index.read_text())['bags'] if (REPO / 'bags' / e['bag']).exists()]
+    return [e for e in manifest_entries(index) if (REPO / 'bags' / e['bag']).exists()]
 
 
 def bag_rotor_angles(bag, window_s: float = 4.0) -> tuple[list[str], np.ndarray]:

@@ -9,6 +9,7 @@ import pytest
 import yaml
 
 from controlled_islanding.core.rotor_angle import RotorAngleError, estimate_rotor_angle_rad, unwrap_nan
+from controlled_islanding.sim.manifest import manifest_entries
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -66,7 +67,7 @@ def _clean_bags() -> list[Path]:
     if not index.exists():
         return []
     chosen: dict[str, Path] = {}
-    for entry in yaml.safe_load(index.read_text())['bags']:
+    for entry in manifest_entries(index):
         case = yaml.safe_load((REPO / 'bags' / entry['scenario']).read_text())['case']
         if not entry.get('impairments') and (REPO / 'bags' / entry['bag']).exists():
             chosen.setdefault(case, REPO / 'bags' / entry['bag'])

@@ -12,6 +12,7 @@ import yaml
 from controlled_islanding.cli import main
 from controlled_islanding.evaluation.cases import PAPER_CASES, evaluate_paper_case
 from controlled_islanding.evaluation.report import format_case
+from controlled_islanding.sim.manifest import manifest_entries
 
 ROOT = Path(__file__).resolve().parents[1]
 BAGS = ROOT / 'bags'
@@ -21,7 +22,7 @@ def _committed_bags() -> list[Path]:
     index = BAGS / 'index.yaml'
     if not index.is_file():
         return []
-    return [BAGS / entry['bag'] for entry in (yaml.safe_load(index.read_text()) or {}).get('bags') or []]
+    return [BAGS / entry['bag'] for entry in manifest_entries(index)]
 
 
 @pytest.mark.parametrize('name', sorted(PAPER_CASES))
@@ -234,7 +235,7 @@ def test_closed_loop_column_runs_each_cut_once_in_andes_and_shows_what_a_split_d
     from controlled_islanding.wire.bagdata import load_bag
 
     name = 'kundur_bus9_unstable'
-    entry = next(e for e in yaml.safe_load((BAGS / 'index.yaml').read_text())['bags'] if e.get('bag') == name)
+    entry = next(e for e in manifest_entries(BAGS / 'index.yaml') if e.get('bag') == name)
     bag = load_bag(BAGS / name)
     grid = bag.grid_at(float(bag.request_t_s[0]) + 1e-9)
     truth = {g: k for k, names in enumerate(entry['truth_groups']) for g in names}

@@ -17,9 +17,10 @@ from scipy.sparse.csgraph import connected_components
 from controlled_islanding.cli import main
 from controlled_islanding.core.grid import Grid
 from controlled_islanding.evaluation import export
+from controlled_islanding.sim.manifest import manifest_entries
 
 BAGS = Path(__file__).resolve().parents[1] / 'bags'
-SPLITS = [e for e in yaml.safe_load((BAGS / 'index.yaml').read_text())['bags'] if e['expected_decision'].get('split')]
+SPLITS = [e for e in manifest_entries(BAGS / 'index.yaml') if e['expected_decision'].get('split')]
 
 
 def case_of(entry: dict) -> str:

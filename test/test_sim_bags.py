@@ -11,16 +11,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
-from controlled_islanding.sim.manifest import build_manifest, scenario_files
+from controlled_islanding.sim.manifest import build_manifest, manifest_entries, scenario_files
 from controlled_islanding.sim.scenario import load_scenario
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.bagdata import BagData, load_bag
 from controlled_islanding.wire.interfaces import msg_type_name
 
 BAGS = Path(__file__).resolve().parents[1] / 'bags'
-MANIFEST = yaml.safe_load((BAGS / 'index.yaml').read_text())['bags']
+MANIFEST = manifest_entries(BAGS / 'index.yaml')
 NAMES = [entry['name'] for entry in MANIFEST]
 MAX_BAG_BYTES = 5 * 1024 * 1024
 
