@@ -299,6 +299,34 @@ def test_stray_frames_before_a_bag_neither_flag_it_nor_switch_the_frequency_test
             f'seed {seed}: the frequency test is off after the stray frames'
 
 
+@pytest.mark.parametrize('name,garbage_hz', [('ieee39_case2_g3_unstable', -60.0),
+                                             ('nordic44_bus6000_three_groups', 80.0)])
+def test_one_garbage_frame_first_names_no_nominal_frequency(name, garbage_hz):
+    """The stream's first frame has one station's values garbage (negative magnitude, a frequency no grid has).
+
+    The nominal frequency was learnt per station from its first frame: -60 Hz read as a 50 Hz grid, 80 Hz as a
+    60 Hz one, and the honest stream after it was flagged on every frame (the replay after the fuzz refused for
+    suspect data). The grid's nominal now comes from the frames' median within C37.118.1's range.
+    """
+    data = _bag(name)
+    fields = (data.v_mag_pu, data.v_angle_rad, data.i_mag_pu, data.i_angle_rad, data.frequency_hz, data.rocof_hz_per_s)
+
+    def poisoned() -> BadDataDetector:
+        det = BadDataDetector()
+        idx = np.flatnonzero(np.isfinite(data.v_mag_pu[0]) & np.isfinite(data.i_mag_pu[0]))
+        v, va, i, ia, f, r = (np.array(a[0, idx], dtype=float) for a in fields)
+        v[0], ia[0], f[0] = -abs(v[0]) - 1.0, 1e300, garbage_hz
+        det.judge(data.tag_s[0] - 10.0, [data.station_ids[j] for j in idx], v, va, i, ia, f, r)
+        return det
+
+    det = poisoned()
+    assert first_flags(data, det) == {}
+    assert det.f0_hz == data.grid.freq_hz
+    station = data.station_ids[0]
+    ramped = attack(data, 'ramp', [station], float(data.tag_s[len(data.tag_s) // 3]))
+    assert first_flags(ramped, poisoned())[station][0] == 'frequency_mismatch'
+
+
 # ---------------------------------------------------------------------------------- the filter's innovation test
 def _screened_flags(name: str, kind: str, station: str, start_s: float):
     """Station -> (reason, first flag s) over the bag up to its request, through the graph's screening."""

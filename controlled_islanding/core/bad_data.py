@@ -24,8 +24,11 @@ The tests, frame by frame (each on one station's own channel, but the last two, 
   from the second on, with their own span: a fault cleared shortly before the request leaves only a few frames
   between the voltage's recovery and the request (EI 33's bus 101048: 5), and a spoofed speed on them was never
   judged. That adds at most one test per frame to a chain's first window, so the false-alarm rate per frame stays
-  ``false_alarm``. f0 is the standard nominal frequency (50 or 60 Hz) nearest the station's first
-  reported frequency: no grid at rest strays 5 Hz from its nominal. The angle is unwrapped along the reported
+  ``false_alarm``. f0 is the grid's nominal frequency: the network snapshot's where the caller gives it, else,
+  once, the standard nominal (50 or 60 Hz) the first frame's stations report around (their median within 5 Hz of
+  one, C37.118.1's frequency measuring range: no grid strays further). One for the grid, never a station's own:
+  learnt from each station's first frame, one frame of garbage (-60 Hz, as the fuzz sends it) made that station's
+  honest 60 Hz data read as a 50 Hz grid's, flagged on every frame after. The angle is unwrapped along the reported
   frequency (a machine slipping poles moves more than pi between frames), so the test sees a lie of up to pi per
   frame. A frame whose voltage is below ``angle_floor_pu`` breaks the chain as a lost frame does: near the
   electrical centre of a pole slip the terminal voltage passes through zero, its phasor turns by pi between two
@@ -90,7 +93,8 @@ from statistics import NormalDist
 
 import numpy as np
 
-__all__ = ['BadDataDetector', 'BadDataError', 'MEASURING_RANGE_FLOOR_PU', 'REASONS', 'StationVerdict']
+__all__ = ['BadDataDetector', 'BadDataError', 'MEASURING_RANGE_FLOOR_PU', 'NOMINALS_HZ', 'REASONS', 'StationVerdict',
+           'nominal_of']
 
 MEASURING_RANGE_FLOOR_PU = 0.1  # C37.118.1 (class M) specifies accuracy from 10 % of rated voltage up
 
@@ -99,7 +103,24 @@ _PERIOD_SAMPLES = 512  # spacings the period is judged on: a few frames of a few
 
 REASONS = ('frequency_mismatch', 'frozen', 'replayed', 'innovation', 'schedule_mismatch', 'angle_mismatch',
            'bus_disagreement', 'new_station')
-_NOMINALS_HZ = (50.0, 60.0)
+NOMINALS_HZ = (50.0, 60.0)  # the two nominal frequencies of AC grids (C37.118.2's FNOM allows no other)
+_RANGE_HZ = 5.0  # C37.118.1 (class M): frequency is measured within +-5 Hz of the nominal
+
+
+def nominal_of(frequency_hz) -> float:
+    """Return the nominal frequency (50 or 60 Hz) nearest the PMUs' median reported frequency, Hz; NaN if none.
+
+    A grid runs within a few percent of its nominal frequency even through a fault, so the median of what its PMUs
+    report names it. Only frequencies within C37.118.1's measuring range of a nominal count: a garbage -60 Hz is no
+    grid's.
+    """
+    f = np.asarray(frequency_hz, dtype=float).reshape(-1)
+    f = f[np.isfinite(f)]
+    f = f[np.min(np.abs(f[:, None] - np.array(NOMINALS_HZ)[None, :]), axis=1) <= _RANGE_HZ]
+    if not f.size:
+        return math.nan
+    median = float(np.median(f))
+    return min(NOMINALS_HZ, key=lambda f0: abs(f0 - median))
 
 
 class BadDataError(ValueError):
@@ -177,6 +198,7 @@ class BadDataDetector:
         self.z = -NormalDist().inv_cdf(false_alarm / 2)
         self.frozen_frames, self.history_s, self.clean_s = frozen_frames, history_s, clean_s
         self.angle_floor_pu = angle_floor_pu
+        self.f0_hz = math.nan  # the grid's nominal frequency, Hz (NaN until known: no frequency test)
         self.period_s = math.inf  # the commonest spacing of the stations' recent time tags, s
         self._gaps: deque[int] = deque(maxlen=_PERIOD_SAMPLES)  # recent spacings, us
         self._gap_counts: dict[int, int] = {}
@@ -192,7 +214,6 @@ class BadDataDetector:
         self.last_t = np.full(n, -np.inf)
         self.last_angle = np.full(n, np.nan)
         self.last_freq = np.full(n, np.nan)
-        self.f0 = np.full(n, np.nan)
         self.count = np.zeros(n, dtype=int)  # consecutive frames, for the frequency window
         self.ptr = np.zeros(n, dtype=int)
         self.ring_e = np.zeros((n, self._m))  # one-frame residuals, rad
@@ -264,7 +285,8 @@ class BadDataDetector:
             self._grow(len(self.ids))
 
     def judge(self, t_s: float, station_ids, v_mag_pu, v_angle_rad, i_mag_pu, i_angle_rad, frequency_hz,
-              rocof_hz_per_s, scheduled_p_pu=None, buses=None, bus_angle_rad=None) -> dict[str, str]:
+              rocof_hz_per_s, scheduled_p_pu=None, buses=None, bus_angle_rad=None,
+              nominal_hz: float | None = None) -> dict[str, str]:
         """Take one frame's usable measurements (one value per station) and return the suspects after it.
 
         Frames must come in time-tag order per station; an older or repeated tag is ignored for that station.
@@ -276,6 +298,8 @@ class BadDataDetector:
                 known); None: no bus test.
             bus_angle_rad: Per station, the network snapshot's voltage angle of that bus, rad (NaN: not known);
                 None: no angle test.
+            nominal_hz: The grid's nominal frequency f0, Hz, as the network snapshot gives it; None or NaN: not
+                known, learnt once from the frames (see the module docstring).
 
         Returns:
             Station id -> reason, for every station suspect after this frame.
@@ -304,6 +328,10 @@ class BadDataDetector:
         rows, values, sched, bus, snap = rows[keep], values[keep], sched[keep], bus[keep], snap[keep]
         if not len(rows):
             return self.suspects()
+        if nominal_hz is not None and math.isfinite(nominal_hz) and nominal_hz > 0:
+            self.f0_hz = float(nominal_hz)
+        elif math.isnan(self.f0_hz):
+            self.f0_hz = nominal_of(values[:, 4])
         gaps = t - self.last_t[rows]
         self._learn_period(gaps)
         reason = self._content_test(t, rows, values)
@@ -426,10 +454,9 @@ class BadDataDetector:
 
     def _frequency_test(self, t: float, rows: np.ndarray, values: np.ndarray, gaps: np.ndarray) -> np.ndarray:
         angle, freq = values[:, 1], values[:, 4]
-        ok = np.isfinite(angle) & np.isfinite(freq) & (np.abs(values[:, 0]) >= self.angle_floor_pu)
-        f0 = self.f0[rows]
-        f0 = np.where(np.isnan(f0), np.where(np.abs(freq - 50.0) < np.abs(freq - 60.0), 50.0, 60.0), f0)
-        self.f0[rows] = np.where(ok, f0, self.f0[rows])
+        f0 = self.f0_hz
+        ok = (np.isfinite(angle) & np.isfinite(freq) & (np.abs(values[:, 0]) >= self.angle_floor_pu)
+              & math.isfinite(f0))
         # Consecutive frames only: across a lost frame the frequency between the two tags is unknown.
         follows = ok & (gaps <= 1.5 * self.period_s) & np.isfinite(self.last_angle[rows])
         prev, f_prev = self.last_angle[rows], self.last_freq[rows]

@@ -62,7 +62,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from controlled_islanding.core.bad_data import MEASURING_RANGE_FLOOR_PU
+from controlled_islanding.core.bad_data import MEASURING_RANGE_FLOOR_PU, nominal_of
 
 __all__ = ['DSEError', 'MODELS', 'MachineData', 'RotorAngleDSE', 'StreamingDSE', 'nominal_hz',
            'saturation_coefficients']
@@ -75,25 +75,19 @@ class DSEError(ValueError):
     """Machine data, settings or frames the estimator cannot use."""
 
 
-NOMINALS_HZ = (50.0, 60.0)  # the two nominal frequencies of AC grids (C37.118.2's FNOM allows no other)
-
-
 def nominal_hz(frequency_hz) -> float:
-    """Return the nominal frequency (50 or 60 Hz) nearest the PMUs' median reported frequency, Hz.
+    """Return the nominal frequency (50 or 60 Hz) the PMUs report around (bad_data.nominal_of), Hz.
 
-    A grid runs within a few percent of its nominal frequency even through a fault, so the median of what its PMUs
-    report names it: for a filter (omega_base) whose snapshot does not say.
+    For a filter (omega_base) whose snapshot does not say.
 
     Raises:
-        DSEError: No finite frequency among them.
+        DSEError: No finite frequency among them within 5 Hz of 50 or 60 Hz.
 
     """
-    f = np.asarray(frequency_hz, dtype=float).reshape(-1)
-    f = f[np.isfinite(f)]
-    if not f.size:
-        raise DSEError('no PMU reported a frequency: the nominal frequency is unknown')
-    median = float(np.median(f))
-    return min(NOMINALS_HZ, key=lambda f0: abs(f0 - median))
+    f0 = nominal_of(frequency_hz)
+    if math.isnan(f0):
+        raise DSEError('no PMU reported a frequency within 5 Hz of 50 or 60 Hz: the nominal frequency is unknown')
+    return f0
 
 
 def saturation_coefficients(s10: np.ndarray, s12: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -136,7 +136,7 @@ def screen(bag, channels, *, params: dict, until_s: float = math.inf) -> tuple[n
         idx = np.flatnonzero(usable)
         if idx.size:
             det.judge(t, [channels.station_ids[j] for j in idx], *(v[idx] for v in values), sched[idx], buses[idx],
-                      angles_at_rest[idx])
+                      angles_at_rest[idx], nominal_hz=bag.grid.freq_hz)
         bad = np.array([s in det.suspects() for s in station_of])
         a = dse.update(t, values[0][cols], values[1][cols], values[2][cols], values[3][cols], usable[cols] & ~bad)
         suspects = det.innovations(t, station_of, dse.nis_)

@@ -156,7 +156,7 @@ def monitor_inputs(run: ScenarioRun) -> MonitorInputs:
         usable = np.isfinite(values[0]) & np.isfinite(values[2]) & ((stat[k] & 0x8000) == 0)
         idx = np.flatnonzero(usable)
         suspects = detector.judge(t, [channels.station_ids[j] for j in idx], *(v[idx] for v in values),
-                                  buses=buses[idx], bus_angle_rad=angles_at_rest[idx]) \
+                                  buses=buses[idx], bus_angle_rad=angles_at_rest[idx], nominal_hz=f0) \
             if idx.size else detector.suspects()
         flagged |= set(suspects)
         bad = np.array([s in suspects for s in station_of])

@@ -363,7 +363,8 @@ class PmuIngestionNode(Node):
         suspects = self.detector.judge(t, [m.station_id for m in ms], *(
             [getattr(m, f) for m in ms] for f in (*_FIELDS, 'frequency_hz', 'rocof_hz_per_s')),
             [scheduled.get(m.station_id, math.nan) for m in ms], [bus.get(m.station_id, -1) for m in ms],
-            self.grid.bus_angles_at(bus.get(m.station_id, -1) for m in ms))
+            self.grid.bus_angles_at(bus.get(m.station_id, -1) for m in ms),
+            nominal_hz=self.stream.dse.freq_hz if self.stream is not None else self.grid.freq_hz)
         out = {}
         for g in self.grid.generators:
             m = by_generator.get(g.name) or by_bus.get(g.bus)
