@@ -113,8 +113,11 @@ def test_pmu_ingestion_drops_bad_frames_and_keeps_going(pipeline):
     unknown.measurements[1].bus = 99999
     old = copy.deepcopy(frames[0])
     old.header.stamp.sec -= 30
+    negative = copy.deepcopy(frames[64])
+    negative.measurements[0].voltage_magnitude_pu = -1.0
+    negative.measurements[0].stat = 0
     cases = {'empty_message': empty, 'missing_stamp': unstamped, 'nan_value': nan, 'unknown_id': unknown,
-             'duplicate': frames[10], 'time_backwards': old}
+             'duplicate': frames[10], 'time_backwards': old, 'bad_value': negative}
     for reason, frame in cases.items():
         publish(probe, topics.PMU_FRAMES, frame)
         assert probe.wait_counter('pmu_ingestion', f'rejected.{reason}', 1) >= 1, reason

@@ -249,6 +249,10 @@ class PmuIngestionNode(Node):
         if not all(math.isfinite(getattr(m, f)) for f in _FIELDS):
             self.diag.reject('nan_value', f'PMU {m.station_id}: NaN or inf phasor with a good STAT')
             return 'unusable'
+        if m.voltage_magnitude_pu < 0 or m.current_magnitude_pu < 0:
+            # A phasor's magnitude is never negative (C37.118.2 polar; past zero the angle turns by pi instead).
+            self.diag.reject('bad_value', f'PMU {m.station_id}: negative phasor magnitude with a good STAT')
+            return 'unusable'
         return 'use'
 
     def _synchronised(self, stat: int) -> bool:
