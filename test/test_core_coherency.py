@@ -210,10 +210,7 @@ def test_bad_input(kwargs: dict, series: list, message: str) -> None:
 
 
 def _bag_entries() -> list[dict]:
-    index = REPO / 'bags' / 'index.yaml'
-    if not index.exists():
-        return []
-    return [e for e in manifest_entries(index) if (REPO / 'bags' / e['bag']).exists()]
+    return [e for e in manifest_entries(REPO / 'bags' / 'index.yaml') if (REPO / 'bags' / e['bag']).exists()]
 
 
 def bag_rotor_angles(bag, window_s: float = 4.0) -> tuple[list[str], np.ndarray]:

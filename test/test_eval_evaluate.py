@@ -19,10 +19,7 @@ BAGS = ROOT / 'bags'
 
 
 def _committed_bags() -> list[Path]:
-    index = BAGS / 'index.yaml'
-    if not index.is_file():
-        return []
-    return [BAGS / entry['bag'] for entry in manifest_entries(index)]
+    return [BAGS / entry['bag'] for entry in manifest_entries(BAGS / 'index.yaml')]
 
 
 @pytest.mark.parametrize('name', sorted(PAPER_CASES))
