@@ -228,3 +228,26 @@ def test_noise_seeds_measure_each_scenario_again_and_the_page_counts_the_draws(t
     text = page.read_text()
     assert '--noise-seeds 2 --monitor' in text and '## Under other noise draws' in text
     assert '| pjm5bus_stable_trip | 1 | 0.005 | 2 | 0 | - | - |' in text
+
+
+@pytest.mark.parametrize('study', ['--monitor', '--predictors'])
+def test_a_scenario_that_cannot_run_is_listed_and_the_others_are_still_written(tmp_path, capsys, study):
+    """One failing scenario costs only itself: the page is written with it listed, and the exit status is 2.
+
+    Here the failure is a case file that does not exist; in practice, ANDES not converging, found only after minutes
+    spent simulating the others.
+    """
+    from controlled_islanding.cli import main
+
+    good = REPO / 'docs' / 'coherency_rules' / 'pjm5bus_stable_trip.yaml'
+    bad = tmp_path / 'no_case.yaml'
+    bad.write_text(good.read_text().replace('case: ', 'case: no/such/case_', 1))
+    page = tmp_path / 'page.md'
+    assert main(['evaluate', '--andes', str(bad), '--andes', str(good), study, str(page)]) == 2
+    err = capsys.readouterr().err
+    assert '1 of 2 scenarios not evaluated' in err and str(bad) in err
+    text = page.read_text()
+    assert '| pjm5bus_stable_trip |' in text
+    assert text.rstrip().splitlines()[-1].startswith(f'- {bad}') and '## Not evaluated' in text
+    assert main(['evaluate', '--andes', str(bad), study, str(tmp_path / 'none.md')]) == 2
+    assert 'no scenario could be evaluated' in capsys.readouterr().err and not (tmp_path / 'none.md').exists()

@@ -25,3 +25,15 @@ def progress_bar(total: int, desc: str, unit: str = 'it'):
     size = shutil.get_terminal_size()
     return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, leave=False, disable=None if shown else True,
                 ncols=size.columns, nrows=size.lines)
+
+
+def not_evaluated(failed: list[str], total: int, page) -> int:
+    """Return 0, or raise the CliError that names the scenarios a study could not evaluate (its page lists them).
+
+    One scenario whose simulation fails (ANDES does not converge) must not cost the minutes spent on the others:
+    the study goes on, writes their page with the failures listed, and still exits non-zero.
+    """
+    if not failed:
+        return 0
+    raise CliError(f'{len(failed)} of {total} scenarios not evaluated (the others are written to {page}, which lists '
+                   f'these at its end): ' + '; '.join(failed))

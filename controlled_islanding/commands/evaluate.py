@@ -120,10 +120,12 @@ def add_arguments(parser) -> None:
                              '(docs/observability.md)')
     parser.add_argument('--attacks', type=Path, metavar='FILE.md', help='instead, the attack sweep (docs/attacks.md)')
     parser.add_argument('--predictors', type=Path, metavar='FILE.md',
-                        help='instead, compare the stability predictors and write this page (docs/prediction.md)')
+                        help='instead, compare the stability predictors and write this page (docs/prediction.md); a '
+                             'scenario that cannot be run (ANDES does not converge) is listed on it, the others are '
+                             'still written, and the exit status is 2')
     parser.add_argument('--monitor', type=Path, metavar='FILE.md',
                         help='instead, judge the stability monitor on every scenario and write this page '
-                             '(docs/monitor.md)')
+                             '(docs/monitor.md); a scenario that cannot be run is listed on it, as with --predictors')
     parser.add_argument('--testbed', action='append', type=Path, metavar='RESULTS', default=[],
                         help='with --monitor: a `testbed --trigger monitor` results folder whose closed loops the page '
                              'shows, or a `testbed --oracle` one whose oracle they are judged against (repeatable)')

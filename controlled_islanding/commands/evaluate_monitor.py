@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 
-from controlled_islanding.commands import CliError, progress_bar
+from controlled_islanding.commands import CliError, not_evaluated, progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -26,7 +26,7 @@ def judge_monitor(args, bag_paths) -> int:
     if missing:
         raise CliError(f'--testbed folders do not exist: {", ".join(missing)}')
     loops = monitor_study.read_testbed(args.testbed)
-    runs, draws, drawn = [], [], set()
+    runs, draws, drawn, failed = [], [], set(), []
     seeds = range(1, args.noise_seeds + 1)
     start, load_start = time.monotonic(), load_average()
     with progress_bar(len(sources), 'monitor', 'scenario') as bar:
@@ -43,8 +43,11 @@ def judge_monitor(args, bag_paths) -> int:
                     # A bag's scenario is simulated here; an --andes one reuses the simulation above.
                     draws.append(monitor_study.noise_draws(scenario_path, seeds, simulated))
             except study.PredictionStudyError as exc:
-                raise CliError(str(exc)) from exc
+                log.error('%s', exc)
+                failed.append(str(exc))
             bar.update()
+    if not runs:
+        raise CliError('no scenario could be evaluated: ' + '; '.join(failed))
     note = f'{time.monotonic() - start:.0f} s wall, {load_start} at the start and {load_average()} at the end'
     print('\n'.join(monitor_study.report(runs, loops, note)))
     if draws:
@@ -52,6 +55,7 @@ def judge_monitor(args, bag_paths) -> int:
     command = ' '.join(['controlled-islanding evaluate', *map(str, bag_paths), *(f'--andes {p}' for p in args.andes),
                         *(f'--testbed {p}' for p in args.testbed),
                         *([f'--noise-seeds {args.noise_seeds}'] if draws else []), '--monitor', str(args.monitor)])
-    monitor_study.write_page(runs, loops, args.monitor, command=command, run_note=note, draws=draws)
+    monitor_study.write_page(runs, loops, args.monitor, command=command, run_note=note, draws=draws,
+                             not_evaluated=failed)
     log.info('page: %s', args.monitor)
-    return 0
+    return not_evaluated(failed, len(sources), args.monitor)

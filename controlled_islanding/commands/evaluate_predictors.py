@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 
-from controlled_islanding.commands import CliError, progress_bar
+from controlled_islanding.commands import CliError, not_evaluated, progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -19,7 +19,7 @@ def compare_predictors(args, bag_paths) -> int:
     sources = [('bag', p) for p in bag_paths] + [('andes', p) for p in args.andes]
     if not sources:
         raise CliError('--predictors needs at least one BAG or --andes SCENARIO.yaml')
-    results = []
+    results, failed = [], []
     start, load_start = time.monotonic(), load_average()
     with progress_bar(len(sources), 'predictors', 'scenario') as bar:
         for kind, path in sources:
@@ -28,14 +28,17 @@ def compare_predictors(args, bag_paths) -> int:
                 run = study.run_from_bag(path) if kind == 'bag' else study.run_from_scenario(path)
                 results.append(study.study(run))
             except study.PredictionStudyError as exc:
-                raise CliError(str(exc)) from exc
+                log.error('%s', exc)
+                failed.append(str(exc))
             bar.update()
+    if not results:
+        raise CliError('no scenario could be evaluated: ' + '; '.join(failed))
     # CPU per frame depends on what else runs: the run's wall time and load go beside it.
     run = f'{time.monotonic() - start:.0f} s wall, {load_start} at the start and {load_average()} at the end'
     lines = study.report(results, run=run)
     print('\n'.join(lines))
     command = ' '.join(['controlled-islanding evaluate', *map(str, bag_paths), *(f'--andes {p}' for p in args.andes),
                         '--predictors', str(args.predictors)])
-    study.write_report(results, args.predictors, command=command, run=run)
+    study.write_report(results, args.predictors, command=command, run=run, not_evaluated=failed)
     log.info('report: %s', args.predictors)
-    return 0
+    return not_evaluated(failed, len(sources), args.predictors)

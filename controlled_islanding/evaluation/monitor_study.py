@@ -397,8 +397,8 @@ the page was not given (no closed loop, or no oracle).
 
 
 def write_page(runs: Sequence[MonitorRun], loops: dict[str, ClosedLoop], path: Path, *, command: str,
-               run_note: str = '', draws: Sequence[NoiseDraws] = ()) -> None:
-    """Write the page (docs/monitor.md)."""
+               run_note: str = '', draws: Sequence[NoiseDraws] = (), not_evaluated: Sequence[str] = ()) -> None:
+    """Write the page (docs/monitor.md); `not_evaluated`: why each scenario that could not be run was not."""
     from controlled_islanding.atomic import write_text
 
     notes = list(dict.fromkeys(n for loop in loops.values() for n in loop.notes))
@@ -422,4 +422,6 @@ def write_page(runs: Sequence[MonitorRun], loops: dict[str, ClosedLoop], path: P
                  *report_noise(draws), '']
     if notes:
         body += ['Notes:', '', *(f'- {n}' for n in notes), '']
+    if not_evaluated:
+        body += ['## Not evaluated', '', *(f'- {why}' for why in not_evaluated), '']
     write_text(Path(path), '\n'.join(body))

@@ -525,8 +525,12 @@ faulted bus), no switching is seen at all, so no swing is judged.
 """
 
 
-def write_report(results: Sequence[ScenarioResult], path, *, command: str, run: str = '') -> None:
-    """Write the page (docs/prediction.md): the figures, every scenario, the choice and what the node needs."""
+def write_report(results: Sequence[ScenarioResult], path, *, command: str, run: str = '',
+                 not_evaluated: Sequence[str] = ()) -> None:
+    """Write the page (docs/prediction.md): the figures, every scenario, the choice and what the node needs.
+
+    `not_evaluated`: why each scenario that could not be run was not (listed at the end).
+    """
     from pathlib import Path as _Path
 
     from controlled_islanding.atomic import write_text
@@ -544,6 +548,8 @@ def write_report(results: Sequence[ScenarioResult], path, *, command: str, run: 
             '`controlled_islanding/evaluation/predictors.py`).', '', INTRO, '## Figures', '',
             *report(results, run=run), '', CHOICE.format(chosen=chosen, reasons=choice_reasons(results, chosen),
                                                  missed='\n'.join(missed) or '- none'), '']
+    if not_evaluated:
+        body += ['## Not evaluated', '', *(f'- {why}' for why in not_evaluated), '']
     write_text(_Path(path), '\n'.join(body))
 
 
