@@ -251,3 +251,22 @@ def test_a_scenario_that_cannot_run_is_listed_and_the_others_are_still_written(t
     assert text.rstrip().splitlines()[-1].startswith(f'- {bad}') and '## Not evaluated' in text
     assert main(['evaluate', '--andes', str(bad), study, str(tmp_path / 'none.md')]) == 2
     assert 'no scenario could be evaluated' in capsys.readouterr().err and not (tmp_path / 'none.md').exists()
+
+
+@pytest.mark.slow
+def test_on_held_out_npcc_the_monitor_stays_quiet_at_250_ms_and_asks_in_time_at_270_ms():
+    """A held-out system: NPCC 140-bus, never used to design a rule (ANDES twice, about 15 s).
+
+    27 GENROU and 21 GENCLS, two machines on some buses. A 250 ms fault at bus 61 stays one group; 270 ms makes
+    GENROU_42 slip alone at 1.50 s.
+    """
+    from controlled_islanding.evaluation.monitor_study import watch_run
+    from controlled_islanding.evaluation.predictors import run_from_scenario
+
+    stable = watch_run(run_from_scenario(REPO / 'docs' / 'prediction' / 'npcc_bus61_250ms.yaml'))
+    assert stable.stable and stable.n_machines == 48
+    assert stable.requests == []
+    unstable = watch_run(run_from_scenario(REPO / 'docs' / 'prediction' / 'npcc_bus61_270ms.yaml'))
+    assert not unstable.stable and unstable.in_time and unstable.groups_right
+    groups = unstable.requests[0].groups
+    assert min(([n for n in groups if groups[n] == g] for g in set(groups.values())), key=len) == ['GENROU_42']
