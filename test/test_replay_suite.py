@@ -154,3 +154,28 @@ def test_the_progress_bar_is_drawn_on_a_terminal_that_says_it_is_zero_by_zero(mo
             while '1/3' not in drawn and select.select([screen], [], [], 5.0)[0]:
                 drawn += os.read(screen.fileno(), 65536).decode(errors='replace')
     assert '1/3' in drawn and 'bag' in drawn, repr(drawn)
+
+
+def test_a_monitor_run_that_asks_for_nothing_is_a_no_split_row_and_a_missed_separation_still_fails(tmp_path):
+    """`replay --trigger monitor` over bags: a bag whose grid recovers gets no request, and that is its result."""
+    import json
+
+    from controlled_islanding.graph.suite import _suite_row
+
+    def row(name: str, expected: dict | None, requests: list) -> dict:
+        (tmp_path / 'run' / name).mkdir(parents=True)
+        (tmp_path / 'run' / name / 'summary.json').write_text(json.dumps({
+            'split': None, 'status': None, 'trigger': 'monitor', 'requests': requests, 'undecided_requests': [],
+            'replay': {'bag_duration_s': 5.0, 'wall_s': 5.0}, 'phases_s': {}, 'decisions': [], 'restarts': [],
+            'hangs': []}))
+        bag = tmp_path / 'bags' / name
+        bag.mkdir(parents=True)
+        manifests = {bag.parent.resolve(): {} if expected is None else {name: {'expected_decision': expected}}}
+        return _suite_row(SuiteRun(name, bag), tmp_path / 'run', {'status': 0, 'wall_s': 9.0}, manifests)
+
+    quiet = row('recovers', None, [])
+    assert quiet['ok'] and (quiet['split'], quiet['status']) == (False, 'NO_REQUEST'), quiet
+    stable = row('stable', {'split': False}, [])
+    assert stable['ok'] and stable['manifest'] == 'agrees'
+    missed = row('separates', {'split': True, 'cut_branches': ['6-11']}, [])
+    assert not missed['ok'] and missed['manifest'] == 'DIFFERS'
