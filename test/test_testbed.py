@@ -657,3 +657,21 @@ def test_a_later_shed_at_a_bus_takes_only_what_the_earlier_decisions_did_not():
     assert applied == {'shed 0.1': pytest.approx(100.0), 'shed 0.2': 0.0, 'shed 0.3': 0.0,
                        'shed 0.4': pytest.approx(150.0)}
     assert run.shed_mw([7]) == pytest.approx(250.0) and load_mw > 250.0
+
+
+def test_a_monitor_that_asks_for_nothing_is_an_answer_and_a_request_left_unanswered_is_not():
+    """`testbed --trigger monitor` on a run the monitor judges stable: no request, no decision, not a failure.
+
+    Before, every such run made the command exit 1 ('no decision came'), the right answer on a grid that recovers
+    counted as a broken graph; a request that got no decision still is one.
+    """
+    from controlled_islanding.evaluation.testbed_report import monitor_asked_nothing, render
+
+    quiet = {'scenario': 'recovers', 'trigger': 'monitor', 'decision': None, 'events': [], 'runs': {},
+             'closed_loop': {'islands': []}}
+    unanswered = dict(quiet, scenario='unanswered', events=[{'what': 'request', 'at_s': 1.4}])
+    operator = dict(quiet, scenario='operator', trigger='scenario')
+    assert [monitor_asked_nothing(r) for r in (quiet, unanswered, operator)] == [True, False, False]
+    text = render([quiet, unanswered])
+    assert 'recovers:\n  no request: the stability monitor predicted no separation' in text
+    assert 'unanswered:\n  no decision came' in text

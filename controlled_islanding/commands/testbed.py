@@ -10,7 +10,7 @@ from pathlib import Path
 
 from controlled_islanding.commands import CliError, progress_bar, testbed_chaos
 from controlled_islanding.commands.replay import add_wan_arguments, wan_link
-from controlled_islanding.evaluation.testbed_report import publish, render
+from controlled_islanding.evaluation.testbed_report import monitor_asked_nothing, publish, render
 from controlled_islanding.graph import GraphError
 from controlled_islanding.graph.processes import sigterm_as_interrupt
 from controlled_islanding.graph.results import running
@@ -199,5 +199,6 @@ def run(args: argparse.Namespace) -> int:
         print(f'results: {results_dir}')
     for failure in failures:
         print(f'testbed: FAILED: {failure}', file=sys.stderr)
-    failed = bool(failures) or any(r['decision'] is None or r['restarts'] for r in results)
+    failed = bool(failures) or any((r['decision'] is None and not monitor_asked_nothing(r)) or r['restarts']
+                                   for r in results)
     return 1 if failed else 0

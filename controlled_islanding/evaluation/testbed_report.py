@@ -170,13 +170,20 @@ HEADER = ['scenario', 'run', 'cut', 'load served MW (% pre-fault)', 'islands sur
           'generation tripped MW', 'f nadir / peak Hz', 'V min pu', 'request -> opening s']
 
 
+def monitor_asked_nothing(result: dict) -> bool:
+    """Whether a run with the stability monitor as the only trigger got no request: no decision is then its answer."""
+    return result.get('trigger') == 'monitor' and not any(e.get('what') == 'request' for e in result['events'])
+
+
 def render(results: list[dict]) -> str:
     """Return the readable report: each decision, its commands, and the comparison table."""
     lines = []
     for r in results:
         d = r['decision']
         lines.append(f'{r["scenario"]}:')
-        if d is None:
+        if d is None and monitor_asked_nothing(r):
+            lines.append('  no request: the stability monitor predicted no separation, the grid was left whole')
+        elif d is None:
             lines.append('  no decision came')
         else:
             cut = f', cut {", ".join(d["cut_branch_ids"])}' if d['split'] else ''
@@ -198,11 +205,11 @@ def render(results: list[dict]) -> str:
             verdict = ('survived' if isl['survived'] else 'undetermined' if isl['survived'] is None
                        else 'LOST: ' + '; '.join(isl['why_not']))
             lines.append(f'  island {isl["island"]} ({", ".join(isl["generators"])}): {verdict}')
-    widths = [max(len(h), *(len(row[i]) for row in table_rows(results))) for i, h in enumerate(HEADER)] \
-        if results else [len(h) for h in HEADER]
+    rows = table_rows(results)
+    widths = [max([len(h), *(len(row[i]) for row in rows)]) for i, h in enumerate(HEADER)]
     lines.append('')
     lines.append('  '.join(h.ljust(w) for h, w in zip(HEADER, widths, strict=True)))
-    for row in table_rows(results):
+    for row in rows:
         lines.append('  '.join(c.ljust(w) for c, w in zip(row, widths, strict=True)))
     gaps = gap_lines(results)
     if gaps:

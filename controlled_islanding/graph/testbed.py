@@ -375,8 +375,8 @@ def _run_scenario(path: Path, results: Path, args: TestbedSettings, cache: dict,
         # the run was judged from the scenario's own request time, as the no-action run is).
         scenario = replace(scenario, request_s=loop['request_s'],
                            end_s=max(scenario.end_s, loop['request_s'] + args.run_after_s))
-    result: dict[str, Any] = {'scenario': scenario.name, 'path': str(path), 'decision': decision,
-                              'coherent_groups': _coherent_groups(obs, report['request_id']),
+    result: dict[str, Any] = {'scenario': scenario.name, 'path': str(path), 'trigger': args.trigger,
+                              'decision': decision, 'coherent_groups': _coherent_groups(obs, report['request_id']),
                               'commanded_actions': [] if decision is None else decision['breaker_commands'],
                               'closed_loop': loop, 'events': report['events'],
                               'restarts': [r.__dict__ for r in obs.restarts], 'runs': {'dtw': loop},
