@@ -72,13 +72,18 @@ STALL_S = 0.5
 BIG_STALL_S = 5.0
 # The fuzz runs on a sim clock that starts this far (s) before the bag's first message and stands still
 # FUZZ_CLOCK_MARGIN_S before it, so nothing the fuzz leaves behind is newer than the bag's data. Before the
-# replay it is brought up to HANDOVER_GAP_S before the bag's start in steps of CATCH_UP_STEP_S, one a tick:
-# the nodes bound their sim clock (wire/timebounds.SimClockGuard: at most 10 s at once, 1000 x wall time by
-# default), and a clock that leapt to the bag would be refused as forged for the rest of the graph's life.
-FUZZ_CLOCK_LEAD_S = 300.0
+# replay it is brought up to HANDOVER_GAP_S before the bag's start in steps of CATCH_UP_STEP_S: the nodes bound
+# their sim clock (wire/timebounds.SimClockGuard: at most 10 s at once, 1000 x wall time by default), and a
+# clock that leapt to the bag would be refused as forged for the rest of the graph's life. Each step waits
+# (at most CATCH_UP_WAIT_S) for a heartbeat from every node after it: a node busy with a backlog takes only the
+# newest /clock when it is free again, and in a 10,000-message soak partitioning, still answering fuzz requests,
+# next read the clock 42 s on (2 s steps every 25 ms), refused it as a jump and never trusted it again. The
+# lead is short so that the catch-up, about a second a step, stays a few steps.
+FUZZ_CLOCK_LEAD_S = 90.0
 FUZZ_CLOCK_MARGIN_S = 60.0
 HANDOVER_GAP_S = 5.0
-CATCH_UP_STEP_S = 2.0
+CATCH_UP_STEP_S = 8.0
+CATCH_UP_WAIT_S = 30.0
 RSS_LIMIT_MB = 20.0
 # Wall time the nodes get to publish their first diagnostics, s (also the supervisor's start-up grace in the soak):
 # coherency imports scipy and loads numba's DTW engine, which took over 20 s on the shared 2-core machine under a
@@ -993,7 +998,8 @@ def run_soak(per_topic: int, seed: int, bag: Path, entry: dict, results: Path, k
                 catching_up_s[0] = sim_now_s()
                 while catching_up_s[0] < seeds.bag_start_s - HANDOVER_GAP_S:
                     catching_up_s[0] = min(catching_up_s[0] + CATCH_UP_STEP_S, seeds.bag_start_s - HANDOVER_GAP_S)
-                    spin(sup, 0.025)
+                    stepped = time.monotonic() + 0.05  # a heartbeat after the step's first publish
+                    spin(sup, CATCH_UP_WAIT_S, lambda at=stepped: all(heartbeats.get(n, 0.0) > at for n in names))
                 spin(sup, 0.1)
                 report.replay = _replay(sup, node, spin, bag, entry, seeds, results, decisions, commands,
                                         replaying, PLAYER, progress, clock_topic)
