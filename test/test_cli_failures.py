@@ -200,6 +200,7 @@ def _with_older_rotor_angles(tmp_path: Path, good: Path) -> Path:
     return out
 
 
+@pytest.mark.ros
 def test_bag_player_refuses_a_bag_recorded_with_another_definition_naming_the_topic(tmp_path, good_bag,
                                                                                     rclpy_context):
     """Published raw, such messages fail to decode in every subscriber: the player refuses before it plays."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 from diagnostic_msgs.msg import DiagnosticStatus
 
 from controlled_islanding.ros.diagnostics import TopicStatus
@@ -57,6 +58,7 @@ def test_stamps_outside_the_bounds_are_errors():
     assert float(status.values['Earliest timestamp delay:']) < -2.9
 
 
+@pytest.mark.ros
 def test_a_fault_and_a_warning_both_log_and_hold_in_one_node(rclpy_context):
     # rclpy raises when one call site logs at two severities: a breaker node with a fault once lost its
     # control_centre_silent warning (and counted a callback error) that way.

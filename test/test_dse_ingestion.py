@@ -91,6 +91,7 @@ def test_without_waiting_late_frames_are_interpolated_and_lost_to_the_filter(bag
     assert np.isfinite(est[bag.frame_present[:120].nonzero()[0][5:]]).all()
 
 
+@pytest.mark.ros
 def test_pmu_ingestion_with_dse_publishes_the_filter_and_falls_back_where_data_are_missing(bag, rclpy_context):
     import rclpy
     from controlled_islanding_msgs.msg import RotorAngles
@@ -202,6 +203,7 @@ def test_a_stream_at_a_divisor_of_rate_fps_has_no_missing_tags_until_it_shows_th
     assert on_60.lost_frames == 1 and on_60.ahead_frames == 6
 
 
+@pytest.mark.ros
 def test_pmu_ingestion_counts_missing_frames_on_the_streams_own_tag_grid(rclpy_context):
     # Kundur's PMUs report 30 frames/s; under the default rate_fps of 60 every odd tag used to count as missing.
     from rclpy.parameter import Parameter

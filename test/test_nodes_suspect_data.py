@@ -18,6 +18,7 @@ from controlled_islanding_msgs.msg import IslandingDecision, IslandingRequest, N
 from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
 
+from controlled_islanding.graph.rosenv import reserved_domain_id
 from controlled_islanding.sim.manifest import default_bag, manifest_entries
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.interfaces import typestore
@@ -38,9 +39,13 @@ def bag():
                 snapshot = deserialize_message(bytes(raw), NetworkSnapshot)
             elif conn.topic == topics.PMU_FRAMES and len(frames) < 200:
                 frames.append(deserialize_message(bytes(raw), PmuFrame))
-    rclpy.init()
-    yield snapshot, frames
-    rclpy.shutdown()
+    # The nodes made here join the default context: give it a domain no concurrent run holds.
+    with reserved_domain_id() as domain_id:
+        rclpy.init(domain_id=domain_id)
+        try:
+            yield snapshot, frames
+        finally:
+            rclpy.shutdown()
 
 
 def caught(node, attribute: str) -> list:
