@@ -24,6 +24,7 @@ from controlled_islanding_msgs.msg import IslandingDecision, IslandingRequest, N
 from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
 
+from controlled_islanding.graph.rosenv import reserved_domain_id
 from controlled_islanding.safety import signing
 from controlled_islanding.sim.bag import START_TIME_UNIX_S
 from controlled_islanding.sim.manifest import manifest_entries
@@ -71,17 +72,21 @@ def kundur():
             elif conn.topic == topics.PMU_FRAMES:
                 frames.append(deserialize_message(bytes(raw), PmuFrame))
     made_test_keys()  # the nodes sign with CONTROLLED_ISLANDING_KEYS (conftest)
-    rclpy.init()
     from controlled_islanding.nodes.pmu_ingestion import PmuIngestionNode
 
-    node = PmuIngestionNode()
-    angles = caught(node, 'pub')
-    node._take_snapshot(snapshot)
-    for frame in sorted(frames, key=lambda f: stamp_s(f.header.stamp)):
-        node._take_frame(frame)
-    node.destroy_node()
-    yield snapshot, angles
-    rclpy.shutdown()
+    # The nodes made here join the default context: give it a domain no concurrent run holds.
+    with reserved_domain_id() as domain_id:
+        rclpy.init(domain_id=domain_id)
+        try:
+            node = PmuIngestionNode()
+            angles = caught(node, 'pub')
+            node._take_snapshot(snapshot)
+            for frame in sorted(frames, key=lambda f: stamp_s(f.header.stamp)):
+                node._take_frame(frame)
+            node.destroy_node()
+            yield snapshot, angles
+        finally:
+            rclpy.shutdown()
 
 
 def test_the_rotor_angles_carry_speeds_power_and_voltage_and_the_snapshot_its_frequency(kundur):
