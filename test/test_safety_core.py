@@ -15,7 +15,7 @@ from controlled_islanding.core.grid import Grid
 from controlled_islanding.safety import signing
 from controlled_islanding.safety.audit import AuditError, AuditLog, read_state
 from controlled_islanding.safety.topology import Topology, TopologyError
-from controlled_islanding.wire.timebounds import SimClockGuard, StampError, StampGate
+from controlled_islanding.wire.timebounds import HELD_SNAPSHOTS, SNAPSHOT, SimClockGuard, StampError, StampGate
 
 
 # --- audit ------------------------------------------------------------------------------------------------------
@@ -182,6 +182,23 @@ def test_stamp_gate_holds_until_the_clock_runs():
     assert used == ['d'] and [e.reason for e in refused] == ['future_stamp'] and gate.held == 1
     gate.release(19.6, used.append, refused.append)
     assert used == ['d', 'b'] and gate.held == 0
+
+
+def test_what_waits_for_the_clock_is_bounded_in_size_and_keeps_only_the_newest_snapshots():
+    gate = StampGate(future_tolerance_s=0.5, hold_horizon_s=60.0, max_held_elements=100)
+    for i in range(10):
+        gate.offer(f'snapshot {i}', 1.0 + i, 0.0, f'snapshot {i}', elements=5, kind=SNAPSHOT)
+        gate.offer(f'frame {i}', 1.0 + i, 0.0, f'frame {i}', elements=1)
+    # The oldest six snapshots were superseded; no frame was dropped for them.
+    assert gate.held == HELD_SNAPSHOTS + 10 and gate.held_elements == 5 * HELD_SNAPSHOTS + 10
+    gate.offer('big frame', 5.0, 0.0, 'big frame', elements=80)
+    assert gate.held_elements <= 100 and gate.dropped_while_held == 6 + 7
+    # One item larger than the whole budget is still held: the newest input is never lost to the bound.
+    gate.offer('huge', 5.0, 0.0, 'huge', elements=1000)
+    assert gate.held == 1 and gate.held_elements == 1000
+    used = []
+    gate.release(20.0, used.append, pytest.fail)
+    assert used == ['huge'] and gate.held == 0 and gate.held_elements == 0
 
 
 def test_a_clock_that_lags_the_data_delays_a_value_but_never_loses_or_uses_it_early():

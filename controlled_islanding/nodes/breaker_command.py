@@ -222,7 +222,7 @@ class BreakerCommandNode(Node):
         if grid is None:
             return
         stamp = stamp_s(msg.header.stamp)
-        self.inputs.admit('network snapshot', stamp, ('snapshot', grid, stamp))
+        self.inputs.admit('network snapshot', stamp, ('snapshot', grid, stamp), msg)
 
     def on_branch_status(self, msg: BranchStatus) -> None:
         """Follow trips and reclosures."""

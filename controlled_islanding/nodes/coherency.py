@@ -154,7 +154,7 @@ class CoherencyNode(Node):
 
     def on_snapshot(self, msg: NetworkSnapshot) -> None:
         """Take the generator set from a snapshot, once its stamp is within bounds."""
-        self.inputs.admit('network snapshot', stamp_s(msg.header.stamp), ('snapshot', msg))
+        self.inputs.admit('network snapshot', stamp_s(msg.header.stamp), ('snapshot', msg), msg)
 
     def _take_snapshot(self, msg: NetworkSnapshot) -> None:
         grid = self.intake.newer(msg)
@@ -226,7 +226,7 @@ class CoherencyNode(Node):
         if t <= 0:
             self.diag.reject('missing_stamp', 'rotor angles header.stamp is zero')
             return
-        self.inputs.admit('rotor angles', t, ('angles', msg))
+        self.inputs.admit('rotor angles', t, ('angles', msg), msg)
 
     def _take_angles(self, msg: RotorAngles) -> None:
         """Insert one sample, within time bounds, into the window, after checking its generators and values."""
@@ -298,7 +298,7 @@ class CoherencyNode(Node):
             self.diag.reject('empty_message', f'islanding request without request_id (or longer than '
                                               f'{MAX_REQUEST_ID} characters) or stamp')
             return
-        self.inputs.admit('islanding request', t, ('request', msg))
+        self.inputs.admit('islanding request', t, ('request', msg), msg)
 
     def _take_request(self, msg: IslandingRequest) -> None:
         """Queue a request; it is served once data up to its stamp is in (or the wait ends)."""

@@ -226,7 +226,7 @@ class PartitioningNode(Node):
         if grid is None:
             return
         stamp = stamp_s(msg.header.stamp)
-        self.inputs.admit('network snapshot', stamp, ('snapshot', grid, stamp))
+        self.inputs.admit('network snapshot', stamp, ('snapshot', grid, stamp), msg)
 
     def on_branch_status(self, msg: BranchStatus) -> None:
         """Record a branch status change."""
@@ -244,7 +244,7 @@ class PartitioningNode(Node):
         if self.method and groups.method != self.method:
             self.diag.reject('unknown_id', f'groups of method {groups.method!r}; this node uses {self.method!r}')
             return
-        self.inputs.admit('coherent groups', groups.stamp_s, ('groups', groups))
+        self.inputs.admit('coherent groups', groups.stamp_s, ('groups', groups), msg)
 
     def _take_groups(self, groups: Groups) -> None:
         snapshot = self.topology.snapshot
@@ -276,7 +276,7 @@ class PartitioningNode(Node):
         if stamp_s(msg.header.stamp) <= 0:
             self.diag.reject('missing_stamp', f'request {msg.request_id}: header.stamp is zero')
             return
-        self.inputs.admit(f'request {msg.request_id}', stamp_s(msg.header.stamp), ('request', msg))
+        self.inputs.admit(f'request {msg.request_id}', stamp_s(msg.header.stamp), ('request', msg), msg)
 
     def _queue(self, msg: IslandingRequest) -> None:
         if msg.request_id in self.answered_set or any(p.request_id == msg.request_id for p in self.pending):

@@ -176,7 +176,7 @@ class PmuIngestionNode(Node):
 
     def on_snapshot(self, msg: NetworkSnapshot) -> None:
         """Take the generators (names, buses, reactances) from a snapshot, once its stamp is within bounds."""
-        self.inputs.admit('network snapshot', stamp_s(msg.header.stamp), ('snapshot', msg))
+        self.inputs.admit('network snapshot', stamp_s(msg.header.stamp), ('snapshot', msg), msg)
 
     def _take_snapshot(self, msg: NetworkSnapshot) -> None:
         grid = self.intake.newer(msg)
@@ -282,7 +282,7 @@ class PmuIngestionNode(Node):
             self.diag.reject('too_large', f'PMU frame at {t:.3f} s has {len(frame.measurements)} measurements, '
                                           f'more than max_pmus_per_frame={self.max_pmus}')
             return
-        self.inputs.admit('PMU frame', t, ('frame', frame))
+        self.inputs.admit('PMU frame', t, ('frame', frame), frame)
 
     def _take_frame(self, frame: PmuFrame) -> None:
         """Estimate each generator's rotor angle from a frame within bounds, publish."""

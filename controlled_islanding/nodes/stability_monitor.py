@@ -153,7 +153,7 @@ class StabilityMonitorNode(Node):
     # --- inputs -------------------------------------------------------------------------------------------------
     def on_snapshot(self, msg: NetworkSnapshot) -> None:
         """Take the machines from a snapshot, once its stamp is within bounds."""
-        self.inputs.admit('network snapshot', stamp_s(msg.header.stamp), ('snapshot', msg))
+        self.inputs.admit('network snapshot', stamp_s(msg.header.stamp), ('snapshot', msg), msg)
 
     def on_branch_status(self, msg: BranchStatus) -> None:
         """Remember a branch status change's stamp: a request says how many it knows of."""
@@ -178,7 +178,7 @@ class StabilityMonitorNode(Node):
         if t <= 0:
             self.diag.reject('missing_stamp', 'rotor angles header.stamp is zero')
             return
-        self.inputs.admit('rotor angles', t, ('angles', msg))
+        self.inputs.admit('rotor angles', t, ('angles', msg), msg)
 
     def _take_snapshot(self, msg: NetworkSnapshot) -> None:
         grid = self.intake.newer(msg)

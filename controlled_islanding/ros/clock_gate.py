@@ -8,12 +8,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from controlled_islanding_msgs.msg import NetworkSnapshot
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from controlled_islanding.ros.diagnostics import Diagnostics
 from controlled_islanding.ros.sim_clock import SimClockWatch
-from controlled_islanding.wire.timebounds import StampError, StampGate
+from controlled_islanding.wire.messages import element_count
+from controlled_islanding.wire.timebounds import SNAPSHOT, StampError, StampGate
 
 
 class ClockGate:
@@ -51,11 +53,16 @@ class ClockGate:
     def _refuse(self, exc: StampError) -> None:
         self._diag.reject(exc.reason, str(exc))
 
-    def admit(self, what: str, stamp_s: float, item: object) -> None:
-        """Use an input now, hold it until the clock reaches it, or refuse it as future-stamped."""
+    def admit(self, what: str, stamp_s: float, item: object, msg: object = None) -> None:
+        """Use an input now, hold it until the clock reaches it, or refuse it as future-stamped.
+
+        `msg`, the message the input came from, sizes it for the hold (wire.messages.element_count); a network
+        snapshot is known by its type.
+        """
         self.release()
+        elements, kind = (element_count(msg), SNAPSHOT if isinstance(msg, NetworkSnapshot) else '') if msg else (1, '')
         try:
-            usable = self.gate.offer(what, stamp_s, self._now_s(), item)
+            usable = self.gate.offer(what, stamp_s, self._now_s(), item, elements, kind)
         except StampError as exc:
             self._refuse(exc)
             return

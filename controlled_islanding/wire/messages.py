@@ -61,6 +61,19 @@ class Limits:
     max_loads: int = 50_000
 
 
+def element_count(msg: object) -> int:
+    """Return how many elements a message's arrays carry together (a message's size for memory bounds), at least 1.
+
+    A string counts as one element, as does every message nested in an array (a PMU frame's measurements).
+    """
+    n = 0
+    for name in getattr(msg, 'get_fields_and_field_types', dict)():
+        value = getattr(msg, name, None)
+        if not isinstance(value, (str, bytes)) and hasattr(value, '__len__'):
+            n += len(value)
+    return max(n, 1)
+
+
 def _at_most(msg: object, what: str, fields: tuple[str, ...], cap: int) -> None:
     for f in fields:
         n = len(getattr(msg, f, ()))  # a field newer than the message's type counts as empty

@@ -8,7 +8,9 @@ the future: every later, honest value then looks old. `StampGate` uses a stamp o
   executor was busy (a 1.5 s warm-up while /clock messages queue behind data), and an honest value must not
   be lost for that; held, a value is never used before its time, so it cannot poison anything early;
 - while the clock has not started (sim time before the first /clock reads 0): held, and judged once it runs.
-At most `max_held` values wait; beyond, the oldest is dropped. No rclpy here: the nodes pass their clock in.
+At most `max_held` values wait, carrying at most `max_held_elements` elements between them, and at most
+HELD_SNAPSHOTS network snapshots; beyond, the oldest (of that kind) is dropped. No rclpy here: the nodes pass their
+clock in.
 
 Under use_sim_time the node clock is itself a value from the wire (/clock, which any node may publish):
 `SimClockGuard` bounds it against the wall clock (monotonic, and no faster than a multiple of wall time).
@@ -22,6 +24,14 @@ from dataclasses import dataclass
 from typing import Generic, TypeVar
 
 T = TypeVar('T')
+
+# A count alone did not bound the memory: 1000 held snapshots of the GB network took 1.1 GB, and at the decoders'
+# caps one is tens of MB. The budget holds one message at every cap (a snapshot of 210,000 elements, a frame of
+# 10,000 PMUs) with room, and 1000 frames of every PMU of the largest system in bags/ (GB, 394).
+MAX_HELD_ELEMENTS = 1_000_000
+# A snapshot is the whole network: a newer one supersedes it, and the topology keeps only the last 4 anyway.
+HELD_SNAPSHOTS = 4
+SNAPSHOT = 'snapshot'
 
 
 class StampError(ValueError):
@@ -45,6 +55,15 @@ def check_not_future(what: str, stamp_s: float, now_s: float, future_tolerance_s
                                          f'({now_s:.3f} s); more than future_tolerance_s={future_tolerance_s}')
 
 
+@dataclass(eq=False)
+class _Held(Generic[T]):
+    what: str
+    stamp_s: float
+    item: T
+    elements: int
+    kind: str
+
+
 @dataclass
 class StampGate(Generic[T]):
     """Admits, holds or refuses stamped items against a node clock.
@@ -53,25 +72,40 @@ class StampGate(Generic[T]):
         future_tolerance_s: How far a stamp may lead the node clock and still be used at once, s.
         max_held: How many items may wait for the clock; the oldest is dropped beyond.
         hold_horizon_s: How far a stamp may lead the clock and still be held rather than refused, s.
+        max_held_elements: How many elements (wire.messages.element_count) the waiting items may carry together;
+            the oldest is dropped beyond, though the newest item is always kept.
 
     """
 
     future_tolerance_s: float
     max_held: int = 1000
     hold_horizon_s: float = 60.0
+    max_held_elements: int = MAX_HELD_ELEMENTS
 
     def __post_init__(self) -> None:
-        self._held: deque[tuple[str, float, T]] = deque()
+        self._held: deque[_Held[T]] = deque()
+        self._elements = 0
         self.dropped_while_held = 0
 
-    def _hold(self, what: str, stamp_s: float, item: T) -> None:
-        if len(self._held) >= self.max_held:
-            self._held.popleft()
-            self.dropped_while_held += 1
-        self._held.append((what, stamp_s, item))
+    def _drop(self, entry: _Held[T]) -> None:
+        self._held.remove(entry)
+        self._elements -= entry.elements
+        self.dropped_while_held += 1
 
-    def offer(self, what: str, stamp_s: float, now_s: float, item: T) -> bool:
+    def _hold(self, entry: _Held[T]) -> None:
+        self._held.append(entry)
+        self._elements += entry.elements
+        if entry.kind == SNAPSHOT:
+            snapshots = [e for e in self._held if e.kind == SNAPSHOT]
+            for old in snapshots[:-HELD_SNAPSHOTS]:
+                self._drop(old)
+        while len(self._held) > self.max_held or (self._elements > self.max_held_elements and len(self._held) > 1):
+            self._drop(self._held[0])
+
+    def offer(self, what: str, stamp_s: float, now_s: float, item: T, elements: int = 1, kind: str = '') -> bool:
         """Return True when `item` may be used now; False when it is held until the clock reaches it.
+
+        `elements` is the item's size, `kind` SNAPSHOT for a network snapshot.
 
         Raises:
             StampError: The stamp leads a running clock by more than `hold_horizon_s`.
@@ -81,7 +115,7 @@ class StampGate(Generic[T]):
             check_not_future(what, stamp_s, now_s, self.hold_horizon_s)
             if stamp_s - now_s <= self.future_tolerance_s:
                 return True
-        self._hold(what, stamp_s, item)
+        self._hold(_Held(what, stamp_s, item, max(int(elements), 1), kind))
         return False
 
     def release(self, now_s: float, use: Callable[[T], None], refuse: Callable[[StampError], None]) -> None:
@@ -92,24 +126,31 @@ class StampGate(Generic[T]):
         """
         if now_s <= 0.0:
             return
-        keep: deque[tuple[str, float, T]] = deque()
+        keep: deque[_Held[T]] = deque()
         while self._held:
-            what, stamp_s, item = self._held.popleft()
+            entry = self._held.popleft()
+            self._elements -= entry.elements
             try:
-                check_not_future(what, stamp_s, now_s, self.hold_horizon_s)
+                check_not_future(entry.what, entry.stamp_s, now_s, self.hold_horizon_s)
             except StampError as exc:
                 refuse(exc)
                 continue
-            if stamp_s - now_s <= self.future_tolerance_s:
-                use(item)
+            if entry.stamp_s - now_s <= self.future_tolerance_s:
+                use(entry.item)
             else:
-                keep.append((what, stamp_s, item))
+                keep.append(entry)
+                self._elements += entry.elements
         self._held = keep
 
     @property
     def held(self) -> int:
         """Number of items waiting for the clock."""
         return len(self._held)
+
+    @property
+    def held_elements(self) -> int:
+        """Elements the items waiting for the clock carry together."""
+        return self._elements
 
 
 @dataclass(frozen=True)
