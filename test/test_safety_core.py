@@ -15,7 +15,14 @@ from controlled_islanding.core.grid import Grid
 from controlled_islanding.safety import signing
 from controlled_islanding.safety.audit import AuditError, AuditLog, read_state
 from controlled_islanding.safety.topology import Topology, TopologyError
-from controlled_islanding.wire.timebounds import HELD_SNAPSHOTS, SNAPSHOT, SimClockGuard, StampError, StampGate
+from controlled_islanding.wire.timebounds import (
+    HELD_SNAPSHOTS,
+    SNAPSHOT,
+    Backlog,
+    SimClockGuard,
+    StampError,
+    StampGate,
+)
 
 
 # --- audit ------------------------------------------------------------------------------------------------------
@@ -199,6 +206,16 @@ def test_what_waits_for_the_clock_is_bounded_in_size_and_keeps_only_the_newest_s
     used = []
     gate.release(20.0, used.append, pytest.fail)
     assert used == ['huge'] and gate.held == 0 and gate.held_elements == 0
+
+
+def test_a_backlog_keeps_the_newest_within_its_count_and_its_elements():
+    backlog = Backlog(max_items=5, max_elements=100)
+    assert [backlog.append(i, 10) for i in range(7)] == [0, 0, 0, 0, 0, 1, 1]
+    assert len(backlog) == 5 and backlog[0] == 2 and backlog.elements == 50
+    assert backlog.append('big', 80) == 3 and [backlog[i] for i in range(len(backlog))] == [5, 6, 'big']
+    # One item over the whole budget is still kept: the newest is never the one dropped.
+    assert backlog.append('huge', 1000) == 3 and len(backlog) == 1 and backlog.elements == 1000
+    assert backlog.popleft() == 'huge' and backlog.elements == 0 and not backlog
 
 
 def test_a_clock_that_lags_the_data_delays_a_value_but_never_loses_or_uses_it_early():

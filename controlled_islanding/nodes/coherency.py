@@ -30,7 +30,6 @@ import bisect
 import math
 import sys
 import time
-from collections import deque
 
 import numpy as np
 from controlled_islanding_msgs.msg import CoherentGroups, IslandingRequest, NetworkSnapshot, RotorAngles
@@ -49,7 +48,15 @@ from controlled_islanding.ros.params import NodeSetupError, declare_bounded
 from controlled_islanding.ros.pending import PendingRequests
 from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.wire import topics
-from controlled_islanding.wire.messages import MAX_REQUEST_ID, MONITOR_FIELDS, sample_columns, split_stamp, stamp_s
+from controlled_islanding.wire.messages import (
+    MAX_REQUEST_ID,
+    MONITOR_FIELDS,
+    element_count,
+    sample_columns,
+    split_stamp,
+    stamp_s,
+)
+from controlled_islanding.wire.timebounds import MAX_HELD_ELEMENTS, Backlog
 
 # A frame period is the median spacing of the newest samples; C37.118.1's slowest reporting rate is 10 frames/s,
 # so no frame period is longer than 0.1 s (a gap in the data is not a period).
@@ -115,7 +122,7 @@ class CoherencyNode(Node):
         if self.max_window_samples < self.min_samples:
             raise NodeSetupError(f'max_window_samples={self.max_window_samples} < min_samples={self.min_samples}: '
                                  'no window could ever be grouped')
-        self.early: deque[RotorAngles] = deque()  # samples that overtook the snapshot
+        self.early: Backlog[RotorAngles] = Backlog(self.max_held)  # samples that overtook the snapshot
         self.names: tuple[str, ...] | None = None  # the snapshot's generators, in window column order
         self.column: dict[str, int] = {}
         self.buses: list[int] = []
@@ -231,11 +238,10 @@ class CoherencyNode(Node):
     def _take_angles(self, msg: RotorAngles) -> None:
         """Insert one sample, within time bounds, into the window, after checking its generators and values."""
         if self.names is None:
-            self.early.append(msg)
-            if len(self.early) > self.max_held:
-                self.early.popleft()
+            if self.early.append(msg, element_count(msg)):
                 self.diag.reject('no_data', f'more than max_held_samples={self.max_held} rotor-angle samples '
-                                            'before any network snapshot: generator set unknown')
+                                            f'(or {MAX_HELD_ELEMENTS} elements) before any network snapshot: '
+                                            'generator set unknown')
             return
         names = [str(x) for x in msg.generator_names]
         cols = [self.column.get(x, -1) for x in names]

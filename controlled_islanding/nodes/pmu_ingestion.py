@@ -61,7 +61,8 @@ from controlled_islanding.ros.intake import SnapshotIntake
 from controlled_islanding.ros.params import NodeSetupError, declare_bounded
 from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.wire import topics
-from controlled_islanding.wire.messages import stamp_s
+from controlled_islanding.wire.messages import element_count, stamp_s
+from controlled_islanding.wire.timebounds import MAX_HELD_ELEMENTS, Backlog
 
 _UNUSABLE = 0xC000  # STAT bits 15-14: 01 = PMU error, no information about data; 10 = data invalid; 11 = PMU error
 _SORT_BY_ARRIVAL = PmuMeasurement.STAT_SORT_BY_ARRIVAL  # bit 12
@@ -145,7 +146,7 @@ class PmuIngestionNode(Node):
         self.grid: Grid | None = None
         self.buses: frozenset[int] = frozenset()
         # Topics are not ordered against each other: frames may overtake the snapshot. Hold them until it comes.
-        self.early: deque[PmuFrame] = deque()
+        self.early: Backlog[PmuFrame] = Backlog(max_held)
         self.max_early = max_held
         self.seen: deque[int] = deque(maxlen=4096)
         self.seen_set: set[int] = set()
@@ -289,13 +290,15 @@ class PmuIngestionNode(Node):
         t0 = time.perf_counter()
         t = stamp_s(frame.header.stamp)
         if self.grid is None:
-            self.early.append(frame)
-            if (len(self.early) > self.max_early
-                    or stamp_s(self.early[-1].header.stamp) - stamp_s(self.early[0].header.stamp) > self.max_delay_s):
+            dropped = self.early.append(frame, element_count(frame))
+            if len(self.early) > 1 and (stamp_s(self.early[-1].header.stamp) - stamp_s(self.early[0].header.stamp)
+                                        > self.max_delay_s):
                 self.early.popleft()
+                dropped += 1
+            if dropped:
                 self.diag.reject('no_data', f'PMU frames for more than max_delay_s={self.max_delay_s} (or more than '
-                                            f'max_held_frames={self.max_early}) before any network snapshot: '
-                                            'generator reactances unknown')
+                                            f'max_held_frames={self.max_early}, or {MAX_HELD_ELEMENTS} elements) '
+                                            'before any network snapshot: generator reactances unknown')
             return
         key = int(round(t * self.rate_fps))
         if key in self.seen_set:

@@ -30,7 +30,6 @@ import bisect
 import math
 import sys
 import time
-from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -50,7 +49,8 @@ from controlled_islanding.ros.sim_clock import SimClockWatch
 from controlled_islanding.ros.spin import spin_node
 from controlled_islanding.safety import signing
 from controlled_islanding.wire import topics
-from controlled_islanding.wire.messages import MONITOR_FIELDS, sample_columns, split_stamp, stamp_s
+from controlled_islanding.wire.messages import MONITOR_FIELDS, element_count, sample_columns, split_stamp, stamp_s
+from controlled_islanding.wire.timebounds import MAX_HELD_ELEMENTS, Backlog
 
 _MAX_BRANCH_CHANGES = 10_000  # branch status stamps remembered (for branch_changes_before); oldest forgotten
 
@@ -125,7 +125,7 @@ class StabilityMonitorNode(Node):
         self.names: tuple[str, ...] = ()
         self.column: dict[str, int] = {}
         self.watch: SwingWatch | None = None
-        self.early: deque[RotorAngles] = deque()
+        self.early: Backlog[RotorAngles] = Backlog(self.max_held)
         self.changes: list[tuple[float, str]] = []  # (stamp s, branch id) of status changes, sorted
         self.requests = 0
         for key in ('swings_alarmed', 'skipped_frames', 'requests'):
@@ -226,11 +226,10 @@ class StabilityMonitorNode(Node):
         if self.watch is None:
             self.diag.counts['unjudged_frames'] += 1
             if 'cannot_judge' not in self.diag.faults:
-                self.early.append(msg)
-                if len(self.early) > self.max_held:
-                    self.early.popleft()
+                if self.early.append(msg, element_count(msg)):
                     self.diag.reject('no_data', f'more than max_held_samples={self.max_held} rotor-angle samples '
-                                                'before any network snapshot: machines unknown')
+                                                f'(or {MAX_HELD_ELEMENTS} elements) before any network snapshot: '
+                                                'machines unknown')
             return
         t0 = time.perf_counter()
         row = sample_columns(msg, self.column)
