@@ -64,13 +64,14 @@ class Limits:
 def element_count(msg: object) -> int:
     """Return how many elements a message's arrays carry together (a message's size for memory bounds), at least 1.
 
-    A string counts as one element, as does every message nested in an array (a PMU frame's measurements).
+    A string counts as one element; a message nested in an array counts as many as it has fields (a PMU frame's
+    measurements, 9 each), which weighs a decoded measurement (about 310 bytes) more fairly against a number.
     """
     n = 0
     for name in getattr(msg, 'get_fields_and_field_types', dict)():
         value = getattr(msg, name, None)
-        if not isinstance(value, (str, bytes)) and hasattr(value, '__len__'):
-            n += len(value)
+        if not isinstance(value, (str, bytes)) and hasattr(value, '__len__') and len(value):
+            n += len(value) * len(getattr(value[0], 'get_fields_and_field_types', lambda: (0,))())
     return max(n, 1)
 
 

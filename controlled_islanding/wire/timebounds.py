@@ -26,9 +26,11 @@ from typing import Generic, TypeVar
 T = TypeVar('T')
 
 # A count alone did not bound the memory: 1000 held snapshots of the GB network took 1.1 GB, and at the decoders'
-# caps one is tens of MB. The budget holds one message at every cap (a snapshot of 210,000 elements, a frame of
-# 10,000 PMUs) with room, and 1000 frames of every PMU of the largest system in bags/ (GB, 394).
-MAX_HELD_ELEMENTS = 1_000_000
+# caps one is tens of MB. In elements (wire.messages.element_count) a snapshot at the caps is 1.16 M and a frame
+# of 10,000 stations 90,000 (3.1 MB decoded, the heaviest per element). The budget holds 1000 frames of every
+# station of the largest system in bags/ (GB, 394 stations: 3.5 M) beside one snapshot at the caps; at most about
+# 170 MB, in 55 frames at the caps.
+MAX_HELD_ELEMENTS = 5_000_000
 # A snapshot is the whole network: a newer one supersedes it, and the topology keeps only the last 4 anyway.
 HELD_SNAPSHOTS = 4
 SNAPSHOT = 'snapshot'
