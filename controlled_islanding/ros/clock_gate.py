@@ -60,9 +60,9 @@ class ClockGate:
         snapshot is known by its type.
         """
         self.release()
-        elements, kind = (element_count(msg), SNAPSHOT if isinstance(msg, NetworkSnapshot) else '') if msg else (1, '')
+        kind = SNAPSHOT if isinstance(msg, NetworkSnapshot) else ''
         try:
-            usable = self.gate.offer(what, stamp_s, self._now_s(), item, elements, kind)
+            usable = self.gate.offer(what, stamp_s, self._now_s(), item, element_count(msg), kind)
         except StampError as exc:
             self._refuse(exc)
             return
