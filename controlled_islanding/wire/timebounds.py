@@ -19,7 +19,7 @@ Under use_sim_time the node clock is itself a value from the wire (/clock, which
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
@@ -57,6 +57,51 @@ def check_not_future(what: str, stamp_s: float, now_s: float, future_tolerance_s
                                          f'({now_s:.3f} s); more than future_tolerance_s={future_tolerance_s}')
 
 
+class Backlog(Generic[T]):
+    """Items kept for later, oldest first, bounded in number and in elements together; beyond, the oldest go.
+
+    For what a node keeps before it can judge it (what waits for the clock in StampGate; frames or rotor angles
+    before the first network snapshot): a count alone lets messages at the decoders' caps take GBs (1000 PMU
+    frames of 10,000 stations: about 3 GB).
+    """
+
+    def __init__(self, max_items: int, max_elements: int = MAX_HELD_ELEMENTS) -> None:
+        self.max_items, self.max_elements = int(max_items), int(max_elements)
+        self._items: deque[tuple[T, int]] = deque()
+        self.elements = 0
+
+    def append(self, item: T, elements: int) -> int:
+        """Keep an item of `elements` elements; return how many of the oldest were dropped (never the newest)."""
+        self._items.append((item, max(int(elements), 1)))
+        self.elements += self._items[-1][1]
+        dropped = 0
+        while len(self._items) > 1 and (len(self._items) > self.max_items or self.elements > self.max_elements):
+            self.popleft()
+            dropped += 1
+        return dropped
+
+    def remove(self, item: T) -> None:
+        """Remove an item kept (that very object)."""
+        pair = next(p for p in self._items if p[0] is item)
+        self._items.remove(pair)
+        self.elements -= pair[1]
+
+    def popleft(self) -> T:
+        """Remove and return the oldest item."""
+        item, elements = self._items.popleft()
+        self.elements -= elements
+        return item
+
+    def __getitem__(self, i: int) -> T:
+        return self._items[i][0]
+
+    def __iter__(self) -> Iterator[T]:
+        return (item for item, _ in self._items)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
 @dataclass(eq=False)
 class _Held(Generic[T]):
     what: str
@@ -85,24 +130,16 @@ class StampGate(Generic[T]):
     max_held_elements: int = MAX_HELD_ELEMENTS
 
     def __post_init__(self) -> None:
-        self._held: deque[_Held[T]] = deque()
-        self._elements = 0
+        self._held: Backlog[_Held[T]] = Backlog(self.max_held, self.max_held_elements)
         self.dropped_while_held = 0
 
-    def _drop(self, entry: _Held[T]) -> None:
-        self._held.remove(entry)
-        self._elements -= entry.elements
-        self.dropped_while_held += 1
-
     def _hold(self, entry: _Held[T]) -> None:
-        self._held.append(entry)
-        self._elements += entry.elements
         if entry.kind == SNAPSHOT:
             snapshots = [e for e in self._held if e.kind == SNAPSHOT]
-            for old in snapshots[:-HELD_SNAPSHOTS]:
-                self._drop(old)
-        while len(self._held) > self.max_held or (self._elements > self.max_held_elements and len(self._held) > 1):
-            self._drop(self._held[0])
+            for old in snapshots[:max(len(snapshots) - HELD_SNAPSHOTS + 1, 0)]:
+                self._held.remove(old)
+                self.dropped_while_held += 1
+        self.dropped_while_held += self._held.append(entry, entry.elements)
 
     def offer(self, what: str, stamp_s: float, now_s: float, item: T, elements: int = 1, kind: str = '') -> bool:
         """Return True when `item` may be used now; False when it is held until the clock reaches it.
@@ -128,10 +165,9 @@ class StampGate(Generic[T]):
         """
         if now_s <= 0.0:
             return
-        keep: deque[_Held[T]] = deque()
+        keep: Backlog[_Held[T]] = Backlog(self.max_held, self.max_held_elements)
         while self._held:
             entry = self._held.popleft()
-            self._elements -= entry.elements
             try:
                 check_not_future(entry.what, entry.stamp_s, now_s, self.hold_horizon_s)
             except StampError as exc:
@@ -140,8 +176,7 @@ class StampGate(Generic[T]):
             if entry.stamp_s - now_s <= self.future_tolerance_s:
                 use(entry.item)
             else:
-                keep.append(entry)
-                self._elements += entry.elements
+                keep.append(entry, entry.elements)  # fewer than were held: nothing is dropped
         self._held = keep
 
     @property
@@ -152,42 +187,7 @@ class StampGate(Generic[T]):
     @property
     def held_elements(self) -> int:
         """Elements the items waiting for the clock carry together."""
-        return self._elements
-
-
-class Backlog(Generic[T]):
-    """Items kept for later, oldest first, bounded in number and in elements together; beyond, the oldest go.
-
-    For what a node keeps before it can judge it (frames or rotor angles before the first network snapshot): a
-    count alone lets messages at the decoders' caps take GBs (1000 PMU frames of 10,000 stations: about 3 GB).
-    """
-
-    def __init__(self, max_items: int, max_elements: int = MAX_HELD_ELEMENTS) -> None:
-        self.max_items, self.max_elements = int(max_items), int(max_elements)
-        self._items: deque[tuple[T, int]] = deque()
-        self.elements = 0
-
-    def append(self, item: T, elements: int) -> int:
-        """Keep an item of `elements` elements; return how many of the oldest were dropped (never the newest)."""
-        self._items.append((item, max(int(elements), 1)))
-        self.elements += self._items[-1][1]
-        dropped = 0
-        while len(self._items) > 1 and (len(self._items) > self.max_items or self.elements > self.max_elements):
-            self.popleft()
-            dropped += 1
-        return dropped
-
-    def popleft(self) -> T:
-        """Remove and return the oldest item."""
-        item, elements = self._items.popleft()
-        self.elements -= elements
-        return item
-
-    def __getitem__(self, i: int) -> T:
-        return self._items[i][0]
-
-    def __len__(self) -> int:
-        return len(self._items)
+        return self._held.elements
 
 
 @dataclass(frozen=True)
