@@ -14,13 +14,24 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
-from controlled_islanding.graph.rosenv import isolated_ros_environment
+from controlled_islanding.graph.rosenv import isolated_ros_environment, reserved_domain_id
 from controlled_islanding.graph.supervisor import Supervisor
 from controlled_islanding.ros.diagnostics import writers_matched
 from controlled_islanding.ros.endpoints import qos_for
 from controlled_islanding.wire import topics
 
 BUILD = Path(__file__).resolve().parents[1] / 'build'
+
+
+@contextmanager
+def default_context() -> Iterator[None]:
+    """Initialise rclpy's default context on a domain no concurrent run holds; shut it down at the end."""
+    with reserved_domain_id() as domain_id:
+        rclpy.init(domain_id=domain_id)
+        try:
+            yield
+        finally:
+            rclpy.shutdown()
 
 
 def ctrl_c_as_at_a_terminal() -> None:

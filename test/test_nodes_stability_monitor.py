@@ -17,14 +17,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import rclpy
 import yaml
 from breaker_cases import made_test_keys
 from controlled_islanding_msgs.msg import IslandingDecision, IslandingRequest, NetworkSnapshot, PmuFrame
+from nodes_harness import default_context
 from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
 
-from controlled_islanding.graph.rosenv import reserved_domain_id
 from controlled_islanding.safety import signing
 from controlled_islanding.sim.bag import START_TIME_UNIX_S
 from controlled_islanding.sim.manifest import manifest_entries
@@ -74,19 +73,14 @@ def kundur():
     made_test_keys()  # the nodes sign with CONTROLLED_ISLANDING_KEYS (conftest)
     from controlled_islanding.nodes.pmu_ingestion import PmuIngestionNode
 
-    # The nodes made here join the default context: give it a domain no concurrent run holds.
-    with reserved_domain_id() as domain_id:
-        rclpy.init(domain_id=domain_id)
-        try:
-            node = PmuIngestionNode()
-            angles = caught(node, 'pub')
-            node._take_snapshot(snapshot)
-            for frame in sorted(frames, key=lambda f: stamp_s(f.header.stamp)):
-                node._take_frame(frame)
-            node.destroy_node()
-            yield snapshot, angles
-        finally:
-            rclpy.shutdown()
+    with default_context():  # the nodes made here join it
+        node = PmuIngestionNode()
+        angles = caught(node, 'pub')
+        node._take_snapshot(snapshot)
+        for frame in sorted(frames, key=lambda f: stamp_s(f.header.stamp)):
+            node._take_frame(frame)
+        node.destroy_node()
+        yield snapshot, angles
 
 
 def test_the_rotor_angles_carry_speeds_power_and_voltage_and_the_snapshot_its_frequency(kundur):

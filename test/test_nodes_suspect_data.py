@@ -12,13 +12,12 @@ import sys
 from pathlib import Path
 
 import pytest
-import rclpy
 from breaker_cases import made_test_keys
 from controlled_islanding_msgs.msg import IslandingDecision, IslandingRequest, NetworkSnapshot, PmuFrame, RotorAngles
+from nodes_harness import default_context
 from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
 
-from controlled_islanding.graph.rosenv import reserved_domain_id
 from controlled_islanding.sim.manifest import default_bag, manifest_entries
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.interfaces import typestore
@@ -39,13 +38,8 @@ def bag():
                 snapshot = deserialize_message(bytes(raw), NetworkSnapshot)
             elif conn.topic == topics.PMU_FRAMES and len(frames) < 200:
                 frames.append(deserialize_message(bytes(raw), PmuFrame))
-    # The nodes made here join the default context: give it a domain no concurrent run holds.
-    with reserved_domain_id() as domain_id:
-        rclpy.init(domain_id=domain_id)
-        try:
-            yield snapshot, frames
-        finally:
-            rclpy.shutdown()
+    with default_context():  # the nodes made here join it
+        yield snapshot, frames
 
 
 def caught(node, attribute: str) -> list:
