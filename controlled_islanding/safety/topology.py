@@ -19,9 +19,7 @@ import bisect
 from dataclasses import dataclass, field
 
 from controlled_islanding.core.grid import Grid
-from controlled_islanding.wire.timebounds import StampError, check_not_future
-
-_KEEP_SNAPSHOTS = 4
+from controlled_islanding.wire.timebounds import HELD_SNAPSHOTS, StampError, check_not_future
 
 
 class TopologyError(ValueError):
@@ -80,7 +78,7 @@ class Topology:
             raise TopologyError('time_backwards', f'snapshot stamped {stamp_s:.3f} s, older than the one held '
                                                   f'({self._snapshots[-1][0]:.3f} s)')
         self._snapshots.append((stamp_s, grid))
-        del self._snapshots[:-_KEEP_SNAPSHOTS]
+        del self._snapshots[:-HELD_SNAPSHOTS]
         self._known = frozenset(b.branch_id for _, g in self._snapshots for b in g.branches)
         self._changes = {k: v for k, v in self._changes.items() if k in self._known}
 

@@ -31,7 +31,7 @@ T = TypeVar('T')
 # station of the largest system in bags/ (GB, 394 stations: 3.5 M) beside one snapshot at the caps; at most about
 # 170 MB, in 55 frames at the caps.
 MAX_HELD_ELEMENTS = 5_000_000
-# A snapshot is the whole network: a newer one supersedes it, and the topology keeps only the last 4 anyway.
+# A snapshot is the whole network: a newer one supersedes it. The topology (safety/topology.py) keeps as many.
 HELD_SNAPSHOTS = 4
 SNAPSHOT = 'snapshot'
 
