@@ -5,7 +5,7 @@
 # on 2 cores), because the ROS tests mostly wait on their node processes while the pure tests each use one core.
 # The `ros` tests, many real time, run in front at normal priority. Everything else runs niced to 19, so it only
 # gets the CPU they leave. Measured on 2026-12-04 on a 2-core machine: 1003 s in one process, 635 s split.
-# Giving `-m` runs one process with that selection.
+# Giving `-m` runs one process with that selection; so does `--junitxml`, which two processes would both write.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
@@ -13,7 +13,7 @@ export ROS_LOG_DIR=$PWD/build/ros_log
 export MPLBACKEND=Agg
 
 for arg in "$@"; do
-    case "$arg" in -m|-m*) exec .venv/bin/python -m pytest "$@" ;; esac
+    case "$arg" in -m|-m*|--junitxml*|--junit-xml*) exec .venv/bin/python -m pytest "$@" ;; esac
 done
 
 mkdir -p build
