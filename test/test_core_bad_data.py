@@ -475,3 +475,41 @@ def test_a_ramp_through_the_fault_on_the_faulted_bus_station_cannot_steer():
     attacked = run_pipeline(bag, attack(bag, 'ramp_back', ['PMU_6000/GENROU_34'], attack_start_s(bag)),
                             params=params)
     assert attacked.refused or attacked.key() == clean.key()
+
+
+def test_gap_step_silences_the_station_for_gap_s_then_shifts_both_angles_by_half_a_cycle():
+    from controlled_islanding.sim.attacks import GAP_S
+
+    bag = _bag('ieee39_g6g7_unstable')
+    j = bag.station_ids.index('PMU_35')
+    attacked = attack(bag, 'gap_step', ['PMU_35'], 5.0)
+    tags = np.asarray(bag.tag_s)
+    silent, back = (tags >= 5.0) & (tags < 5.0 + GAP_S - 1e-9), tags >= 5.0 + GAP_S - 1e-9
+    for f in ('v_mag_pu', 'v_angle_rad', 'i_mag_pu', 'i_angle_rad', 'frequency_hz', 'rocof_hz_per_s'):
+        assert np.isnan(getattr(attacked, f)[silent, j]).all(), f
+    for f in ('v_angle_rad', 'i_angle_rad'):
+        moved = getattr(attacked, f)[back, j] - getattr(bag, f)[back, j]
+        assert np.allclose(moved[np.isfinite(moved)], np.pi)
+    others = np.arange(len(bag.station_ids)) != j
+    assert np.array_equal(attacked.v_angle_rad[:, others], bag.v_angle_rad[:, others], equal_nan=True)
+    assert np.array_equal(attacked.v_mag_pu[~silent, j], bag.v_mag_pu[~silent, j], equal_nan=True)
+
+
+@pytest.mark.xfail(strict=True, reason='open (issue 29): a station silent for longer than the filter bridges '
+                   '(dse_max_gap_s, 0.5 s) comes back with no test of its own past spanning the change: the '
+                   'filter starts again from the returning data, the frequency window starts a new chain, and the '
+                   'tests against the snapshot judge only before the first event. Half a cycle off, GENROU_10 '
+                   '(bus 39) reads as slipped from every other machine and the cut gains 1-2 and 8-9 (docs/attacks.md, '
+                   'gap_step: 10 of 19 steered on IEEE 14 and 39). Its phasors still fit its own machine; only the '
+                   'network (or another station on its bus) sees the lie, as a residual of the measured currents '
+                   'against the admittances of the snapshot and the branch statuses (a PMU state estimate), which '
+                   'nothing computes yet')
+def test_a_station_back_from_a_gap_half_a_cycle_off_cannot_steer():
+    from controlled_islanding.evaluation.attack_sweep import attack_start_s, run_pipeline
+    from controlled_islanding.evaluation.cases import coherency_node_parameters
+
+    bag = _bag('ieee39_g6g7_unstable')
+    params = coherency_node_parameters()
+    clean = run_pipeline(bag, bag, params=params)
+    attacked = run_pipeline(bag, attack(bag, 'gap_step', ['PMU_39'], attack_start_s(bag)), params=params)
+    assert attacked.refused or attacked.key() == clean.key()

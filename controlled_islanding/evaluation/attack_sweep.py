@@ -28,7 +28,7 @@ from controlled_islanding.core.coherency import DTWCoherency
 from controlled_islanding.core.dse import MachineData, RotorAngleDSE
 from controlled_islanding.core.islanding import decide
 from controlled_islanding.core.portfolio import PortfolioPartition
-from controlled_islanding.sim.attacks import ATTACKS, attack, with_tve_noise
+from controlled_islanding.sim.attacks import ATTACKS, GAP_S, attack, with_tve_noise
 
 _FIELDS = ('v_mag_pu', 'v_angle_rad', 'i_mag_pu', 'i_angle_rad', 'frequency_hz', 'rocof_hz_per_s')
 
@@ -228,6 +228,8 @@ def sweep_bag(bag, start_s: float, *, params: dict, attacks: Sequence[str] = ATT
         runs.insert(runs.index(('current', start_s)) + 1, ('current+1', start_s + 1.0 / bag.rate_fps))
     for label, start in runs:
         name = label.removesuffix('+1')
+        if name == 'gap_step' and request_s <= start + GAP_S:
+            continue  # back only after the request: a silent station, which the observability sweep judges
         targets = [tuple(stations[:2])] if name == 'ramp2' else [(s,) for s in stations]
         if name == 'ramp2' and len(stations) < 2:
             continue
@@ -296,12 +298,20 @@ def table(rows: Sequence[AttackRow]) -> list[str]:
     return lines
 
 
+def _apart_line(what: str, rows: Sequence[AttackRow]) -> str:
+    steered = [f'{r.bag} {r.stations[0]}' for r in rows if r.steered]
+    return (f'- {what}: {len(rows)}; steered {len(steered)}' + (f' ({", ".join(steered)})' if steered else '')
+            + f'; flagged before the request in {sum(r.flagged_in_time for r in rows)}')
+
+
 def report(rows: Sequence[AttackRow], alarms: Sequence[tuple[str, int, int]]) -> list[str]:
     """Return the figures, the table and the false alarms, as Markdown lines."""
-    single = [r for r in rows if r.attack not in ('ramp2', 'current+1', 'ramp_back')]
+    apart = {'ramp_back': "ramp_back (-2 rad/s, against a faulted machine's own acceleration)",
+             'gap_step': f'gap_step (silent {GAP_S:g} s from the event, longer than the filter bridges, then back '
+                         'half a cycle off)'}
+    single = [r for r in rows if r.attack not in ('ramp2', 'current+1', *apart)]
     pair = [r for r in rows if r.attack == 'ramp2']
     late = [r for r in rows if r.attack == 'current+1']
-    back = [r for r in rows if r.attack == 'ramp_back']
     refused = sum(r.outcome.refused and not r.outcome.error for r in rows)
     lines = [f'- single-station attacks: {len(single)}; steered {sum(r.steered for r in single)}; every attacked '
              f'station flagged before the request in {sum(r.flagged_in_time for r in single)}',
@@ -309,11 +319,7 @@ def report(rows: Sequence[AttackRow], alarms: Sequence[tuple[str, int, int]]) ->
              f'request in {sum(r.flagged_in_time for r in pair)}',
              f"- current x1.5 from the event's first frame (current+1): {len(late)}; steered "
              f'{sum(r.steered for r in late)}; flagged before the request in {sum(r.flagged_in_time for r in late)}',
-             f"- ramp_back (-2 rad/s, against a faulted machine's own acceleration): {len(back)}; steered "
-             f'{sum(r.steered for r in back)}'
-             + (f' ({", ".join(f"{r.bag} {r.stations[0]}" for r in back if r.steered)})' if any(
-                 r.steered for r in back) else '')
-             + f'; flagged before the request in {sum(r.flagged_in_time for r in back)}',
+             *(_apart_line(what, [r for r in rows if r.attack == name]) for name, what in apart.items()),
              f'- refused for suspect data: {refused} of {len(rows)}; refused because the split failed: '
              f'{sum(bool(r.outcome.error) for r in rows)}',
              f'- false alarms: stations flagged on clean bags {sum(a[1] for a in alarms)}, with TVE noise brought to '

@@ -13,6 +13,10 @@ leave it. Rows are time tags (BagData's uniform grid), columns channels.
 - ``step``: +20 degrees on both angles (a GPS time shift of about 0.9 ms at 60 Hz).
 - ``ramp2``: the ramp on two stations at once (the coordinated case; give two stations).
 - ``ramp_back``: -2 rad/s on both angles: a spoofed speed against the way a machine at the fault accelerates.
+- ``gap_step``: the station silent for ``GAP_S`` (0.6 s, longer than pmu_ingestion's rotor angle filter bridges:
+  its ``dse_max_gap_s``, 0.5 s, after which it starts again from the returning data), then back with both angles
+  +pi: a time offset of half a cycle, as a GPS receiver that locks again wrongly after an outage gives, or a spoofer
+  who drops the stream first so that no test of the station's own past spans the change.
 """
 
 from __future__ import annotations
@@ -26,11 +30,12 @@ from controlled_islanding.core.coherency import frame_period_s
 
 __all__ = ['ATTACKS', 'AttackError', 'attack', 'with_tve_noise']
 
-ATTACKS = ('ramp', 'replay', 'frozen', 'current', 'step', 'ramp2', 'ramp_back')
+ATTACKS = ('ramp', 'replay', 'frozen', 'current', 'step', 'ramp2', 'ramp_back', 'gap_step')
 RAMP_RAD_PER_S = 2.0
 REPLAY_LAG_S = 1.0
 CURRENT_FACTOR = 1.5
 STEP_RAD = np.deg2rad(20.0)
+GAP_S = 0.6
 _FIELDS = ('v_mag_pu', 'v_angle_rad', 'i_mag_pu', 'i_angle_rad', 'frequency_hz', 'rocof_hz_per_s', 'stat')
 
 
@@ -69,6 +74,13 @@ def attack(channels, name: str, stations: Sequence[str], start_s: float):
         out['i_angle_rad'][idx] += STEP_RAD
     elif name == 'current':
         out['i_mag_pu'][idx] *= CURRENT_FACTOR
+    elif name == 'gap_step':
+        silent = rows[tags[rows] < start_s + GAP_S - 1e-9]
+        back = np.ix_(rows[tags[rows] >= start_s + GAP_S - 1e-9], cols)
+        for f in ('v_mag_pu', 'v_angle_rad', 'i_mag_pu', 'i_angle_rad', 'frequency_hz', 'rocof_hz_per_s'):
+            out[f][np.ix_(silent, cols)] = np.nan
+        out['v_angle_rad'][back] += np.pi
+        out['i_angle_rad'][back] += np.pi
     else:
         if name == 'replay':
             period_s = frame_period_s(tags)
