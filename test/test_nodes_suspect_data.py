@@ -91,6 +91,22 @@ def test_an_honest_stream_marks_nothing(bag):
     node.destroy_node()
 
 
+def test_each_snapshot_taken_is_the_bad_data_tests_reference_from_its_stamp(bag):
+    """After an event, the tests at rest judge again only under a snapshot stamped since (core/bad_data.py)."""
+    from controlled_islanding.nodes.pmu_ingestion import PmuIngestionNode
+    from controlled_islanding.wire.messages import stamp_s
+
+    snapshot, frames = bag
+    node = PmuIngestionNode()
+    node._take_snapshot(snapshot)
+    assert node.detector.reference_s == stamp_s(snapshot.header.stamp)
+    newer = copy.deepcopy(snapshot)
+    newer.header.stamp = frames[-1].header.stamp
+    node._take_snapshot(newer)
+    assert node.detector.reference_s == stamp_s(frames[-1].header.stamp) > stamp_s(snapshot.header.stamp)
+    node.destroy_node()
+
+
 def test_pmu_ingestion_names_a_station_offset_from_the_snapshot_and_from_the_others_of_its_bus(bag):
     """Nordic 44's bus 6000 has four machines, each with its own channel: one offset 20 deg from its first frame."""
     import math

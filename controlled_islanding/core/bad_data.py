@@ -72,7 +72,8 @@ The tests, frame by frame (each on one station's own channel, but the last two, 
   station's own past, it sees a lie present from the station's first frame (a GPS time offset, a recording of
   another time) and a drag too slow for the frequency test, on every frame in range.
 
-- ``angle_mismatch``: while the grid is at rest (no event yet, as the schedule test), the stations' voltage angles
+- ``angle_mismatch``: while the grid is at rest (as the schedule test: no event yet, or, after one, settled again
+  under a newer network snapshot; the caller gives each snapshot's stamp to ``reference``), the stations' voltage angles
   against the network snapshot's angles of their buses. The PMUs' reference and the snapshot's differ by one angle
   for all, so two stations' differences agree within ``angle_tolerance_rad`` plus both phasors' TVE angle (2
   asin(noise_tve)); a station that breaks it with more than half of the others is flagged (of two, both): a GPS
@@ -171,6 +172,9 @@ class BadDataDetector:
             at rest (the snapshot's state-estimate error and the drift since it): the deployment's figure, from its
             EMS; the bags' buses stand on it exactly. 0.1 rad is 5.7 deg, a time error of 0.26 ms at 60 Hz; a GPS
             shift of 0.9 ms moves an angle 20 deg.
+        rest_s: How long every station's P and |V| must stay within twice their TVE error of one value before the
+            tests at rest judge again after an event, s (with a snapshot stamped since): half the period of the
+            slowest electromechanical swing, an inter-area mode of 0.1 Hz, so a swing still under way shows.
 
     Attributes:
         nis_bound: The largest normalised innovation squared an honest frame is allowed (give it to
@@ -181,19 +185,24 @@ class BadDataDetector:
     def __init__(self, noise_tve: float = 0.01, frequency_error_hz: float = 0.005, window_s: float = 0.5,
                  false_alarm: float = 1e-9, frozen_frames: int = 3, history_s: float = 2.0,
                  clean_s: float = 1.0, angle_floor_pu: float = 0.2, innovation_false_alarm: float = 1e-12,
-                 schedule_tolerance: float = 0.1, angle_tolerance_rad: float = 0.1) -> None:
+                 schedule_tolerance: float = 0.1, angle_tolerance_rad: float = 0.1, rest_s: float = 5.0) -> None:
         if not (0 < noise_tve < 1 and frequency_error_hz >= 0 and window_s > 0 and 0 < false_alarm < 0.5
                 and frozen_frames >= 1 and history_s >= 0 and clean_s >= 0 and 0 <= angle_floor_pu < 1
-                and 0 < innovation_false_alarm < 0.5 and schedule_tolerance >= 0 and angle_tolerance_rad >= 0):
+                and 0 < innovation_false_alarm < 0.5 and schedule_tolerance >= 0 and angle_tolerance_rad >= 0
+                and rest_s >= 0):
             raise BadDataError(f'bad settings: noise_tve={noise_tve}, frequency_error_hz={frequency_error_hz}, '
                                f'window_s={window_s}, false_alarm={false_alarm}, frozen_frames={frozen_frames}, '
                                f'history_s={history_s}, clean_s={clean_s}, angle_floor_pu={angle_floor_pu}, '
                                f'innovation_false_alarm={innovation_false_alarm}, '
-                               f'schedule_tolerance={schedule_tolerance}, angle_tolerance_rad={angle_tolerance_rad}')
+                               f'schedule_tolerance={schedule_tolerance}, angle_tolerance_rad={angle_tolerance_rad}, '
+                               f'rest_s={rest_s}')
         self.nis_bound = -2.0 * math.log(innovation_false_alarm)  # chi-square(2) is exponential of mean 2
         self.schedule_tolerance, self.angle_tolerance_rad = schedule_tolerance, angle_tolerance_rad
         self.t_first = math.nan  # the first frame judged, s
-        self.at_rest = True  # no frame since the first has shown an event (see _schedule_test)
+        self.at_rest = True  # no event since the first frame, or the grid settled since (see _schedule_test)
+        self.rest_s = rest_s
+        self.last_jump_s = -math.inf  # time tag of the newest frame that showed an event, s
+        self.reference_s = -math.inf  # stamp of the newest network snapshot (reference), s
         self.noise_tve, self.frequency_error_hz, self.window_s = noise_tve, frequency_error_hz, window_s
         self.z = -NormalDist().inv_cdf(false_alarm / 2)
         self.frozen_frames, self.history_s, self.clean_s = frozen_frames, history_s, clean_s
@@ -220,6 +229,9 @@ class BadDataDetector:
         self.ring_f = np.full((n, self._m), np.nan)  # reported frequencies, Hz (NaN: none in this chain)
         self.content = np.full((n, 6), np.nan)
         self.last_v = np.full(n, np.nan)  # voltage magnitude of the station's previous frame, pu
+        self.steady_since = np.full(n, np.nan)  # time tag since which P and |V| stayed steady, s
+        self.p_lo, self.p_hi = np.full(n, np.nan), np.full(n, np.nan)  # P's range since then, pu
+        self.v_lo, self.v_hi = np.full(n, np.nan), np.full(n, np.nan)  # |V|'s range since then, pu
         self.repeats = np.zeros(n, dtype=int)
         self.reason = np.full(n, '', dtype=object)
         self.flagged_at = np.full(n, np.nan)
@@ -337,7 +349,8 @@ class BadDataDetector:
         reason = self._content_test(t, rows, values)
         freq_bad = self._frequency_test(t, rows, values, gaps)
         reason = np.where((reason == '') & freq_bad, 'frequency_mismatch', reason)
-        reason = np.where((reason == '') & self._schedule_test(rows, values, sched), 'schedule_mismatch', reason)
+        reason = np.where((reason == '') & self._schedule_test(t, rows, values, sched), 'schedule_mismatch',
+                          reason)
         reason = np.where((reason == '') & self._angle_test(values, snap), 'angle_mismatch', reason)
         reason = np.where((reason == '') & self._bus_test(values, bus), 'bus_disagreement', reason)
         # A station that joins a running stream brings no history to check its frames against (a recording of
@@ -403,26 +416,60 @@ class BadDataDetector:
                 del self._seen[key]
         return out
 
-    def _schedule_test(self, rows: np.ndarray, values: np.ndarray, sched: np.ndarray) -> np.ndarray:
+    def _schedule_test(self, t: float, rows: np.ndarray, values: np.ndarray, sched: np.ndarray) -> np.ndarray:
         """While the grid is at rest, each station's active power Re(V I*) against the snapshot's dispatch.
 
         At rest means no frame since the first has moved any station's voltage magnitude by more than the TVE
-        allows (2 noise_tve of it: a bolted fault, a trip or a switching does, and ends the test for good).
-        The bound: the power's own TVE error, (2 noise_tve + noise_tve^2) |V| |I|, plus schedule_tolerance of the
-        dispatch. A current transformer's ratio error, or spoofed magnitudes, fail it from the first frame.
+        allows (2 noise_tve of it: a bolted fault, a trip or a switching does, and ends the rest), or, after such a
+        jump, that the grid has settled again under a newer snapshot (_settled). The bound: the power's own TVE
+        error, (2 noise_tve + noise_tve^2) |V| |I|, plus schedule_tolerance of the dispatch. A current
+        transformer's ratio error, or spoofed magnitudes, fail it from the first frame at rest.
         """
         v = np.abs(values[:, 0])
         prev = self.last_v[rows]
         self.last_v[rows] = v
+        p = values[:, 0] * values[:, 2] * np.cos(values[:, 1] - values[:, 3])
+        p_error = (2 * self.noise_tve + self.noise_tve ** 2) * np.abs(values[:, 0] * values[:, 2])
         with np.errstate(invalid='ignore'):
+            self._track_steadiness(t, rows, p, v, p_error)
             if np.any(np.abs(v - prev) > 2 * self.noise_tve * prev):
                 self.at_rest = False
+                self.last_jump_s = t
+            elif not self.at_rest:
+                self.at_rest = self._settled(t, rows)
             if not self.at_rest:
                 return np.zeros(len(rows), dtype=bool)
-            p = values[:, 0] * values[:, 2] * np.cos(values[:, 1] - values[:, 3])
-            bound = ((2 * self.noise_tve + self.noise_tve ** 2) * np.abs(values[:, 0] * values[:, 2])
-                     + self.schedule_tolerance * np.abs(sched))
-            return np.abs(p - sched) > bound
+            return np.abs(p - sched) > p_error + self.schedule_tolerance * np.abs(sched)
+
+    def _track_steadiness(self, t: float, rows: np.ndarray, p: np.ndarray, v: np.ndarray,
+                          p_error: np.ndarray) -> None:
+        """Keep, per station, since when its P and |V| have stayed within twice their TVE error of one value."""
+        lo_p, hi_p = np.fmin(self.p_lo[rows], p), np.fmax(self.p_hi[rows], p)
+        lo_v, hi_v = np.fmin(self.v_lo[rows], v), np.fmax(self.v_hi[rows], v)
+        moved = ((hi_p - lo_p > 2 * p_error) | (hi_v - lo_v > 2 * self.noise_tve * v)
+                 | np.isnan(self.steady_since[rows]))
+        self.p_lo[rows], self.p_hi[rows] = np.where(moved, p, lo_p), np.where(moved, p, hi_p)
+        self.v_lo[rows], self.v_hi[rows] = np.where(moved, v, lo_v), np.where(moved, v, hi_v)
+        self.steady_since[rows] = np.where(moved, t, self.steady_since[rows])
+
+    def _settled(self, t: float, rows: np.ndarray) -> bool:
+        """Whether the tests at rest may judge again after an event: the grid settled under a newer snapshot.
+
+        Every station of this frame steady (_track_steadiness) for rest_s, and the newest snapshot stamped after
+        all of them settled: a snapshot of the grid as it now stands, whose dispatch and angles are again what the
+        stations must agree with. A snapshot stamped within the swing, or before the event, is not.
+        """
+        since = max(float(np.max(self.steady_since[rows])), self.last_jump_s)
+        return self.reference_s >= since and t - since >= self.rest_s - 1e-9
+
+    def reference(self, stamp_s: float) -> None:
+        """Take the stamp of a network snapshot the caller now passes the dispatch and angles of, s.
+
+        After an event, the tests at rest judge again once the grid has settled under a snapshot stamped since it
+        did (see _settled); without one they stay off, as a grid that moved no longer stands where the older
+        snapshot says.
+        """
+        self.reference_s = max(self.reference_s, float(stamp_s))
 
     def _angle_test(self, values: np.ndarray, snap: np.ndarray) -> np.ndarray:
         """While at rest (set by _schedule_test on this frame), each voltage angle against the snapshot's."""

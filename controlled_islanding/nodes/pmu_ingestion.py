@@ -193,6 +193,7 @@ class PmuIngestionNode(Node):
             del self.stations[station]
         if self.detector is not None:
             self.detector.forget(set(self.stations))
+            self.detector.reference(stamp_s(msg.header.stamp))
         while self.early:
             self._take_frame(self.early.popleft())
 
