@@ -525,7 +525,7 @@ def _settling(det: BadDataDetector, t0: float, t1: float, c_angle: float, swing:
     for t in np.arange(t0, t1, 1 / 30):
         ids = ['A', 'B'] + (['C'] if t >= c_from_s else [])
         n = len(ids)
-        noise = 1e-3 * rng.standard_normal((4, n))  # well within the TVE: honest phasors never repeat bit for bit
+        noise = 0.01 / 3 * rng.standard_normal((4, n))  # C37.118.1 TVE of 1 % at 3 sigma, as sim/pmu.py draws it
         i_mag = 0.5 * (1 + swing * math.sin(2 * math.pi * 0.5 * t)) * (1 + noise[0])
         angles = np.array([0.0, 0.0, c_angle][:n])
         out = det.judge(float(t), ids, 0.9 * (1 + noise[1]), angles + noise[2], i_mag, angles + noise[3],
