@@ -21,7 +21,7 @@ from rosbags.highlevel import AnyReader
 from controlled_islanding.sim.manifest import default_bag, manifest_entries
 from controlled_islanding.wire import topics
 from controlled_islanding.wire.interfaces import typestore
-from controlled_islanding.wire.messages import groups_from_msg
+from controlled_islanding.wire.messages import groups_from_msg, split_stamp, stamp_s
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).parent))
@@ -88,13 +88,21 @@ def test_an_honest_stream_marks_nothing(bag):
         node._take_frame(frame)
     assert len(angles) == len(frames) and not any(a.suspect_reason for a in angles)
     assert all(all(a.valid) for a in angles[1:])
+    assert node.diag.values['grid_at_rest'] == 'yes' and 'last_event_s' not in node.diag.values
+    # Every voltage 10 % down at once is an event: the tests against the snapshot stop and the time is shown.
+    dip = copy.deepcopy(frames[-1])
+    dip.header.stamp.sec, dip.header.stamp.nanosec = split_stamp(stamp_s(frames[-1].header.stamp) + 1 / 60)
+    for m in dip.measurements:
+        m.voltage_magnitude_pu *= 0.9
+    node._take_frame(dip)
+    assert node.diag.values['grid_at_rest'] == 'no'
+    assert node.diag.values['last_event_s'] == f'{stamp_s(dip.header.stamp):.3f}'
     node.destroy_node()
 
 
 def test_each_snapshot_taken_is_the_bad_data_tests_reference_from_its_stamp(bag):
     """After an event, the tests at rest judge again only under a snapshot stamped since (core/bad_data.py)."""
     from controlled_islanding.nodes.pmu_ingestion import PmuIngestionNode
-    from controlled_islanding.wire.messages import stamp_s
 
     snapshot, frames = bag
     node = PmuIngestionNode()

@@ -373,6 +373,11 @@ class PmuIngestionNode(Node):
             [scheduled.get(m.station_id, math.nan) for m in ms], [bus.get(m.station_id, -1) for m in ms],
             self.grid.bus_angles_at(bus.get(m.station_id, -1) for m in ms),
             nominal_hz=self.stream.dse.freq_hz if self.stream is not None else self.grid.freq_hz)
+        # Whether the tests against the snapshot judge: an operator who sees 'no' long after an event is missing a
+        # newer snapshot (docs/deployment.md).
+        self.diag.values['grid_at_rest'] = 'yes' if self.detector.at_rest else 'no'
+        if math.isfinite(self.detector.last_jump_s):
+            self.diag.values['last_event_s'] = f'{self.detector.last_jump_s:.3f}'
         out = {}
         for g in self.grid.generators:
             m = by_generator.get(g.name) or by_bus.get(g.bus)
