@@ -349,7 +349,7 @@ class BadDataDetector:
         reason = self._content_test(t, rows, values)
         freq_bad = self._frequency_test(t, rows, values, gaps)
         reason = np.where((reason == '') & freq_bad, 'frequency_mismatch', reason)
-        reason = np.where((reason == '') & self._schedule_test(t, rows, values, sched), 'schedule_mismatch',
+        reason = np.where((reason == '') & self._schedule_test(t, rows, values, sched, gaps), 'schedule_mismatch',
                           reason)
         reason = np.where((reason == '') & self._angle_test(values, snap), 'angle_mismatch', reason)
         reason = np.where((reason == '') & self._bus_test(values, bus), 'bus_disagreement', reason)
@@ -416,12 +416,16 @@ class BadDataDetector:
                 del self._seen[key]
         return out
 
-    def _schedule_test(self, t: float, rows: np.ndarray, values: np.ndarray, sched: np.ndarray) -> np.ndarray:
+    def _schedule_test(self, t: float, rows: np.ndarray, values: np.ndarray, sched: np.ndarray,
+                       gaps: np.ndarray) -> np.ndarray:
         """While the grid is at rest, each station's active power Re(V I*) against the snapshot's dispatch.
 
         At rest means no frame since the first has moved any station's voltage magnitude by more than the TVE
         allows (2 noise_tve of it: a bolted fault, a trip or a switching does, and ends the rest), or, after such a
-        jump, that the grid has settled again under a newer snapshot (_settled). The bound: the power's own TVE
+        jump, that the grid has settled again under a newer snapshot (_settled). A jump counts from a station's
+        previous frame one period before, or where another station jumps in the same frame (a stream that lost
+        frames across an event): one station back from an outage at another voltage is no event, and it ended these
+        tests for every station, its own time offset then judged by none. The bound: the power's own TVE
         error, (2 noise_tve + noise_tve^2) |V| |I|, plus schedule_tolerance of the dispatch. A current
         transformer's ratio error, or spoofed magnitudes, fail it from the first frame at rest.
         """
@@ -432,7 +436,8 @@ class BadDataDetector:
         p_error = (2 * self.noise_tve + self.noise_tve ** 2) * np.abs(values[:, 0] * values[:, 2])
         with np.errstate(invalid='ignore'):
             self._track_steadiness(t, rows, p, v, p_error)
-            if np.any(np.abs(v - prev) > 2 * self.noise_tve * prev):
+            jumped = np.abs(v - prev) > 2 * self.noise_tve * prev
+            if np.any(jumped & (gaps <= 1.5 * self.period_s)) or np.count_nonzero(jumped) >= 2:
                 self.at_rest = False
                 self.last_jump_s = t
             elif not self.at_rest:
