@@ -424,10 +424,10 @@ class BadDataDetector:
         allows (2 noise_tve of it: a bolted fault, a trip or a switching does, and ends the rest), or, after such a
         jump, that the grid has settled again under a newer snapshot (_settled). A jump counts from a station's
         previous frame one period before, or where another station jumps in the same frame (a stream that lost
-        frames across an event): one station back from an outage at another voltage is no event, and it ended these
-        tests for every station, its own time offset then judged by none. The bound: the power's own TVE
-        error, (2 noise_tve + noise_tve^2) |V| |I|, plus schedule_tolerance of the dispatch. A current
-        transformer's ratio error, or spoofed magnitudes, fail it from the first frame at rest.
+        frames across an event): one station back from an outage at another voltage is no event; counted as one, it
+        would end these tests for every station, and its own time offset would be judged by none. The bound: the
+        power's own TVE error, (2 noise_tve + noise_tve^2) |V| |I|, plus schedule_tolerance of the dispatch. A
+        current transformer's ratio error, or spoofed magnitudes, fail it from the first frame at rest.
         """
         v = np.abs(values[:, 0])
         prev = self.last_v[rows]
