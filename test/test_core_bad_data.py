@@ -440,18 +440,32 @@ def test_a_station_joining_a_running_stream_is_suspect_until_clean_s_of_clean_da
     name = 'ieee39_g6g7_initial_gap'
     flags = _screened_flags(name, 'replay', 'PMU_35', 5.0)
     assert flags == {'PMU_35': ('new_station', 6.0)}
+    # An honest station heard for the first time 2 s into the stream, at rest: suspect for clean_s, then used.
+    tags, suspect, flags = _joining('ieee39_g6g7_unstable', 'PMU_39', 2.0)
+    assert flags == {'PMU_39': ('new_station', pytest.approx(2.0, abs=1e-6))}
+    assert suspect[(tags >= 2.0) & (tags < 2.0 + 1.0 - 1e-6)].all()
+    assert not suspect[tags >= 2.0 + 1.0 + 1e-6].any()
+
+
+def test_a_station_joining_during_an_event_is_held_until_the_grid_is_at_rest_again():
+    """Only the snapshot can judge its offset: no test of its own past spans its first frame."""
+    tags, suspect, flags = _joining('kundur_bus9_unstable', 'PMU_4', 1.2)
+    assert flags == {'PMU_4': ('new_station', pytest.approx(1.2, abs=1e-6))}
+    assert suspect[tags >= 1.2 - 1e-6].all()
+
+
+def _joining(name: str, station: str, from_s: float):
+    """Screen the bag with `station` silent until from_s; return tags, its machine's suspect flags, the flags."""
     from controlled_islanding.evaluation.attack_sweep import screen
     from controlled_islanding.evaluation.cases import coherency_node_parameters
 
-    # An honest station heard for the first time 1.2 s into the stream: suspect for clean_s, then used.
-    kundur = _bag('kundur_bus9_unstable')
-    j = kundur.station_ids.index('PMU_4')
-    silent = (kundur.tag_s[:, None] < 1.2) & (np.arange(len(kundur.station_ids)) == j)
-    joined = dataclasses.replace(kundur, v_mag_pu=np.where(silent, np.nan, kundur.v_mag_pu))
-    tags, _, suspect, flags = screen(kundur, joined, params=coherency_node_parameters())
-    assert flags == {'PMU_4': ('new_station', pytest.approx(1.2, abs=1e-6))}
-    col = [g.bus for g in kundur.grid.generators].index(4)
-    assert not suspect[tags >= 1.2 + 1.0 + 1e-6, col].any()
+    bag = _bag(name)
+    j = bag.station_ids.index(station)
+    silent = (bag.tag_s[:, None] < from_s) & (np.arange(len(bag.station_ids)) == j)
+    joined = dataclasses.replace(bag, v_mag_pu=np.where(silent, np.nan, bag.v_mag_pu))
+    tags, _, suspect, flags = screen(bag, joined, params=coherency_node_parameters())
+    col = [bag.station_ids[bag.pmu_column(g.name, g.bus)] for g in bag.grid.generators].index(station)
+    return tags, suspect[:, col], flags
 
 
 @pytest.mark.xfail(strict=True, raises=AssertionError,
@@ -488,19 +502,38 @@ def test_gap_step_silences_the_station_for_gap_s_then_shifts_both_angles_by_half
     assert np.array_equal(attacked.v_mag_pu[~silent, j], bag.v_mag_pu[~silent, j], equal_nan=True)
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError,
-                   reason='open (issue 29): a station silent for longer than the filter bridges '
-                   '(dse_max_gap_s, 0.5 s) comes back with no test of its own past spanning the change: the '
-                   'filter starts again from the returning data, the frequency window starts a new chain, and the '
-                   'tests against the snapshot judge only at rest (before the event, or once the grid has settled '
-                   'under a newer snapshot). Half a cycle off, GENROU_10 '
-                   '(bus 39) reads as slipped from every other machine and the cut gains 1-2 and 8-9 (docs/attacks.md, '
-                   'gap_step: 10 of 19 steered on IEEE 14 and 39). Its phasors still fit its own machine; only the '
-                   'network (or another station on its bus) sees the lie, as a residual of the measured currents '
-                   'against the admittances of the snapshot and the branch statuses (a PMU state estimate), which '
-                   'nothing computes yet')
-def test_a_station_back_from_a_gap_half_a_cycle_off_cannot_steer():
-    assert _refused_or_as_clean('ieee39_g6g7_unstable', 'gap_step', 'PMU_39')
+@pytest.mark.parametrize('name', ['ieee39_g6g7_unstable', 'ieee39_g6g7_initial_gap', 'ieee14_g1_unstable'])
+def test_a_station_back_from_a_gap_half_a_cycle_off_cannot_steer(name):
+    """Its phasors still fit its own machine; held until the snapshot can judge it, it decides nothing.
+
+    On the initial-gap bag the stream itself starts at the event: the station is first heard inside it.
+    """
+    from controlled_islanding.evaluation.attack_sweep import attack_start_s
+    from controlled_islanding.sim.attacks import GAP_S
+
+    station = {'ieee14_g1_unstable': 'PMU_2'}.get(name, 'PMU_39')
+    assert _refused_or_as_clean(name, 'gap_step', station)
+    start_s = attack_start_s(_bag(name))
+    flags = _screened_flags(name, 'gap_step', station, start_s)
+    assert flags == {station: ('gap_in_event', pytest.approx(start_s + GAP_S, abs=1e-6))}
+
+
+@pytest.mark.parametrize('name,start_s', [('ieee39_g6g7_unstable', 5.0), ('kundur_bus9_unstable', 1.0)])
+def test_a_station_silent_alone_through_an_event_is_held_and_a_silent_stream_holds_none(name, start_s):
+    """Honest data: one station's silence is held (its offset cannot be judged), the whole stream's is no one's."""
+    bag = _bag(name)
+    station = bag.station_ids[-1]
+    j = bag.station_ids.index(station)
+    quiet = (bag.tag_s >= start_s) & (bag.tag_s < start_s + 0.6 - 1e-9)
+    alone = dataclasses.replace(bag, v_mag_pu=np.where(quiet[:, None] & (np.arange(len(bag.station_ids)) == j),
+                                                       np.nan, bag.v_mag_pu))
+    assert first_flags(alone) == {station: ('gap_in_event', pytest.approx(start_s + 0.6, abs=1e-6))}
+    everyone = dataclasses.replace(bag, v_mag_pu=np.where(quiet[:, None], np.nan, bag.v_mag_pu))
+    assert first_flags(everyone) == {}
+    # Before the event the grid is at rest: the snapshot judges the returning station at once, nothing is held.
+    before = dataclasses.replace(bag, v_mag_pu=np.where(((bag.tag_s >= start_s - 0.7) & (bag.tag_s < start_s - 0.1))[
+        :, None] & (np.arange(len(bag.station_ids)) == j), np.nan, bag.v_mag_pu))
+    assert first_flags(before) == {}
 
 
 def _refused_or_as_clean(name: str, kind: str, station: str) -> bool:
@@ -550,19 +583,21 @@ def test_the_tests_at_rest_judge_again_once_the_grid_settled_under_a_newer_snaps
     Before, the tests against the snapshot ended for good at the first event: in a deployment that runs for days,
     after its first switching no station was ever compared with a snapshot again.
     """
-    det = _after_an_event()
-    c_off = math.radians(20.0)
-    # The event at 1 s; C silent from then until 2 s, back 20 deg off: no test of its own past spans the change.
-    assert _settling(det, 1.0, 7.0, c_off, c_from_s=2.0) == {}
-    assert not det.at_rest
-    # A snapshot older than the event is no reference for the grid since.
-    det.reference(0.0)
-    assert _settling(det, 7.0, 8.0, c_off) == {}
-    assert not det.at_rest
-    # One stamped once the grid settled is: rest_s after the last station's steady start, the angle test names C.
-    det.reference(7.5)
-    suspects = _settling(det, 8.0, 8.1, c_off)
-    assert det.at_rest and suspects == {'C': 'angle_mismatch'}
+    for c_off, at_end in ((math.radians(20.0), {'C': 'gap_in_event'}), (0.0, {})):
+        det = _after_an_event()
+        # The event at 1 s; C silent from then until 2 s, back 20 deg off: no test of its own past spans the
+        # change, so it is held until the grid is at rest again.
+        assert _settling(det, 1.0, 7.0, c_off, c_from_s=2.0) == {'C': 'gap_in_event'}
+        assert not det.at_rest
+        # A snapshot older than the event is no reference for the grid since.
+        det.reference(0.0)
+        assert _settling(det, 7.0, 8.0, c_off) == {'C': 'gap_in_event'}
+        assert not det.at_rest
+        # One stamped once the grid settled is: rest_s after the last station's steady start the angle test judges
+        # C, which stays suspect 20 deg off and, honest, is used again after clean_s of clean data.
+        det.reference(7.5)
+        assert _settling(det, 8.0, 8.1, c_off) == {'C': 'gap_in_event'} and det.at_rest
+        assert _settling(det, 8.1, 9.5, c_off) == at_end, c_off
 
 
 def test_a_snapshot_stamped_within_a_swing_does_not_end_the_event():

@@ -80,6 +80,12 @@ The tests, frame by frame (each on one station's own channel, but the last two, 
   time offset in place before the event, which shows in no station's own past (the step attack on a stream whose
   first frame is the fault's). Judged where the voltage is in the measuring range.
 
+- ``new_station`` and ``gap_in_event``: a station with no past its frames can be tested against, one that joins a
+  running stream or comes back from a silence longer than the filter bridges while the others reported (a time
+  offset put in place while it was silent passes every test of its own). It is used after ``clean_s`` of clean
+  data at rest, where the tests against the snapshot judge it; during an event only once the grid is at rest again
+  (see _unlinked).
+
 The tests see only frames the caller found usable (pmu_ingestion drops data whose STAT says "do not use" or "PMU
 error" (bits 15-14), "not synchronised" (bit 13), "sorted by arrival" (bit 12: the tag is not the data's own) or
 a time quality worse than its `max_time_error_s` (bits 8-6 and 5-4), and absent frames are not stepped).
@@ -103,7 +109,7 @@ _MAX_PERIOD_S = 1.0  # C37.118.2's slowest reporting rate is one frame a second
 _PERIOD_SAMPLES = 512  # spacings the period is judged on: a few frames of a few hundred stations
 
 REASONS = ('frequency_mismatch', 'frozen', 'replayed', 'innovation', 'schedule_mismatch', 'angle_mismatch',
-           'bus_disagreement', 'new_station')
+           'bus_disagreement', 'new_station', 'gap_in_event')
 NOMINALS_HZ = (50.0, 60.0)  # the two nominal frequencies of AC grids (C37.118.2's FNOM allows no other)
 _RANGE_HZ = 5.0  # C37.118.1 (class M): frequency is measured within +-5 Hz of the nominal
 
@@ -175,6 +181,9 @@ class BadDataDetector:
         rest_s: How long every station's P and |V| must stay within twice their TVE error of one value before the
             tests at rest judge again after an event, s (with a snapshot stamped since): half the period of the
             slowest electromechanical swing, an inter-area mode of 0.1 Hz, so a swing still under way shows.
+        max_gap_s: The longest silence the filter bridges by prediction, s (core.dse's max_gap_s; pmu_ingestion's
+            dse_max_gap_s): a station silent for longer, while the others reported, has no past its returning
+            frames are tested against (see _unlinked).
 
     Attributes:
         nis_bound: The largest normalised innovation squared an honest frame is allowed (give it to
@@ -185,22 +194,24 @@ class BadDataDetector:
     def __init__(self, noise_tve: float = 0.01, frequency_error_hz: float = 0.005, window_s: float = 0.5,
                  false_alarm: float = 1e-9, frozen_frames: int = 3, history_s: float = 2.0,
                  clean_s: float = 1.0, angle_floor_pu: float = 0.2, innovation_false_alarm: float = 1e-12,
-                 schedule_tolerance: float = 0.1, angle_tolerance_rad: float = 0.1, rest_s: float = 5.0) -> None:
+                 schedule_tolerance: float = 0.1, angle_tolerance_rad: float = 0.1, rest_s: float = 5.0,
+                 max_gap_s: float = 0.5) -> None:
         if not (0 < noise_tve < 1 and frequency_error_hz >= 0 and window_s > 0 and 0 < false_alarm < 0.5
                 and frozen_frames >= 1 and history_s >= 0 and clean_s >= 0 and 0 <= angle_floor_pu < 1
                 and 0 < innovation_false_alarm < 0.5 and schedule_tolerance >= 0 and angle_tolerance_rad >= 0
-                and rest_s >= 0):
+                and rest_s >= 0 and max_gap_s > 0):
             raise BadDataError(f'bad settings: noise_tve={noise_tve}, frequency_error_hz={frequency_error_hz}, '
                                f'window_s={window_s}, false_alarm={false_alarm}, frozen_frames={frozen_frames}, '
                                f'history_s={history_s}, clean_s={clean_s}, angle_floor_pu={angle_floor_pu}, '
                                f'innovation_false_alarm={innovation_false_alarm}, '
                                f'schedule_tolerance={schedule_tolerance}, angle_tolerance_rad={angle_tolerance_rad}, '
-                               f'rest_s={rest_s}')
+                               f'rest_s={rest_s}, max_gap_s={max_gap_s}')
         self.nis_bound = -2.0 * math.log(innovation_false_alarm)  # chi-square(2) is exponential of mean 2
         self.schedule_tolerance, self.angle_tolerance_rad = schedule_tolerance, angle_tolerance_rad
         self.t_first = math.nan  # the first frame judged, s
         self.at_rest = True  # no event since the first frame, or the grid settled since (see _schedule_test)
-        self.rest_s = rest_s
+        self.rest_s, self.max_gap_s = rest_s, max_gap_s
+        self.stream_t = -math.inf  # the newest time tag judged, any station's, s
         self.last_jump_s = -math.inf  # time tag of the newest frame that showed an event, s
         self.reference_s = -math.inf  # stamp of the newest network snapshot (reference), s
         self.noise_tve, self.frequency_error_hz, self.window_s = noise_tve, frequency_error_hz, window_s
@@ -236,6 +247,7 @@ class BadDataDetector:
         self.reason = np.full(n, '', dtype=object)
         self.flagged_at = np.full(n, np.nan)
         self.clean_since = np.full(n, np.nan)
+        self.unlinked = np.zeros(n, dtype=bool)  # no past to test against, held until the grid is at rest again
 
     def _grow(self, n: int) -> None:
         old = {k: v for k, v in vars(self).items() if isinstance(v, np.ndarray)}
@@ -353,12 +365,29 @@ class BadDataDetector:
                           reason)
         reason = np.where((reason == '') & self._angle_test(values, snap), 'angle_mismatch', reason)
         reason = np.where((reason == '') & self._bus_test(values, bus), 'bus_disagreement', reason)
-        # A station that joins a running stream brings no history to check its frames against (a recording of
-        # another second passes every test of its own): it is used once it has shown clean_s of clean data.
         reason = np.where((reason == '') & np.isin(rows, list(late)), 'new_station', reason)
+        joined = np.isin(rows, [self.row[sid] for sid in new]) & (t > self.t_first)
+        reason = np.where((reason == '') & self._unlinked(t, rows, gaps, joined), 'gap_in_event', reason)
         self._settle(t, rows, reason)
         self.last_t[rows] = t
+        self.stream_t = max(self.stream_t, t)
         return self.suspects()
+
+    def _unlinked(self, t: float, rows: np.ndarray, gaps: np.ndarray, joined: np.ndarray) -> np.ndarray:
+        """Stations with no past to test their frames against while the grid is not at rest: held until it is.
+
+        A station first heard after the stream's first frame, or back from a silence longer than the filter bridges
+        (max_gap_s) while the others reported: the filter starts again from its frames and the frequency window
+        starts a new chain, so a time offset put in place while it was silent (half a cycle: docs/attacks.md,
+        gap_step) passes every test of its own. At rest the tests against the snapshot judge it at once; during an
+        event nothing can, and its machine stays unobserved until the grid is at rest again. A silence of the whole
+        stream (a stalled collector, a restarted node) is no one station's act and holds none.
+        """
+        with np.errstate(invalid='ignore'):
+            back = np.isfinite(self.last_t[rows]) & (gaps > self.max_gap_s) & (t - self.stream_t <= self.max_gap_s)
+        held = (self.unlinked[rows] | back | joined) & (not self.at_rest)
+        self.unlinked[rows] = held
+        return held
 
     def _learn_period(self, gaps: np.ndarray) -> None:
         """Take the frame period as the commonest spacing of the recent time tags, never the smallest.

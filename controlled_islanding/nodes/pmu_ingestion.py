@@ -27,7 +27,9 @@ at rest, the voltage against the other stations of the same bus (the snapshot's 
 and, with 'dse', the filter's innovation: the phasors against the machine model's prediction). A suspect station
 is excluded: its generator gets `valid = false` with the test in `suspect_reason`, the filter steps it as lost
 (its data still compared with the prediction, never taken), /diagnostics warns naming it (`suspect_stations`,
-counted in `suspect_flags`), and it returns after `bad_data_clean_s` of clean data. The filter takes a frame up to
+counted in `suspect_flags`), and it returns after `bad_data_clean_s` of clean data (a station new to the stream, or
+back from a silence longer than `dse_max_gap_s` alone, during an event: once the grid is at rest again, as its
+offset can only be judged against the snapshot). The filter takes a frame up to
 `dse_reorder_s` after it came, so a station flagged by its innovation is marked from the frame in which the filter
 took the offending one.
 
@@ -135,7 +137,7 @@ class PmuIngestionNode(Node):
             'before (bits 5-4), is not synchronised; 1e-4 s is 2.2 degrees at 60 Hz (pdc_client holds FRACSEC to '
             'its own)'))
         try:
-            self.detector = (BadDataDetector(noise_tve=noise_tve, clean_s=clean_s)
+            self.detector = (BadDataDetector(noise_tve=noise_tve, clean_s=clean_s, max_gap_s=self.dse_max_gap_s)
                              if self.get_parameter('bad_data').value else None)
         except BadDataError as exc:
             raise NodeSetupError(str(exc)) from exc
