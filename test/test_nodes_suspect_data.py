@@ -262,3 +262,42 @@ def test_pmu_ingestion_uses_data_only_with_a_good_stat_and_a_time_it_can_trust(b
     synced = stat & 0xC000 or usable
     assert node.diag.values.get('unsynced_measurements', '0') == ('0' if synced else '1')
     node.destroy_node()
+
+
+def test_a_station_silent_alone_longer_than_dse_max_gap_s_in_an_event_is_held_with_its_reason(bag):
+    """The node gives the filter's bridge to the bad-data tests.
+
+    A station back from a longer silence alone, in the default bag's fault, is marked `gap_in_event`
+    (core/bad_data.py) until the grid is at rest again.
+    """
+    from rclpy.parameter import Parameter
+
+    from controlled_islanding.nodes.pmu_ingestion import PmuIngestionNode
+
+    snapshot, _ = bag
+    frames = []
+    with AnyReader([REPO / 'bags' / default_bag()['bag']], default_typestore=typestore()) as reader:
+        for conn, _, raw in reader.messages():
+            if conn.topic == topics.PMU_FRAMES:
+                frame = deserialize_message(bytes(raw), PmuFrame)
+                if 4.5 <= stamp_s(frame.header.stamp) - stamp_s(snapshot.header.stamp) <= 6.5:
+                    frames.append(frame)
+    node = PmuIngestionNode(parameter_overrides=[Parameter('dse_max_gap_s', value=0.3)])
+    assert node.detector.max_gap_s == 0.3
+    angles = caught(node, 'pub')
+    node._take_snapshot(snapshot)
+    victim = frames[0].measurements[-1].station_id
+    t0 = stamp_s(snapshot.header.stamp)
+    for frame in frames:
+        msg = copy.deepcopy(frame)
+        if 5.1 <= stamp_s(msg.header.stamp) - t0 < 5.5:  # 0.4 s, more than the filter bridges here
+            msg.measurements = [m for m in msg.measurements if m.station_id != victim]
+        node._take_frame(msg)
+    gen = next(g for g, b in zip(snapshot.generator_names, snapshot.generator_bus, strict=True)
+               if b == frames[0].measurements[-1].bus)
+    j = list(angles[-1].generator_names).index(gen)
+    back = [a for a in angles if stamp_s(a.header.stamp) - t0 >= 5.5 - 1e-6]
+    assert back and all(a.suspect_reason[j] == f'gap_in_event: {victim}' and not a.valid[j] for a in back)
+    assert not any(a.suspect_reason for a in angles if stamp_s(a.header.stamp) - t0 < 5.1)
+    assert node.diag.values['grid_at_rest'] == 'no' and victim in node.diag.values['suspect_stations']
+    node.destroy_node()
