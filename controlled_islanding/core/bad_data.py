@@ -82,9 +82,9 @@ The tests, frame by frame (each on one station's own channel, but the last two, 
 
 - ``new_station`` and ``gap_in_event``: a station with no past its frames can be tested against, one that joins a
   running stream or comes back from a silence longer than the filter bridges while the others reported (a time
-  offset put in place while it was silent passes every test of its own). It is used after ``clean_s`` of clean
-  data at rest, where the tests against the snapshot judge it; during an event only once the grid is at rest again
-  (see _unlinked).
+  offset put in place while it was silent passes every test of its own). At rest the tests against the snapshot
+  judge it at once (one that joins more than ``clean_s`` into the stream is ``new_station`` for ``clean_s`` as
+  well); during an event it is ``gap_in_event`` until the grid is at rest again (see _unlinked).
 
 The tests see only frames the caller found usable (pmu_ingestion drops data whose STAT says "do not use" or "PMU
 error" (bits 15-14), "not synchronised" (bit 13), "sorted by arrival" (bit 12: the tag is not the data's own) or
