@@ -84,7 +84,8 @@ The tests, frame by frame (each on one station's own channel, but the last two, 
   running stream or comes back from a silence longer than the filter bridges while the others reported (a time
   offset put in place while it was silent passes every test of its own). At rest the tests against the snapshot
   judge it at once (one that joins more than ``clean_s`` into the stream is ``new_station`` for ``clean_s`` as
-  well); during an event it is ``gap_in_event`` until the grid is at rest again (see _unlinked).
+  well); during an event it is held until the grid is at rest again, as ``gap_in_event`` (a late joiner keeps
+  ``new_station``; see _unlinked).
 
 The tests see only frames the caller found usable (pmu_ingestion drops data whose STAT says "do not use" or "PMU
 error" (bits 15-14), "not synchronised" (bit 13), "sorted by arrival" (bit 12: the tag is not the data's own) or
