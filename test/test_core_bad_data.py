@@ -641,7 +641,8 @@ def _without(bag, rows: np.ndarray, cols: np.ndarray | None = None):
 
 @pytest.mark.parametrize('name,tag_s', [('ieee14_g1_unstable', 1.0 + 1 / 60), ('kundur_bus9_unstable', 1.0 + 1 / 30),
                                         ('nordic44_bus6000_three_groups', 1.0 + 1 / 30),
-                                        ('ieee39_paper_case2', 5.0 + 1 / 60), ('ieee39_case2_g3_unstable', 5.2)])
+                                        ('ieee39_paper_case2', 5.0 + 1 / 60), ('ieee39_case2_g3_unstable', 5.2),
+                                        ('ieee39_g6g7_unstable', 5.25 + 1 / 60)])
 def test_one_frame_lost_at_a_faults_inception_or_clearing_flags_no_station(name, tag_s):
     """One lost frame at an event is no evidence against any station.
 
@@ -665,3 +666,31 @@ def test_an_honest_station_at_half_the_streams_rate_is_not_flagged(name, station
     odd = np.arange(len(bag.tag_s)) % 2 == 1
     half = _without(bag, odd, np.array([bag.station_ids.index(station)]))
     assert screen(bag, half, params=coherency_node_parameters())[3] == {}
+
+
+@pytest.mark.parametrize('name,station', [('ieee39_g6g7_unstable', 'PMU_35'), ('ieee14_g1_unstable', 'PMU_2'),
+                                          ('nordic44_bus6000_three_groups', 'PMU_8500/GENROU_80')])
+def test_a_spoofed_speed_on_a_station_sending_every_other_frame_is_flagged_by_its_frequency(name, station):
+    """A station that sends every other frame is judged by its frequency too.
+
+    Before, the frequency test judged consecutive frames only: at half the stream's rate a station was never
+    judged, and a +2 rad/s ramp on the G6-G7 bags' PMU_35 steered the cut (22-23 added), flagged by nothing.
+    """
+    from controlled_islanding.evaluation.attack_sweep import attack_start_s, screen
+    from controlled_islanding.evaluation.cases import coherency_node_parameters
+
+    bag = _bag(name)
+    odd = np.arange(len(bag.tag_s)) % 2 == 1
+    half = _without(bag, odd, np.array([bag.station_ids.index(station)]))
+    start_s = attack_start_s(bag)
+    ramped = attack(half, 'ramp', [station], start_s)
+    flags = screen(bag, ramped, params=coherency_node_parameters(), until_s=float(bag.request_t_s[0]))[3]
+    assert flags[station][0] == 'frequency_mismatch'
+
+
+def test_a_stream_that_starts_in_an_event_holds_no_station_whose_first_frame_was_lost():
+    """Silent for one frame from the stream's start is no silence the filter does not bridge."""
+    bag = _bag('ieee39_g6g7_initial_gap')
+    first = np.zeros(len(bag.tag_s), dtype=bool)
+    first[np.flatnonzero(np.asarray(bag.frame_present))[0]] = True
+    assert first_flags(_without(bag, first, np.array([bag.station_ids.index('PMU_37')]))) == {}

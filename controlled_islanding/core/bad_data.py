@@ -7,20 +7,21 @@ frames that pass every test.
 The tests, frame by frame (each on one station's own channel, but the last two, which set stations side by side):
 
 - ``frequency_mismatch``: a PMU reports the frequency it measures, f = f0 + (d theta / dt) / (2 pi), theta the
-  voltage angle against the nominal-frequency reference. Over a window of ``window_s`` of consecutive frames the
+  voltage angle against the nominal-frequency reference. Over a window of ``window_s`` worth of frames in a chain
+  (consecutive, or at most ``max_step_s`` apart where the voltage magnitude did not jump between them) the
   angle's change must equal 2 pi times the integral of f - f0. An angle ramp (a spoofed speed), or a step of the
   angle (a GPS time shift), breaks it while the reported frequency stays honest; so does a frequency channel that
   no longer follows the angles. The bound is derived, not tuned: ``z`` standard deviations of the angle noise (two
   angle samples of TVE/3 each: C37.118.1's total vector error bound ``noise_tve``, taken as 3 sigma, as sim/pmu.py
   draws it), plus C37.118.1's frequency error bound ``frequency_error_hz`` integrated over the window, plus the
   discretisation of the PMU's own frequency estimate: a central or backward difference (or a group delay of one
-  frame) leaves at most one frame's period times the spread of the reported frequency over the window, counted
+  frame) leaves at most one step (the window's longest) times the spread of the reported frequency over it, counted
   twice, plus the second largest one-frame residual in the window: a central difference spreads an honest angle
   jump (a fault) over two frames as two equal and opposite one-frame residuals, and an oscillation the frequency
   estimate averages out (one faster than half the frame rate) gives many, while a time shift of the angles gives
   one. z is the normal quantile of the per-test false-alarm rate ``false_alarm`` (1e-9: about one false test in a
-  year of 30 frames/s per station). Until a chain of consecutive frames fills the window (at the stream's start,
-  after a lost frame, after the voltage comes back above the floor) the same bound is applied to the frames at hand,
+  year of 30 frames/s per station). Until a chain fills the window (at the stream's start, after a gap the chain
+  does not span, after the voltage comes back above the floor) the same bound is applied to the frames at hand,
   from the second on, with their own span: a fault cleared shortly before the request leaves only a few frames
   between the voltage's recovery and the request (EI 33's bus 101048: 5), and a spoofed speed on them was never
   judged. That adds at most one test per frame to a chain's first window, so the false-alarm rate per frame stays
@@ -182,6 +183,10 @@ class BadDataDetector:
         rest_s: How long every station's P and |V| must stay within twice their TVE error of one value before the
             tests at rest judge again after an event, s (with a snapshot stamped since): half the period of the
             slowest electromechanical swing, an inter-area mode of 0.1 Hz, so a swing still under way shows.
+        max_step_s: The longest step between a station's frames the frequency test spans, s (at least 1.5 frame
+            periods): a tenth of a second, over which a 1 Hz swing's frequency departs from its chord by at most
+            (pi f T)^2 / 2, 5 %, of its excursion, so the discretisation term, taken on the window's longest step,
+            holds.
         max_gap_s: The longest silence the filter bridges by prediction, s (core.dse's max_gap_s; pmu_ingestion's
             dse_max_gap_s): a station silent for longer, while the others reported, has no past its returning
             frames are tested against (see _unlinked).
@@ -196,22 +201,22 @@ class BadDataDetector:
                  false_alarm: float = 1e-9, frozen_frames: int = 3, history_s: float = 2.0,
                  clean_s: float = 1.0, angle_floor_pu: float = 0.2, innovation_false_alarm: float = 1e-12,
                  schedule_tolerance: float = 0.1, angle_tolerance_rad: float = 0.1, rest_s: float = 5.0,
-                 max_gap_s: float = 0.5) -> None:
+                 max_step_s: float = 0.1, max_gap_s: float = 0.5) -> None:
         if not (0 < noise_tve < 1 and frequency_error_hz >= 0 and window_s > 0 and 0 < false_alarm < 0.5
                 and frozen_frames >= 1 and history_s >= 0 and clean_s >= 0 and 0 <= angle_floor_pu < 1
                 and 0 < innovation_false_alarm < 0.5 and schedule_tolerance >= 0 and angle_tolerance_rad >= 0
-                and rest_s >= 0 and max_gap_s > 0):
+                and rest_s >= 0 and max_step_s > 0 and max_gap_s > 0):
             raise BadDataError(f'bad settings: noise_tve={noise_tve}, frequency_error_hz={frequency_error_hz}, '
                                f'window_s={window_s}, false_alarm={false_alarm}, frozen_frames={frozen_frames}, '
                                f'history_s={history_s}, clean_s={clean_s}, angle_floor_pu={angle_floor_pu}, '
                                f'innovation_false_alarm={innovation_false_alarm}, '
                                f'schedule_tolerance={schedule_tolerance}, angle_tolerance_rad={angle_tolerance_rad}, '
-                               f'rest_s={rest_s}, max_gap_s={max_gap_s}')
+                               f'rest_s={rest_s}, max_step_s={max_step_s}, max_gap_s={max_gap_s}')
         self.nis_bound = -2.0 * math.log(innovation_false_alarm)  # chi-square(2) is exponential of mean 2
         self.schedule_tolerance, self.angle_tolerance_rad = schedule_tolerance, angle_tolerance_rad
         self.t_first = math.nan  # the first frame judged, s
         self.at_rest = True  # no event since the first frame, or the grid settled since (see _schedule_test)
-        self.rest_s, self.max_gap_s = rest_s, max_gap_s
+        self.rest_s, self.max_step_s, self.max_gap_s = rest_s, max_step_s, max_gap_s
         self.stream_t = -math.inf  # the newest time tag judged, any station's, s
         self.last_jump_s = -math.inf  # time tag of the newest frame that showed an event, s
         self.reference_s = -math.inf  # stamp of the newest network snapshot (reference), s
@@ -239,6 +244,7 @@ class BadDataDetector:
         self.ptr = np.zeros(n, dtype=int)
         self.ring_e = np.zeros((n, self._m))  # one-frame residuals, rad
         self.ring_f = np.full((n, self._m), np.nan)  # reported frequencies, Hz (NaN: none in this chain)
+        self.ring_g = np.zeros((n, self._m))  # the steps the residuals span, s (0: none in this chain)
         self.content = np.full((n, 6), np.nan)
         self.last_v = np.full(n, np.nan)  # voltage magnitude of the station's previous frame, pu
         self.steady_since = np.full(n, np.nan)  # time tag since which P and |V| stayed steady, s
@@ -367,7 +373,7 @@ class BadDataDetector:
         reason = np.where((reason == '') & self._angle_test(values, snap), 'angle_mismatch', reason)
         reason = np.where((reason == '') & self._bus_test(values, bus), 'bus_disagreement', reason)
         reason = np.where((reason == '') & np.isin(rows, list(late)), 'new_station', reason)
-        joined = np.isin(rows, [self.row[sid] for sid in new]) & (t > self.t_first)
+        joined = np.isin(rows, [self.row[sid] for sid in new]) & (t - self.t_first > self.max_gap_s)
         reason = np.where((reason == '') & self._unlinked(t, rows, gaps, joined), 'gap_in_event', reason)
         self._settle(t, rows, reason)
         self.last_t[rows] = t
@@ -377,8 +383,8 @@ class BadDataDetector:
     def _unlinked(self, t: float, rows: np.ndarray, gaps: np.ndarray, joined: np.ndarray) -> np.ndarray:
         """Stations with no past to test their frames against while the grid is not at rest: held until it is.
 
-        A station first heard after the stream's first frame, or back from a silence longer than the filter bridges
-        (max_gap_s) while the others reported: the filter starts again from its frames and the frequency window
+        A station silent for longer than the filter bridges (max_gap_s) while the others reported, from the stream's
+        first frame or since its own last one: the filter starts again from its frames and the frequency window
         starts a new chain, so a time offset put in place while it was silent (half a cycle: docs/attacks.md,
         gap_step) passes every test of its own. At rest the tests against the snapshot judge it at once; during an
         event nothing can, and its machine stays unobserved until the grid is at rest again. A silence of the whole
@@ -420,6 +426,7 @@ class BadDataDetector:
     def _alloc_rings(self) -> None:
         n = len(self.ids)
         self.ring_e, self.ring_f = np.zeros((n, self._m)), np.full((n, self._m), np.nan)
+        self.ring_g = np.zeros((n, self._m))
         self.count[:] = 0
         self.ptr[:] = 0
 
@@ -539,8 +546,15 @@ class BadDataDetector:
         f0 = self.f0_hz
         ok = (np.isfinite(angle) & np.isfinite(freq) & (np.abs(values[:, 0]) >= self.angle_floor_pu)
               & math.isfinite(f0))
-        # Consecutive frames only: across a lost frame the frequency between the two tags is unknown.
-        follows = ok & (gaps <= 1.5 * self.period_s) & np.isfinite(self.last_angle[rows])
+        # Consecutive frames, or frames at most max_step_s apart (a lost frame, a station at a slower rate than the
+        # stream's: one that sent every other frame was judged by no frequency test, and a spoofed speed on it
+        # steered the cut) whose voltage magnitude did not jump between them: a switching inside the gap turns the
+        # voltage's phase where no frame shows it, one residual without the opposite one a PMU's estimate spreads
+        # it into (the second largest's allowance), and an honest frame lost at a clearing was flagged.
+        with np.errstate(invalid='ignore'):
+            smooth = np.abs(np.abs(values[:, 0]) - self.last_v[rows]) <= 2 * self.noise_tve * self.last_v[rows]
+        follows = (ok & np.isfinite(self.last_angle[rows])
+                   & ((gaps <= 1.5 * self.period_s) | ((gaps <= self.max_step_s) & smooth)))
         prev, f_prev = self.last_angle[rows], self.last_freq[rows]
         with np.errstate(invalid='ignore'):
             # Unwrapped along the reported frequency: a machine slipping poles moves more than pi in a frame.
@@ -552,16 +566,18 @@ class BadDataDetector:
         bad = np.zeros(len(rows), dtype=bool)
         if not self._m:
             return bad
-        # A chain broken (a lost frame, a voltage below the floor) starts a new window: what it held is not summed
-        # with what follows.
+        # A chain broken (a gap it does not span, a voltage below the floor) starts a new window: what it held is
+        # not summed with what follows.
         broken = rows[~follows & (self.count[rows] > 0)]
         self.ring_e[broken] = 0.0
         self.ring_f[broken] = np.nan
+        self.ring_g[broken] = 0.0
         self.count[rows] = np.where(follows, self.count[rows] + 1, 0)
         live = follows
         r, p = rows[live], self.ptr[rows[live]]
         self.ring_e[r, p] = e[live]
         self.ring_f[r, p] = freq[live]
+        self.ring_g[r, p] = gaps[live]
         self.ptr[r] = (p + 1) % self._m
         # Judged from the second consecutive frame on, over the frames at hand (at most the window): the bound is
         # derived for a window of any length, and a chain that starts again after a fault (the voltage back above
@@ -570,13 +586,13 @@ class BadDataDetector:
         if not judged.any():
             return bad
         fr = rows[judged]
-        n_frames = np.minimum(self.count[fr], self._m)
         residual = np.abs(self.ring_e[fr].sum(axis=1))
         second = np.partition(np.abs(self.ring_e[fr]), -2, axis=1)[:, -2]
         spread = np.nanmax(self.ring_f[fr], axis=1) - np.nanmin(self.ring_f[fr], axis=1)
-        span_s = n_frames * self.period_s
+        span_s = self.ring_g[fr].sum(axis=1)
+        step_s = np.maximum(self.ring_g[fr].max(axis=1), self.period_s)
         bound = (self.z * math.sqrt(2.0) * self.noise_tve / 3.0 + 2 * np.pi * self.frequency_error_hz * span_s
-                 + 2 * 2 * np.pi * self.period_s * spread + second)
+                 + 2 * 2 * np.pi * step_s * spread + second)
         bad[judged] = residual > bound
         return bad
 
