@@ -217,7 +217,6 @@ class BadDataDetector:
         self.t_first = math.nan  # the first frame judged, s
         self.at_rest = True  # no event since the first frame, or the grid settled since (see _schedule_test)
         self.rest_s, self.max_step_s, self.max_gap_s = rest_s, max_step_s, max_gap_s
-        self.stream_t = -math.inf  # the newest time tag judged, any station's, s
         self.last_jump_s = -math.inf  # time tag of the newest frame that showed an event, s
         self.reference_s = -math.inf  # stamp of the newest network snapshot (reference), s
         self.noise_tve, self.frequency_error_hz, self.window_s = noise_tve, frequency_error_hz, window_s
@@ -366,10 +365,12 @@ class BadDataDetector:
         gaps = t - self.last_t[rows]
         self._learn_period(gaps)
         reason = self._content_test(t, rows, values)
-        freq_bad = self._frequency_test(t, rows, values, gaps)
+        with np.errstate(invalid='ignore'):  # a station's |V| against its previous frame's, by more than the TVE
+            jumped = np.abs(np.abs(values[:, 0]) - self.last_v[rows]) > 2 * self.noise_tve * self.last_v[rows]
+        freq_bad = self._frequency_test(t, rows, values, gaps, jumped)
         reason = np.where((reason == '') & freq_bad, 'frequency_mismatch', reason)
-        reason = np.where((reason == '') & self._schedule_test(t, rows, values, sched, gaps), 'schedule_mismatch',
-                          reason)
+        reason = np.where((reason == '') & self._schedule_test(t, rows, values, sched, gaps, jumped),
+                          'schedule_mismatch', reason)
         reason = np.where((reason == '') & self._angle_test(values, snap), 'angle_mismatch', reason)
         reason = np.where((reason == '') & self._bus_test(values, bus), 'bus_disagreement', reason)
         reason = np.where((reason == '') & np.isin(rows, list(late)), 'new_station', reason)
@@ -377,7 +378,6 @@ class BadDataDetector:
         reason = np.where((reason == '') & self._unlinked(t, rows, gaps, joined), 'gap_in_event', reason)
         self._settle(t, rows, reason)
         self.last_t[rows] = t
-        self.stream_t = max(self.stream_t, t)
         return self.suspects()
 
     def _unlinked(self, t: float, rows: np.ndarray, gaps: np.ndarray, joined: np.ndarray) -> np.ndarray:
@@ -390,8 +390,9 @@ class BadDataDetector:
         event nothing can, and its machine stays unobserved until the grid is at rest again. A silence of the whole
         stream (a stalled collector, a restarted node) is no one station's act and holds none.
         """
+        stream_t = float(np.max(self.last_t, initial=-np.inf))  # the newest frame before this one, any station's
         with np.errstate(invalid='ignore'):
-            back = np.isfinite(self.last_t[rows]) & (gaps > self.max_gap_s) & (t - self.stream_t <= self.max_gap_s)
+            back = np.isfinite(self.last_t[rows]) & (gaps > self.max_gap_s) & (t - stream_t <= self.max_gap_s)
         held = (self.unlinked[rows] | back | joined) & (not self.at_rest)
         self.unlinked[rows] = held
         return held
@@ -454,7 +455,7 @@ class BadDataDetector:
         return out
 
     def _schedule_test(self, t: float, rows: np.ndarray, values: np.ndarray, sched: np.ndarray,
-                       gaps: np.ndarray) -> np.ndarray:
+                       gaps: np.ndarray, jumped: np.ndarray) -> np.ndarray:
         """While the grid is at rest, each station's active power Re(V I*) against the snapshot's dispatch.
 
         At rest means no frame since the first has moved any station's voltage magnitude by more than the TVE
@@ -467,13 +468,11 @@ class BadDataDetector:
         current transformer's ratio error, or spoofed magnitudes, fail it from the first frame at rest.
         """
         v = np.abs(values[:, 0])
-        prev = self.last_v[rows]
         self.last_v[rows] = v
         p = values[:, 0] * values[:, 2] * np.cos(values[:, 1] - values[:, 3])
         p_error = (2 * self.noise_tve + self.noise_tve ** 2) * np.abs(values[:, 0] * values[:, 2])
         with np.errstate(invalid='ignore'):
             self._track_steadiness(t, rows, p, v, p_error)
-            jumped = np.abs(v - prev) > 2 * self.noise_tve * prev
             if np.any(jumped & (gaps <= 1.5 * self.period_s)) or np.count_nonzero(jumped) >= 2:
                 self.at_rest = False
                 self.last_jump_s = t
@@ -541,7 +540,8 @@ class BadDataDetector:
             bad[at] = 2 * (gap > allowed).sum(axis=1) > len(at) - 1
         return bad
 
-    def _frequency_test(self, t: float, rows: np.ndarray, values: np.ndarray, gaps: np.ndarray) -> np.ndarray:
+    def _frequency_test(self, t: float, rows: np.ndarray, values: np.ndarray, gaps: np.ndarray,
+                        jumped: np.ndarray) -> np.ndarray:
         angle, freq = values[:, 1], values[:, 4]
         f0 = self.f0_hz
         ok = (np.isfinite(angle) & np.isfinite(freq) & (np.abs(values[:, 0]) >= self.angle_floor_pu)
@@ -551,10 +551,8 @@ class BadDataDetector:
         # steered the cut) whose voltage magnitude did not jump between them: a switching inside the gap turns the
         # voltage's phase where no frame shows it, one residual without the opposite one a PMU's estimate spreads
         # it into (the second largest's allowance), and an honest frame lost at a clearing was flagged.
-        with np.errstate(invalid='ignore'):
-            smooth = np.abs(np.abs(values[:, 0]) - self.last_v[rows]) <= 2 * self.noise_tve * self.last_v[rows]
         follows = (ok & np.isfinite(self.last_angle[rows])
-                   & ((gaps <= 1.5 * self.period_s) | ((gaps <= self.max_step_s) & smooth)))
+                   & ((gaps <= 1.5 * self.period_s) | ((gaps <= self.max_step_s) & ~jumped)))
         prev, f_prev = self.last_angle[rows], self.last_freq[rows]
         with np.errstate(invalid='ignore'):
             # Unwrapped along the reported frequency: a machine slipping poles moves more than pi in a frame.
