@@ -599,6 +599,9 @@ class RotorAngleDSE:
             # behind (one frame lost at a fault's inception made honest stations' innovations exceed the bad-data
             # bound on every manifest bag). After a longer loss the swing bends the inputs away from that line: the
             # frame's inputs stand for its whole step, blind.
+            # The state after a machine's last valid frame is kept when its data stop, for its return.
+            stops = run & ~ok & (bank.last_t >= t - dt - 1e-9)
+            bank.x_seen[stops], bank.cov_seen[stops] = bank.x[stops], bank.cov[stops]
             back = run & ok & (bank.last_t < t - dt - 1e-9)
             resumed = back & (t - bank.last_t <= self.resume_span_s + 1e-9)
             bank.v_last = np.where(back & ~resumed, v, bank.v_last)
@@ -621,7 +624,6 @@ class RotorAngleDSE:
         bank.v_last = np.where(ok, v, bank.v_last)
         bank.i_last = np.where(ok, i, bank.i_last)
         bank.last_t = np.where(ok, t, bank.last_t)
-        bank.x_seen[ok], bank.cov_seen[ok] = bank.x[ok], bank.cov[ok]
         rows = bank.rows
         self.delta_rad_[rows] = np.where(bank.live, bank.x[:, 0], np.nan)
         self.omega_pu_[rows] = np.where(bank.live, bank.x[:, 1], np.nan)
