@@ -49,7 +49,9 @@ one would keep accelerating the machine), and the speed's uncertainty growing by
 swing. The first frame after at most ``resume_span_s`` of lost ones is stepped again from the last valid frame, with
 the inputs linear across the loss, as between any two frames (a fault's inception while the data were lost is then
 an input that jumped at an unknown instant, which the covariance allows); after a longer loss it counts as blind too
-(its held inputs are stale). After a gap longer than
+(its held inputs are stale), and the covariance is first widened by what the unseen inputs may have done over the
+span (core/dse_kernel.py's widen_span). When no machine's data came for longer than ``resume_span_s`` (the whole
+stream silent), the innovations are judged again only ``judge_after_s`` after its return. After a gap longer than
 ``max_gap_s`` the estimate is withdrawn (NaN) and the machine is re-initialised at its next valid frame, from the
 steady-state relations, on the 2 pi branch nearest its last angle. Frames must come in time order.
 Each model class runs one bank of filters for all its machines: one call per frame of the compiled step in
@@ -323,6 +325,7 @@ class _Bank:
         self.model = model
         self.kind = dse_kernel.KINDS[name]
         self.filter_frame = dse_kernel.filter_frame
+        self.widen_span = dse_kernel.widen_span
         self.rows = rows
         self.p = params                                  # (g,) arrays
         # (g, len(PARAMS)), one row per machine, as the kernel reads them; NaN = a value its model does not use
@@ -338,9 +341,10 @@ class _Bank:
         self.v_last = np.zeros(g, dtype=complex)
         self.i_last = np.zeros(g, dtype=complex)
         self.nis = np.full(g, np.nan)                    # normalised innovation squared of the last frame
-        self.init_t = np.full(g, -np.inf)                # time of the last (re)initialisation, s
+        self.learn_t = np.full(g, -np.inf)               # since when the filter learns again, s (see nis_)
         self.x_seen = np.full((g, n), np.nan)            # state and covariance after the last valid frame
         self.cov_seen = np.zeros((g, n, n))
+        self.turned_slowly = np.ones(g, dtype=bool)      # the last valid frame's phasors turned within the TVE
 
 
 class RotorAngleDSE:
@@ -376,6 +380,10 @@ class RotorAngleDSE:
         resume_span_s: Longest loss of a machine's data after which the filter steps again from its last valid
             frame, the inputs linear across the loss, rather than on from the blind steps, s: a tenth of a second,
             over which a 1 Hz swing's electrical power stays within (pi f T)^2 / 2, 5 %, of its chord.
+        widen_span_s: Longest loss of a machine's data after which its covariance is widened by what the unseen
+            inputs may have done (dse_kernel.widen_span), s: a quarter of a 1 Hz swing's period, over which its
+            accelerating power runs one way, between its values at the two ends. Past it the blind walk alone
+            (widened so over 0.5 s through a swing, IEEE 14's G1 came back on the wrong branch of its angle).
 
     Attributes (after fit):
         models_: Model used for each machine (a name in MODELS, or '' when the machine has no usable data: NaN).
@@ -392,8 +400,11 @@ class RotorAngleDSE:
             turned against the voltage since the last frame by at most 2 acos(1 - measurement_tve) rad (half-way
             along the chord the filter takes between frames, a phasor turning by phi falls short by
             1 - cos(phi / 2): within the TVE only up to that turn; a machine slipping poles turns further), and
-            not within judge_after_s of the machine's (re)initialisation. NaN elsewhere, and for steady_state
-            machines.
+            not within judge_after_s of the machine's (re)initialisation or of the stream's return from a silence of
+            every machine longer than resume_span_s, and, the first frame after lost ones, only where the
+            phasors turned within that bound at the machine's last valid frame too (where they turned faster, a
+            machine slipping poles, the span's unseen path is no chord: Nordic 44's slipping machines were flagged
+            on the frame after one or two lost ones). NaN elsewhere, and for steady_state machines.
         tm_pu_: Latest mechanical torque per machine, pu on the system base: the filter's random-walk state, which
             follows a governor's action from the measured swing (NaN for steady_state machines).
         n_initialisations_: Times each machine was (re-)initialised.
@@ -404,7 +415,8 @@ class RotorAngleDSE:
                  measurement_tve: float = 0.01, max_step_s: float | None = None, torque_walk_per_sqrt_s: float = 0.3,
                  field_walk_per_sqrt_s: float = 2.0 / math.sqrt(0.1), flux_noise_per_sqrt_s: float = 0.01,
                  init_delta_std_rad: float = 0.1, blind_speed_walk_pu_per_sqrt_s: float = 0.005,
-                 innovation_gate: float = math.inf, judge_after_s: float = 0.5, resume_span_s: float = 0.1) -> None:
+                 innovation_gate: float = math.inf, judge_after_s: float = 0.5, resume_span_s: float = 0.1,
+                 widen_span_s: float = 0.25) -> None:
         self.model = model
         self.freq_hz = freq_hz
         self.max_gap_s = max_gap_s
@@ -418,6 +430,7 @@ class RotorAngleDSE:
         self.innovation_gate = innovation_gate
         self.judge_after_s = judge_after_s
         self.resume_span_s = resume_span_s
+        self.widen_span_s = widen_span_s
 
     # ----------------------------------------------------------------------------------------------------- set-up
     def fit(self, machines: MachineData) -> RotorAngleDSE:
@@ -465,8 +478,8 @@ class RotorAngleDSE:
         twin = copy.copy(self)
         twin._banks = [copy.copy(bank) for bank in self._banks]
         for bank in twin._banks:
-            for name in ('x', 'cov', 'aux', 'q_rate', 'live', 'last_t', 'v_last', 'i_last', 'nis', 'init_t', 'x_seen',
-                         'cov_seen'):
+            for name in ('x', 'cov', 'aux', 'q_rate', 'live', 'last_t', 'v_last', 'i_last', 'nis', 'learn_t', 'x_seen',
+                         'cov_seen', 'turned_slowly'):
                 setattr(bank, name, getattr(bank, name).copy())
         for name in ('delta_rad_', 'omega_pu_', 'tm_pu_', 'nis_', '_steady_last_t', 'n_initialisations_'):
             setattr(twin, name, getattr(self, name).copy())
@@ -478,9 +491,10 @@ class RotorAngleDSE:
         for bank in self._banks:
             bank.live[:] = False
             bank.last_t[:] = -np.inf
-            bank.init_t[:] = -np.inf
+            bank.learn_t[:] = -np.inf
             bank.x[:] = np.nan
         self._t_s: float | None = None
+        self._t_seen: float | None = None  # the newest frame with any machine's data, s
         self.delta_rad_ = np.full(n, np.nan)
         self.omega_pu_ = np.full(n, np.nan)
         self.nis_ = np.full(n, np.nan)
@@ -526,6 +540,15 @@ class RotorAngleDSE:
             raise DSEError(f'frame at {t} s is not after the previous one at {self._t_s} s')
         dt = None if self._t_s is None else t - self._t_s
         self._t_s = t
+        # Back from a silence of the whole stream longer than a resumed span (a PDC or network outage: no station's
+        # act, as core/bad_data.py's hold): a fault's inception within it leaves every filter of its area as uncertain
+        # as a (re)initialisation does (a 0.15 s outage at a fault's inception flagged honest stations on every
+        # manifest system), so their innovations are judged judge_after_s after the return.
+        if seen.any():
+            if self._t_seen is not None and t - self._t_seen > self.resume_span_s + 1e-9:
+                for bank in self._banks:
+                    bank.learn_t = np.where(seen[bank.rows], t, bank.learn_t)
+            self._t_seen = t
         for bank in self._banks:
             self._step_bank(bank, t, dt, v[bank.rows], i[bank.rows], ok[bank.rows], seen[bank.rows])
         self._steady_state(t, v, i, ok)
@@ -588,8 +611,10 @@ class RotorAngleDSE:
         with np.errstate(invalid='ignore'):
             turn = np.abs(np.angle(v * np.conj(i) * np.conj(bank.v_last * np.conj(bank.i_last))))
             z = v + (bank.p['ra_pu'] + 1j * bank.model.stator_x(bank.p)) * i
-            judged = ((np.abs(z) >= MEASURING_RANGE_FLOOR_PU) & (turn <= 2 * np.arccos(1 - self.measurement_tve))
-                      & (t - bank.init_t >= self.judge_after_s - 1e-9))
+            slowly = turn <= 2 * np.arccos(1 - self.measurement_tve)
+            spanned = bank.last_t < t - 1.5 * (np.inf if dt is None else dt)
+            judged = ((np.abs(z) >= MEASURING_RANGE_FLOOR_PU) & slowly & (~spanned | bank.turned_slowly)
+                      & (t - bank.learn_t >= self.judge_after_s - 1e-9))
         if dt is not None and run.any():
             # Lost data: the last inputs are held (the blind steps give the answers while they last). On the first
             # frame after at most resume_span_s of lost ones the filter starts again from its state after the last
@@ -604,6 +629,13 @@ class RotorAngleDSE:
             bank.x_seen[stops], bank.cov_seen[stops] = bank.x[stops], bank.cov[stops]
             back = run & ok & (bank.last_t < t - dt - 1e-9)
             resumed = back & (t - bank.last_t <= self.resume_span_s + 1e-9)
+            # Back after blind steps: widened by what the unseen inputs may have done (dse_kernel.widen_span; a
+            # machine in a hard swing changed its speed by seven times the blind walk over 0.13 s of lost frames,
+            # and its returning frames' honest innovations exceeded the bad-data bound).
+            blind_back = back & ~resumed & (t - bank.last_t <= self.widen_span_s + 1e-9)
+            if blind_back.any():
+                bank.widen_span(bank.kind, bank.x, bank.cov, bank.par, blind_back, bank.v_last, bank.i_last, v, i,
+                                t - bank.last_t, 2 * np.pi * self.freq_hz)
             bank.v_last = np.where(back & ~resumed, v, bank.v_last)
             bank.i_last = np.where(back & ~resumed, i, bank.i_last)
             judge = run & seen & judged
@@ -620,7 +652,8 @@ class RotorAngleDSE:
             self.nis_[bank.rows] = bank.nis
         if start.any():
             self._initialise(bank, start, v, i)
-            bank.init_t[start] = t
+            bank.learn_t[start] = t
+        bank.turned_slowly = np.where(ok, slowly, bank.turned_slowly)
         bank.v_last = np.where(ok, v, bank.v_last)
         bank.i_last = np.where(ok, i, bank.i_last)
         bank.last_t = np.where(ok, t, bank.last_t)

@@ -254,6 +254,46 @@ def _sigma_points(x, cov, root, pts):
 
 
 @numba.njit(cache=True)
+def widen_span(kind, x, cov, par, back, v0, i0, v1, i1, span, omega_base):
+    """Widen the states of machines back after blind steps by what the unseen inputs may have done to them.
+
+    The blind steps held the last valid inputs (v0, i0) and took no acceleration; over the span (s, per machine)
+    the inputs went to the returning frame's (v1, i1) by a path no frame shows (a fault's inception or clearing,
+    a hard swing). Each state's rate is taken anywhere between its rates at the two ends, constant over the span
+    (the speed's: the accelerating power at either end against the blind steps' none), so each state is off by up
+    to that rate's difference times the span, and the angle by omega_base times the speed's, times half the span;
+    a uniform on +-that, on the diagonal. Not wider: a fault that began and cleared unseen within the span is not
+    allowed for, as that would let an offset of tens of degrees, put in place while a station was silent, pass
+    (the prediction's own spread after 0.15 s through a fault's inception lets +-20 deg pass already; +pi never).
+    """
+    g, n = x.shape
+    ka, kb, kn = np.empty(n), np.empty(n), np.empty(n)
+    for m in range(g):
+        if not back[m]:
+            continue
+        p = par[m]
+        prm = _machine_values(kind, p)
+        xm = x[m]
+        memo = _memo(kind, xm[0])
+        ir0, ii0, ir1, ii1 = i0[m].real, i0[m].imag, i1[m].real, i1[m].imag
+        te0 = v0[m].real * ir0 + v0[m].imag * ii0 + p[_RA] * (ir0 * ir0 + ii0 * ii0)
+        te1 = v1[m].real * ir1 + v1[m].imag * ii1 + p[_RA] * (ir1 * ir1 + ii1 * ii1)
+        _derivative(kind, xm, ir0, ii0, te0, False, prm, omega_base, memo, ka)
+        _derivative(kind, xm, ir1, ii1, te1, False, prm, omega_base, memo, kb)
+        _derivative(kind, xm, ir0, ii0, te0, True, prm, omega_base, memo, kn)
+        t = span[m]
+        speed = max(abs(ka[1] - kn[1]), abs(kb[1] - kn[1])) * t
+        cov[m, 1, 1] += speed * speed / 3.0
+        # No wider than keeps the unscented points (sqrt(n) standard deviations out) within a quarter turn: past it
+        # they straddle z's angle and the correction may take the wrong branch (IEEE 14, 0.5 s lost: pi off).
+        angle = min(omega_base * speed * t * 0.5, np.sqrt(3.0) * 0.5 * np.pi / np.sqrt(n))
+        cov[m, 0, 0] += angle * angle / 3.0
+        for a in range(2, n):
+            d = (kb[a] - ka[a]) * t
+            cov[m, a, a] += d * d / 3.0
+
+
+@numba.njit(cache=True)
 def filter_frame(kind, x, cov, aux, q_rate, par, run, correct, blind, v0, v_end, i0, i_end, v, i, dt, steps,
                   omega_base, sigma_tve, v_floor, blind_walk, judge, gate, nis):
     """One frame of the filter for the machines in run: predict over dt, then correct where correct.
