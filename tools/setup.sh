@@ -85,7 +85,7 @@ step="import check"
 step="compile the numba kernels"
 # numba compiles on a process's first call and caches beside the sources; compiled here once, not by every node
 # process at its first decision (30 to 90 s each on a busy 2-core machine, past the supervisor's hang limit).
-echo "setup: compiling the numba kernels (DTW, PAM, k rules, spectral repair, DSE filter; the last three on import)"
+echo "setup: compiling the numba kernels (DTW, PAM, k rules, spectral repair, DSE filter and widening; the last three on import)"
 "$VENV/bin/python" -c "
 import numpy as np
 import controlled_islanding.core.k_rules

@@ -441,7 +441,11 @@ def filter_frame(kind, x, cov, aux, q_rate, par, run, correct, blind, v0, v_end,
 
 
 def warm_up() -> None:
-    """Run the kernel once per model on three made-up machines, so that it is compiled or loaded now."""
+    """Run the kernels once per model on three made-up machines, so that they are compiled or loaded now.
+
+    widen_span too: compiled at its first call, it would stall pmu_ingestion at the first PMU back from a silence,
+    in an event.
+    """
     g = 3
     for kind, n in ((_CLASSICAL, 3), (_TWO_AXIS, 6), (_GENROU, 8)):
         par = np.tile(np.array([8.0, 0.0, 0.0, 0.3, 1.8, 1.7, 0.5, 6.0, 0.5, 0.2, 0.2, 0.1, 0.03, 0.05, 0.8, 0.1,
@@ -454,6 +458,7 @@ def warm_up() -> None:
         on = np.ones(g, dtype=bool)
         filter_frame(kind, x, cov, np.ones(g), np.full((g, n), 1e-6), par, on, on, ~on, v, v, i, i, v, i,
                       1.0 / 60.0, 1, 2 * np.pi * 60.0, 0.01 / 3, 0.1, 0.005, on, np.inf, np.empty(g))
+        widen_span(kind, x, cov, par, on, v, i, v, i, np.full(g, 0.15), 2 * np.pi * 60.0)
 
 
 warm_up()
