@@ -278,6 +278,34 @@ def test_breaker_rules_on_a_real_process(tmp_path):
                                           'generator_already_tripped', 'inconsistent_status'} <= refusals
 
 
+def test_a_decision_judged_long_after_it_was_published_is_refused_whatever_the_node_clock_says(tmp_path):
+    """Rule 6 on the wait in the queue too: a stalled breaker node's clock can be behind the grid.
+
+    Found by the chaos sweep (docs/nodes.md): breaker_command resumed from a SIGSTOP under sim time judged the
+    decision on a /clock of before the stall and its commands reached the grid 2.5 s after the request. Here, on
+    the wall clock, the request is stamped 0.9 s ahead (within future_tolerance_s), so that after a 1.5 s stall it
+    is only 0.6 s old by the node clock: fresh by the stamp, stale by the wait.
+    """
+    audit = tmp_path / 'audit.jsonl'
+    island = two_islands(GRID)
+    cut = boundary(GRID, island)
+    shed, trips = rule_actions(island)
+    with start('breaker_waited', audit, max_decision_age_s=1.0) as (sup, probe):
+        commands = wire(probe)
+        assert arm(probe, True).armed
+        pid = sup.children[NODE].pid
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            send(probe, decision_msg(island, cut, now_ns(probe) + 900_000_000, shed=shed, trips=trips))
+            probe.spin_for(1.5)
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        assert probe.wait_counter(NODE, 'rejected.stale', 1) == 1
+        probe.spin_for(0.3)
+        assert commands == []
+        assert [r['reason'] for r in audit_lines(audit) if r['event'] == 'refusal'] == ['stale']
+
+
 def test_restart_never_repeats_a_command(tmp_path):
     audit = tmp_path / 'audit.jsonl'
     island = two_islands(GRID)

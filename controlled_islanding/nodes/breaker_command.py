@@ -177,7 +177,7 @@ class BreakerCommandNode(Node):
         self.diag.subscribe(IslandingDecision, topics.ISLANDING_DECISION, self.on_decision,
                             event_callbacks=SubscriptionEventCallbacks(
                                 liveliness=self.diag.guard(self.on_decision_liveliness)),
-                            handled_key=DECISIONS_HANDLED)
+                            handled_key=DECISIONS_HANDLED, with_info=True)
         self.diag.subscribe(NetworkSnapshotMsg, topics.NETWORK_SNAPSHOT, self.on_snapshot)
         self.diag.subscribe(BranchStatus, topics.BRANCH_STATUS, self.on_branch_status)
         self.create_service(SetArmed, '~/set_armed', self.diag.guard(self.on_set_armed))
@@ -341,6 +341,23 @@ class BreakerCommandNode(Node):
             raise Refusal('stale', f'request made {now_s - request_s:.3f} s ago, more than '
                                    f'max_decision_age_s={self.max_age_s}')
 
+    def _check_wait(self, info: dict | None) -> None:
+        """Refuse a decision that waited longer than max_decision_age_s (wall) between publication and this check.
+
+        The node clock can be behind the grid: a process resumed after a stall (SIGSTOP, a swapped-out host) under
+        sim time takes its queued /clock values and its queued decision in no set order, and judged one on the
+        /clock of before the stall (a chaos run: 0.72 s after the request by this clock, 2.5 s by the grid's, and
+        14 commands reached the grid late). The wait is on the wall clock, from the publisher's DDS source
+        timestamp (deployment.md: wall clocks in sync); a forged one can only refuse, which any rule may.
+        """
+        source_ns = (info or {}).get('source_timestamp')
+        if not source_ns:
+            return
+        waited_s = time.time() - float(source_ns) * 1e-9
+        if waited_s > self.max_age_s:
+            raise Refusal('stale', f'published {waited_s:.3f} s ago (wall clock) and judged only now, more than '
+                                   f'max_decision_age_s={self.max_age_s}: this node clock may be behind')
+
     def _forget_old(self) -> None:
         assert self.audit is not None
         known = self.audit.state.decisions
@@ -369,7 +386,7 @@ class BreakerCommandNode(Node):
         elif self.decision_writers_alive > 0:
             self.diag.warn('control_centre_silent', None)
 
-    def on_decision(self, msg: IslandingDecision) -> None:
+    def on_decision(self, msg: IslandingDecision, info: dict | None = None) -> None:
         """Check a decision against every rule; command its breakers only if all hold."""
         t0 = time.perf_counter()
         ids = {'decision_id': msg.decision_id[:_MAX_ID_CHARS], 'request_id': msg.request_id[:_MAX_ID_CHARS]}
@@ -393,6 +410,7 @@ class BreakerCommandNode(Node):
             if why is not None:  # before anything uses the clock: a forged one would make old ids forgettable
                 raise Refusal('clock_inconsistent', f'this node clock cannot be trusted: {why}')
             self._forget_old()
+            self._check_wait(info)
             self._check(msg, request_s)
         except Refusal as exc:
             self._refuse(exc.reason, f'decision {msg.decision_id!r}: {exc}', **seen)

@@ -187,7 +187,8 @@ class Diagnostics:
 
     def subscribe(self, msg_type: type, topic: str, callback: Callable[[object], None],
                   rate_hz: float | None = None, stamp_bounds_s: tuple[float, float] = (-1.0, 5.0),
-                  event_callbacks: object | None = None, handled_key: str | None = None) -> object:
+                  event_callbacks: object | None = None, handled_key: str | None = None,
+                  with_info: bool = False) -> object:
         """Subscribe (in the node's namespace) with the topic's documented QoS; count, guard, count losses.
 
         The losses are `lost.<topic>` in /diagnostics, present (0) from the start. With `rate_hz`, the topic
@@ -195,7 +196,8 @@ class Diagnostics:
         `event_callbacks` (rclpy SubscriptionEventCallbacks) are passed on, e.g. for liveliness changes.
         With `handled_key`, the number of messages the callback has finished with is that counter, and the
         diagnostics go out at once after each: another process can then tell exactly when a message was
-        handled (a replay's player holds its clock until breaker_command has handled a decision).
+        handled (a replay's player holds its clock until breaker_command has handled a decision). With
+        `with_info`, the callback gets the message info too (rclpy's dict: `source_timestamp`, ns, ...).
         """
         counter = LossCounter()
         key = f'lost.{topic}'
@@ -217,7 +219,10 @@ class Diagnostics:
             if status is not None:
                 stamp = getattr(getattr(msg, 'header', None), 'stamp', None)
                 status.arrived(self._clock_s(), stamp.sec + stamp.nanosec * 1e-9 if stamp is not None else None)
-            guarded(msg)
+            if with_info:
+                guarded(msg, info)
+            else:
+                guarded(msg)
             if handled_key is not None:
                 self.counts[handled_key] += 1
                 self.publish()
