@@ -612,7 +612,8 @@ class RotorAngleDSE:
             turn = np.abs(np.angle(v * np.conj(i) * np.conj(bank.v_last * np.conj(bank.i_last))))
             z = v + (bank.p['ra_pu'] + 1j * bank.model.stator_x(bank.p)) * i
             slowly = turn <= 2 * np.arccos(1 - self.measurement_tve)
-            spanned = bank.last_t < t - 1.5 * (np.inf if dt is None else dt)
+            # Frames lost before this one: the machine's last valid frame is not the stream's previous one.
+            spanned = bank.last_t < t - (np.inf if dt is None else dt) - 1e-9
             judged = ((np.abs(z) >= MEASURING_RANGE_FLOOR_PU) & slowly & (~spanned | bank.turned_slowly)
                       & (t - bank.learn_t >= self.judge_after_s - 1e-9))
         if dt is not None and run.any():
@@ -627,7 +628,7 @@ class RotorAngleDSE:
             # The state after a machine's last valid frame is kept when its data stop, for its return.
             stops = run & ~ok & (bank.last_t >= t - dt - 1e-9)
             bank.x_seen[stops], bank.cov_seen[stops] = bank.x[stops], bank.cov[stops]
-            back = run & ok & (bank.last_t < t - dt - 1e-9)
+            back = run & ok & spanned
             resumed = back & (t - bank.last_t <= self.resume_span_s + 1e-9)
             # Back after blind steps: widened by what the unseen inputs may have done (dse_kernel.widen_span; a
             # machine in a hard swing changed its speed by seven times the blind walk over 0.13 s of lost frames,
