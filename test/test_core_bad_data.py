@@ -328,14 +328,18 @@ def test_one_garbage_frame_first_names_no_nominal_frequency(name, garbage_hz):
 
 
 # ---------------------------------------------------------------------------------- the filter's innovation test
-def _screened_flags(name: str, kind: str, station: str, start_s: float):
-    """Station -> (reason, first flag s) over the bag up to its request, through the graph's screening."""
+def _screened(bag, channels, until_s: float = math.inf) -> dict[str, tuple[str, float]]:
+    """Station -> (reason, first flag s) over the channels up to until_s, through the graph's screening."""
     from controlled_islanding.evaluation.attack_sweep import screen
     from controlled_islanding.evaluation.cases import coherency_node_parameters
+    return screen(bag, channels, params=coherency_node_parameters(), until_s=until_s)[3]
 
+
+def _screened_flags(name: str, kind: str, station: str, start_s: float):
+    """Station -> (reason, first flag s) over the bag up to its request, through the graph's screening."""
     bag = _bag(name)
     channels = attack(bag, kind, [station], start_s) if kind else bag
-    return screen(bag, channels, params=coherency_node_parameters(), until_s=float(bag.request_t_s[0]))[3]
+    return _screened(bag, channels, until_s=float(bag.request_t_s[0]))
 
 
 @pytest.mark.parametrize('name,kind,station,start_s', [
@@ -649,23 +653,17 @@ def test_one_frame_lost_at_a_faults_inception_or_clearing_flags_no_station(name,
     Before, the filter stepped the lost frame blind (no acceleration) and its next frames' innovations, honest,
     exceeded the bound at the faulted area's stations: a single lost frame at an event refused the split.
     """
-    from controlled_islanding.evaluation.attack_sweep import screen
-    from controlled_islanding.evaluation.cases import coherency_node_parameters
-
     bag = _bag(name)
     lost = _without(bag, np.abs(np.asarray(bag.tag_s) - tag_s) < 1e-3)
-    assert screen(bag, lost, params=coherency_node_parameters())[3] == {}
+    assert _screened(bag, lost) == {}
 
 
 @pytest.mark.parametrize('name,station', [('kundur_bus9_unstable', 'PMU_4'), ('ieee14_g1_unstable', 'PMU_2')])
 def test_an_honest_station_at_half_the_streams_rate_is_not_flagged(name, station):
-    from controlled_islanding.evaluation.attack_sweep import screen
-    from controlled_islanding.evaluation.cases import coherency_node_parameters
-
     bag = _bag(name)
     odd = np.arange(len(bag.tag_s)) % 2 == 1
     half = _without(bag, odd, np.array([bag.station_ids.index(station)]))
-    assert screen(bag, half, params=coherency_node_parameters())[3] == {}
+    assert _screened(bag, half) == {}
 
 
 @pytest.mark.parametrize('name,station', [('ieee39_g6g7_unstable', 'PMU_35'), ('ieee14_g1_unstable', 'PMU_2'),
@@ -676,15 +674,14 @@ def test_a_spoofed_speed_on_a_station_sending_every_other_frame_is_flagged_by_it
     Before, the frequency test judged consecutive frames only: at half the stream's rate a station was never
     judged, and a +2 rad/s ramp on the G6-G7 bags' PMU_35 steered the cut (22-23 added), flagged by nothing.
     """
-    from controlled_islanding.evaluation.attack_sweep import attack_start_s, screen
-    from controlled_islanding.evaluation.cases import coherency_node_parameters
+    from controlled_islanding.evaluation.attack_sweep import attack_start_s
 
     bag = _bag(name)
     odd = np.arange(len(bag.tag_s)) % 2 == 1
     half = _without(bag, odd, np.array([bag.station_ids.index(station)]))
     start_s = attack_start_s(bag)
     ramped = attack(half, 'ramp', [station], start_s)
-    flags = screen(bag, ramped, params=coherency_node_parameters(), until_s=float(bag.request_t_s[0]))[3]
+    flags = _screened(bag, ramped, until_s=float(bag.request_t_s[0]))
     assert flags[station][0] == 'frequency_mismatch'
 
 
@@ -694,12 +691,6 @@ def test_a_stream_that_starts_in_an_event_holds_no_station_whose_first_frame_was
     first = np.zeros(len(bag.tag_s), dtype=bool)
     first[np.flatnonzero(np.asarray(bag.frame_present))[0]] = True
     assert first_flags(_without(bag, first, np.array([bag.station_ids.index('PMU_37')]))) == {}
-
-
-def _screened(bag, channels, until_s: float = math.inf) -> dict[str, tuple[str, float]]:
-    from controlled_islanding.evaluation.attack_sweep import screen
-    from controlled_islanding.evaluation.cases import coherency_node_parameters
-    return screen(bag, channels, params=coherency_node_parameters(), until_s=until_s)[3]
 
 
 def _span(bag, from_s: float, span_s: float = 0.15) -> np.ndarray:
