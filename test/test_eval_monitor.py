@@ -10,12 +10,14 @@ import pytest
 from controlled_islanding.evaluation.monitor_study import (
     ClosedLoop,
     MonitorRun,
+    MonitorStudyError,
     NoiseDraws,
     Request,
     read_testbed,
     report,
     report_noise,
     verdict,
+    write_oracle_record,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -46,6 +48,22 @@ def test_acceptance_needs_the_request_in_time_with_the_final_groups_and_90_perce
     assert '| stable runs without any request | 0 / 1 (1 false requests in all) |' in lines
     assert '| ... and at least 0.1 s before it | 1 / 1 |' in lines
     assert '1.75 (+0.25) k=2 | right | 950 | 0 | 1000 | met: met |' in lines
+
+
+def test_a_closed_loop_short_of_the_oracle_is_listed_with_when_each_asked_after_the_clearing(tmp_path):
+    from controlled_islanding.evaluation.monitor_study import write_page
+
+    right = Request(1.35, 1.36, {'G1': 0, 'G2': 0, 'G3': 1}, 2.0)
+    short, met = run(requests=[right]), run(requests=[right])
+    short.clearings_s, met.name = [1.0, 1.15], 'other'
+    oracle = {'load_served_mw': 70.0, 'request_s': 1.25, 'cut_branch_ids': ['1-2', '1-5']}
+    loops = {'case': ClosedLoop('case', True, 1.35, 0.0, None, 70.0, False, None, False, oracle=oracle),
+             'other': ClosedLoop('other', True, 1.35, 65.0, None, 70.0, False, None, False, oracle=oracle)}
+    write_page([short, met], loops, tmp_path / 'monitor.md', command='test')
+    text = (tmp_path / 'monitor.md').read_text()
+    assert ('- case: 0 MW against 70 MW; the best found (1-2, 1-5) asked at 1.250 s (+0.100 s), the monitor asked '
+            'at 1.350 s (+0.200 s)') in text
+    assert '- other:' not in text, 'a closed loop within 90 % of the oracle is not short of it'
 
 
 def test_the_closed_loops_own_groups_are_judged_too_over_the_machines_it_observed():
@@ -270,3 +288,43 @@ def test_on_held_out_npcc_the_monitor_stays_quiet_at_250_ms_and_asks_in_time_at_
     assert not unstable.stable and unstable.in_time and unstable.groups_right
     groups = unstable.requests[0].groups
     assert min(([n for n in groups if groups[n] == g] for g in set(groups.values())), key=len) == ['GENROU_42']
+
+
+def test_the_oracles_a_page_judged_against_are_recorded_and_lend_themselves_again_without_their_folders(tmp_path):
+    """The record stands in for the search's folder: the same oracle, its scenario file, and where it came from."""
+    scenario = REPO / 'bags' / 'kundur_bus9_unstable.yaml'
+
+    def result(folder: str, origin: str | None, runs: dict) -> None:
+        (tmp_path / folder / 'a').mkdir(parents=True)
+        event = {'what': 'request', 'at_s': 1.5, **({'from': origin} if origin else {})}
+        (tmp_path / folder / 'a' / 'result.json').write_text(json.dumps({
+            'scenario': 'a', 'path': str(scenario), 'events': [event], 'runs': runs}))
+
+    result('searched', None, {'dtw': {'load_served_mw': 1.0}, 'oracle': {
+        'load_served_mw': 500.0, 'all_survived': True, 'request_s': 1.39, 'cut_branch_ids': ['7-8'], 'search': []}})
+    result('monitor', 'stability monitor', {'dtw': {'load_served_mw': 450.0, 'all_survived': False}})
+    loops = read_testbed([tmp_path / 'monitor', tmp_path / 'searched'])
+    record = tmp_path / 'oracles.json'
+    write_oracle_record(record, loops)
+    (entry,) = json.loads(record.read_text())['oracles']
+    assert entry['path'] == 'bags/kundur_bus9_unstable.yaml' and entry['cut_branch_ids'] == ['7-8']
+    assert 'search' not in entry and str(tmp_path / 'searched') in entry['from']
+    again = read_testbed([tmp_path / 'monitor', record])[str(scenario.resolve())]
+    assert again.served_mw == 450.0 and again.oracle_mw == 500.0 and again.oracle_survived is True
+    write_oracle_record(tmp_path / 'again.json', {'a': again})
+    assert (tmp_path / 'again.json').read_text() == record.read_text(), 'a record read and written is the same'
+    assert read_testbed([record]) == {}, 'a record holds no closed loop'
+    (tmp_path / 'bad.json').write_text('{"closed": []}')
+    with pytest.raises(MonitorStudyError, match='bad.json: not an oracle record'):
+        read_testbed([tmp_path / 'bad.json'])
+
+
+def test_the_recorded_oracles_are_those_of_the_manifests_scenarios():
+    """docs/monitor/oracles.json names scenario files of this checkout, each with its load served."""
+    loops = read_testbed([REPO / 'docs' / 'monitor' / 'oracles.json'])
+    assert loops == {}
+    from controlled_islanding.evaluation.monitor_study import read_oracle_record
+
+    oracles = read_oracle_record(REPO / 'docs' / 'monitor' / 'oracles.json')
+    assert len(oracles) >= 14 and all(Path(k).is_file() for k in oracles)
+    assert all(o['load_served_mw'] >= 0 and isinstance(o['all_survived'], bool) for o in oracles.values())

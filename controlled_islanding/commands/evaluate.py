@@ -74,9 +74,11 @@ slip, false alarms, groups at the alarm (docs/prediction.md).
 angles of the bags and --andes scenarios, as the node would: every request against the first pole slip, false
 requests on runs that stay one group, the groups of the first request against the final grouping; with --testbed
 RESULTS (a `testbed --trigger monitor` results folder, repeatable) also the closed loop's load served against no
-action and the oracle, from that folder or from a `testbed --oracle` folder of any trigger (docs/monitor.md);
-with --noise-seeds N also every scenario simulated once and measured again under seeds 1 to N: how often the PMUs'
-noise tips the monitor into a false request, a late one, or other groups (about a minute per seed).
+action and the oracle, from that folder or from a `testbed --oracle` folder of any trigger (docs/monitor.md),
+or from an oracle record: the page writes every oracle it judged against beside itself (docs/monitor/oracles.json),
+so a searched oracle (hours on IEEE 39) need not be searched again to build the page; with --noise-seeds N also
+every scenario simulated once and measured again under seeds 1 to N: how often the PMUs' noise tips the monitor
+into a false request, a late one, or other groups (about a minute per seed).
 
 --k-rules FILE.md instead compares every k rule (core/k_rules.py) on the bags and on --andes scenarios
 (simulated here, the simulator's own rotor angles), and writes the table (docs/coherency_rules.md).
@@ -128,7 +130,8 @@ def add_arguments(parser) -> None:
                              '(docs/monitor.md); a scenario that cannot be run is listed on it, as with --predictors')
     parser.add_argument('--testbed', action='append', type=Path, metavar='RESULTS', default=[],
                         help='with --monitor: a `testbed --trigger monitor` results folder whose closed loops the page '
-                             'shows, or a `testbed --oracle` one whose oracle they are judged against (repeatable)')
+                             'shows, or a `testbed --oracle` one whose oracle they are judged against, or an oracle '
+                             'record (docs/monitor/oracles.json) (repeatable)')
     parser.add_argument('--noise-seeds', type=int, default=0, metavar='N',
                         help='with --monitor: also simulate each scenario once and measure it again under seeds 1 to '
                              'N (PMU noise and impairments), the monitor run on every draw: how often noise tips '

@@ -22,10 +22,13 @@ def judge_monitor(args, bag_paths) -> int:
         raise CliError('--monitor needs at least one BAG or --andes SCENARIO.yaml')
     if args.noise_seeds < 0:
         raise CliError(f'--noise-seeds must be 0 or more, got {args.noise_seeds}')
-    missing = [str(p) for p in args.testbed if not p.is_dir()]
+    missing = [str(p) for p in args.testbed if not p.exists()]
     if missing:
-        raise CliError(f'--testbed folders do not exist: {", ".join(missing)}')
-    loops = monitor_study.read_testbed(args.testbed)
+        raise CliError(f'--testbed folders or oracle records do not exist: {", ".join(missing)}')
+    try:
+        loops = monitor_study.read_testbed(args.testbed)
+    except monitor_study.MonitorStudyError as exc:
+        raise CliError(str(exc)) from None
     runs, draws, drawn, failed = [], [], set(), []
     seeds = range(1, args.noise_seeds + 1)
     start, load_start = time.monotonic(), load_average()
@@ -58,4 +61,8 @@ def judge_monitor(args, bag_paths) -> int:
     monitor_study.write_page(runs, loops, args.monitor, command=command, run_note=note, draws=draws,
                              not_evaluated=failed)
     log.info('page: %s', args.monitor)
+    record = monitor_study.oracle_record_path(args.monitor)
+    if any(loop.oracle for loop in loops.values()):
+        monitor_study.write_oracle_record(record, loops)
+        log.info('the oracles it judged against: %s', record)
     return not_evaluated(failed, len(sources), args.monitor)

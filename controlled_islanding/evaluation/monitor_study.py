@@ -37,6 +37,10 @@ from controlled_islanding.core.stability import TIME_TO_ACT_S
 ORACLE_SHARE = 0.9  # the closed loop must serve at least this share of the oracle's load (issue 30's acceptance)
 
 
+class MonitorStudyError(ValueError):
+    """An input of the study it cannot read (an oracle record)."""
+
+
 @dataclass
 class Request:
     """One request the monitor raised: when, for which groups, predicting which first slip."""
@@ -233,6 +237,7 @@ class ClosedLoop:
         survived, none_survived, oracle_survived: Whether every island survived (None: not known).
         path: The scenario file the run was of, resolved (None: the result does not say).
         groups: Generator name -> group of the coherent groups the first decision was made on (None: none).
+        oracle: The oracle's figures as read, with their scenario file and where they came from (None: none).
 
     """
 
@@ -248,19 +253,26 @@ class ClosedLoop:
     notes: list[str] = field(default_factory=list)
     path: str | None = None
     groups: dict[str, int] | None = None
+    oracle: dict | None = None
 
 
-def read_testbed(folders: Sequence[Path]) -> dict[str, ClosedLoop]:
+def read_testbed(sources: Sequence[Path]) -> dict[str, ClosedLoop]:
     """Return each scenario's closed loop from `testbed --trigger monitor` results folders (*/result.json).
 
     Keyed by the scenario file's resolved path, and by the scenario's name. A run another trigger asked for is not
     the monitor's closed loop, but its oracle (`testbed --oracle`) is the scenario's whatever the trigger (the search
-    spans every request time and candidate cut on its own): it fills in a monitor run's missing oracle.
+    spans every request time and candidate cut on its own): it fills in a monitor run's missing oracle. So does a
+    source that is a file, an oracle record (write_oracle_record): a search takes hours on IEEE 39, its folders are
+    not kept, and it does not depend on the monitor. The first source that has a scenario's oracle lends it.
     """
     out: dict[str, ClosedLoop] = {}
     oracles: dict[str, dict] = {}
-    for folder in folders:
-        for path in sorted(Path(folder).glob('*/result.json')):
+    for source in map(Path, sources):
+        if source.is_file():
+            for key, oracle in read_oracle_record(source).items():
+                oracles.setdefault(key, oracle)
+            continue
+        for path in sorted(source.glob('*/result.json')):
             r = json.loads(path.read_text())
             runs = r.get('runs', {})
             asks = [e for e in r.get('events', []) if e.get('what') == 'request']
@@ -268,6 +280,8 @@ def read_testbed(folders: Sequence[Path]) -> dict[str, ClosedLoop]:
             loop, none, oracle = runs.get('dtw', {}), runs.get('no action', {}), runs.get('oracle')
             scenario_file = str(Path(r['path']).resolve()) if r.get('path') else None
             if oracle is not None:  # by its scenario file where known: a file elsewhere may share the name
+                measured = time.strftime('%Y-%m-%d', time.gmtime(path.stat().st_mtime))
+                oracle = {**oracle, 'scenario': r['scenario'], 'path': scenario_file, 'from': f'{path} ({measured})'}
                 oracles.setdefault(scenario_file or r['scenario'], oracle)
             if asks and not from_monitor:
                 if oracle is not None or r['scenario'] in out:
@@ -276,6 +290,7 @@ def read_testbed(folders: Sequence[Path]) -> dict[str, ClosedLoop]:
                               loop.get('load_served_mw'), none.get('load_served_mw'),
                               None if oracle is None else oracle.get('load_served_mw'), loop.get('all_survived'),
                               none.get('all_survived'), None if oracle is None else oracle.get('all_survived'))
+            item.oracle = oracle
             listed = (r.get('coherent_groups') or {}).get('groups') or []
             if from_monitor and listed:
                 item.groups = {n: k for k, members in enumerate(listed) for n in members}
@@ -287,9 +302,64 @@ def read_testbed(folders: Sequence[Path]) -> dict[str, ClosedLoop]:
                 out[item.path] = item
     for item in out.values():
         oracle = oracles.get(item.path or item.scenario)
-        if item.oracle_mw is None and oracle is not None:
+        if item.oracle is None and oracle is not None:
+            item.oracle = oracle
             item.oracle_mw, item.oracle_survived = oracle.get('load_served_mw'), oracle.get('all_survived')
     return out
+
+
+_RECORDED = ('scenario', 'load_served_mw', 'all_survived', 'request_s', 'cut_branch_ids', 'from')
+
+
+def read_oracle_record(path: Path) -> dict[str, dict]:
+    """Return the oracles of a record (write_oracle_record), keyed by their scenario file's resolved path.
+
+    Raises:
+        MonitorStudyError: The file is no oracle record.
+
+    """
+    from controlled_islanding.locations import share_dir
+
+    try:
+        entries = json.loads(Path(path).read_text())['oracles']
+        return {str((share_dir() / e['path']).resolve()): {**e, 'path': str((share_dir() / e['path']).resolve())}
+                for e in entries}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise MonitorStudyError(f'{path}: not an oracle record ({type(exc).__name__}: {exc}); one is a JSON '
+                                'object whose "oracles" list each scenario\'s "path", "load_served_mw" and '
+                                '"all_survived", as `evaluate --monitor` writes it') from None
+
+
+def oracle_record_path(page: Path) -> Path:
+    """Return where the oracle record of a page goes: docs/monitor.md's is docs/monitor/oracles.json."""
+    return Path(page).parent / Path(page).stem / 'oracles.json'
+
+
+def write_oracle_record(path: Path, loops: dict[str, ClosedLoop]) -> None:
+    """Write every oracle the closed loops were judged against, so that the page can be built again without them.
+
+    One entry per scenario file: the oracle's figures, its scenario file relative to the checkout, and where it
+    came from (a results folder and the day it was written, or the record it was read from).
+    """
+    from controlled_islanding.atomic import write_text
+    from controlled_islanding.locations import share_dir
+
+    root = share_dir().resolve()
+    entries = {}
+    for loop in loops.values():
+        if loop.oracle is None or not loop.oracle.get('path'):
+            continue
+        scenario = Path(loop.oracle['path']).resolve()
+        where = scenario.relative_to(root) if scenario.is_relative_to(root) else scenario
+        entries[str(where)] = {'path': str(where), **{k: loop.oracle.get(k) for k in _RECORDED}}
+    record = {'about': ORACLE_RECORD_ABOUT, 'oracles': [entries[k] for k in sorted(entries)]}
+    write_text(Path(path), json.dumps(record, indent=1) + '\n')
+
+
+ORACLE_RECORD_ABOUT = (
+    "The oracles (testbed --oracle, the best found) docs/monitor.md's closed loops are judged against, written by "
+    "`controlled-islanding evaluate --monitor` from its --testbed sources; pass this file as one of them to build "
+    "the page again without the searches' folders. 'from' says where each came from.")
 
 
 def _fmt_mw(x: float | None) -> str:
@@ -329,6 +399,24 @@ def verdict(run: MonitorRun, loop: ClosedLoop | None) -> tuple[bool | None, str]
     if loop.oracle_survived and not loop.survived:
         why.append('an island lost that the oracle keeps')
     return not why, '; '.join(why) or 'met'
+
+
+def _short_of_oracle(run: MonitorRun, loop: ClosedLoop | None) -> str | None:
+    """Return the page's line on a closed loop that served less than ORACLE_SHARE of the oracle's load, else None."""
+    if (loop is None or loop.served_mw is None or loop.oracle_mw is None
+            or loop.served_mw >= ORACLE_SHARE * loop.oracle_mw - 1e-6):
+        return None
+
+    def asked(what: str, t_s) -> str:
+        if t_s is None:
+            return f'{what} did not ask'
+        cleared = [c for c in run.clearings_s if c <= t_s + 1e-9]
+        return f'{what} asked at {t_s:.3f} s' + (f' ({t_s - cleared[-1]:+.3f} s)' if cleared else '')
+
+    oracle = loop.oracle or {}
+    cut = ', '.join(oracle.get('cut_branch_ids') or []) or 'no cut'
+    return (f'- {run.name}: {loop.served_mw:.0f} MW against {loop.oracle_mw:.0f} MW; '
+            f"{asked(f'the best found ({cut})', oracle.get('request_s'))}, {asked('the monitor', loop.request_s)}")
 
 
 def report(runs: Sequence[MonitorRun], loops: dict[str, ClosedLoop], run_note: str = '') -> list[str]:
@@ -416,6 +504,11 @@ def write_page(runs: Sequence[MonitorRun], loops: dict[str, ClosedLoop], path: P
     if missed:
         body += ['Separating runs the monitor does not ask for before the first pole slip (why such slips cannot be '
                  'predicted: [prediction.md](prediction.md)):', '', *missed, '']
+    short = [line for r in runs if (line := _short_of_oracle(r, r.loop(loops)))]
+    if short:
+        body += ['Closed loops short of the oracle, and when each asked against the last fault clearing before it '
+                 "(the oracle's best is searched with hindsight over every request time; a predictor needs some "
+                 'of the swing after the clearing):', '', *short, '']
     if draws:
         seeds = draws[0].seeds
         body += ['## Under other noise draws', '', NOISE_INTRO.format(first=seeds[0], last=seeds[-1]),
