@@ -261,3 +261,21 @@ def test_scenario_bags_truth_groups(entry: dict) -> None:
         for window in (None, 30):
             est = DTWCoherency(window=window).fit(impaired(angles, how, seed=1, rate_fps=bag.rate_fps))
             assert partition(est.labels_) == partition(truth), (how, window)
+
+
+def test_warm_up_loads_the_dtw_engine_a_real_window_runs_not_only_the_k_rules():
+    """A fresh process: after warm_up the DTW matrix kernel is loaded, so the first real window does not load it.
+
+    The made-up split is decided by the k rule's drift alone; grouping it never called the DTW engine.
+    """
+    import subprocess
+    import sys
+
+    code = ('from controlled_islanding.core import dtw\n'
+            'from controlled_islanding.core.coherency import warm_up\n'
+            'assert not dtw._blocks.signatures\n'
+            'warm_up(max_groups=8, window=None)\n'
+            'print(len(dtw._blocks.signatures))\n')
+    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=300, check=False)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ['1'], 'the matrix kernel (the lanes compiled into it) is loaded'

@@ -37,6 +37,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from controlled_islanding.core.coherency import DTWCoherency, decimation_factor, frame_period_s
+from controlled_islanding.core.coherency import warm_up as warm_up_dtw
 from controlled_islanding.core.final_grouping import STAMP_ROUNDING_S, SwingWatch, final_groups, warm_up
 from controlled_islanding.core.k_rules import DEFAULT_RULE, RULES
 from controlled_islanding.core.stability import MachineSet, StabilityError
@@ -196,20 +197,17 @@ class CoherencyNode(Node):
             self.watch = SwingWatch(machines, keep_s=2 * self.window_s, **self.predictor_settings)
 
     def _warm_up_engine(self) -> None:
-        """Group a made-up window once, before spinning, so that the DTW engine is loaded before any real window.
+        """Load the DTW and k-rule engines before spinning (core.coherency.warm_up), not at the first real window.
 
-        numba loads the compiled engine on its first call: about 45 MB and 1-5 s on the shared 2-core machine.
+        numba loads a compiled engine on its first call: about 45 MB and 1-5 s on the shared 2-core machine.
         Paid at start-up (within the supervisor's start-up grace), it is neither the first request's latency, nor
         a callback long enough to look hung, nor a step in the memory of a node that has been running (the fuzz
         soak measured it as growth; docs/nodes.md, "Fuzz soak").
         """
         t0 = time.perf_counter()
-        ramp = np.linspace(0.0, 2.0 * np.pi, self.min_samples)
-        # Two groups, one slipping a pole: the same path through the k rule as a real split.
-        series = [ramp * (i % 2) for i in range(self.max_groups + 2)]
         try:
-            DTWCoherency(max_groups=self.max_groups, window=self.band, k_rule=self.k_rule).fit(series)
-        except Exception as exc:  # noqa: BLE001  a made-up window only loads the engine; its answer is unused
+            warm_up_dtw(self.max_groups, self.band, self.k_rule, self.min_samples)
+        except Exception as exc:  # noqa: BLE001  a made-up window only loads the engines; its answer is unused
             self.get_logger().info(f'DTW warm-up grouping failed ({exc}); continuing')
         warm_up(self.predictor_settings['z_alarm'])
         self.diag.values['warm_up_ms'] = f'{(time.perf_counter() - t0) * 1e3:.1f}'
