@@ -321,8 +321,6 @@ def test_the_oracles_a_page_judged_against_are_recorded_and_lend_themselves_agai
 
 def test_the_recorded_oracles_are_those_of_the_manifests_scenarios():
     """docs/monitor/oracles.json names scenario files of this checkout, each with its load served."""
-    loops = read_testbed([REPO / 'docs' / 'monitor' / 'oracles.json'])
-    assert loops == {}
     from controlled_islanding.evaluation.monitor_study import read_oracle_record
 
     oracles = read_oracle_record(REPO / 'docs' / 'monitor' / 'oracles.json')

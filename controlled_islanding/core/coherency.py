@@ -279,4 +279,3 @@ def warm_up(max_groups: int = 8, window: int | None = None, k_rule: str = DEFAUL
     series = [ramp * (i % 2) for i in range(max_groups + 2)]
     DTWCoherency(max_groups=max_groups, window=window, k_rule=k_rule).fit(series)
     dtw_distance_matrix(series, window=window)
-

@@ -309,6 +309,10 @@ def read_testbed(sources: Sequence[Path]) -> dict[str, ClosedLoop]:
 
 
 _RECORDED = ('scenario', 'load_served_mw', 'all_survived', 'request_s', 'cut_branch_ids', 'from')
+ORACLE_RECORD_ABOUT = (
+    "The oracles (testbed --oracle, the best found) docs/monitor.md's closed loops are judged against, written by "
+    "`controlled-islanding evaluate --monitor` from its --testbed sources; pass this file as one of them to build "
+    "the page again without the searches' folders. 'from' says where each came from.")
 
 
 def read_oracle_record(path: Path) -> dict[str, dict]:
@@ -355,11 +359,6 @@ def write_oracle_record(path: Path, loops: dict[str, ClosedLoop]) -> None:
     record = {'about': ORACLE_RECORD_ABOUT, 'oracles': [entries[k] for k in sorted(entries)]}
     write_text(Path(path), json.dumps(record, indent=1) + '\n')
 
-
-ORACLE_RECORD_ABOUT = (
-    "The oracles (testbed --oracle, the best found) docs/monitor.md's closed loops are judged against, written by "
-    "`controlled-islanding evaluate --monitor` from its --testbed sources; pass this file as one of them to build "
-    "the page again without the searches' folders. 'from' says where each came from.")
 
 
 def _fmt_mw(x: float | None) -> str:
