@@ -304,7 +304,7 @@ def test_the_oracles_a_page_judged_against_are_recorded_and_lend_themselves_agai
         'load_served_mw': 500.0, 'all_survived': True, 'request_s': 1.39, 'cut_branch_ids': ['7-8'], 'search': []}})
     result('monitor', 'stability monitor', {'dtw': {'load_served_mw': 450.0, 'all_survived': False}})
     loops = read_testbed([tmp_path / 'monitor', tmp_path / 'searched'])
-    record = tmp_path / 'oracles.json'
+    record = tmp_path / 'page' / 'oracles.json'  # beside a page written where nothing was before
     write_oracle_record(record, loops)
     (entry,) = json.loads(record.read_text())['oracles']
     assert entry['path'] == 'bags/kundur_bus9_unstable.yaml' and entry['cut_branch_ids'] == ['7-8']

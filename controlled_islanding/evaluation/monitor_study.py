@@ -357,6 +357,7 @@ def write_oracle_record(path: Path, loops: dict[str, ClosedLoop]) -> None:
         where = scenario.relative_to(root) if scenario.is_relative_to(root) else scenario
         entries[str(where)] = {'path': str(where), **{k: loop.oracle.get(k) for k in _RECORDED}}
     record = {'about': ORACLE_RECORD_ABOUT, 'oracles': [entries[k] for k in sorted(entries)]}
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     write_text(Path(path), json.dumps(record, indent=1) + '\n')
 
 
