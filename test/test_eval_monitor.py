@@ -28,6 +28,14 @@ def run(truth=TRUTH, slip=2.0, requests=()) -> MonitorRun:
     return MonitorRun('case', 'test', 'grid', 60.0, 3, dict(truth), slip, list(requests))
 
 
+def write_result(folder: Path, origin: str | None, runs: dict, scenario: str = 'a', path: Path | None = None) -> None:
+    """Write a testbed result.json of one scenario, asked for at 1.5 s by `origin` (None: not said)."""
+    (folder / scenario).mkdir(parents=True)
+    event = {'what': 'request', 'at_s': 1.5, **({'from': origin} if origin else {})}
+    (folder / scenario / 'result.json').write_text(json.dumps({
+        'scenario': scenario, **({'path': str(path)} if path else {}), 'events': [event], 'runs': runs}))
+
+
 def test_acceptance_needs_the_request_in_time_with_the_final_groups_and_90_percent_of_the_oracle():
     right = Request(1.7, 1.75, {'G1': 0, 'G2': 0, 'G3': 1}, 2.0)
     wrong = Request(1.7, 1.75, {'G1': 0, 'G2': 1, 'G3': 1}, 2.0)
@@ -93,12 +101,8 @@ def test_noise_draws_count_false_requests_on_stable_runs_and_timely_right_ones_o
 
 def test_the_closed_loop_is_read_from_a_testbed_folder_and_a_run_not_triggered_by_the_monitor_is_named(tmp_path):
     for name, origin in (('a', 'stability monitor'), ('b', None)):
-        (tmp_path / name).mkdir()
-        event = {'what': 'request', 'at_s': 1.5, **({'from': origin} if origin else {})}
-        (tmp_path / name / 'result.json').write_text(json.dumps({
-            'scenario': name, 'events': [event],
-            'runs': {'dtw': {'load_served_mw': 10.0, 'all_survived': True},
-                     'no action': {'load_served_mw': 5.0, 'all_survived': False}}}))
+        write_result(tmp_path, origin, {'dtw': {'load_served_mw': 10.0, 'all_survived': True},
+                                        'no action': {'load_served_mw': 5.0, 'all_survived': False}}, name)
     loops = read_testbed([tmp_path])
     assert loops['a'].asked and loops['a'].request_s == 1.5 and loops['a'].served_mw == 10.0
     assert loops['a'].oracle_mw is None and not loops['a'].notes
@@ -126,14 +130,11 @@ def test_an_oracle_searched_under_another_trigger_fills_in_the_monitor_runs_orac
     """
 
     def result(folder: str, origin: str | None, served: float, oracle: float | None) -> None:
-        (tmp_path / folder / 'a').mkdir(parents=True)
         runs = {'dtw': {'load_served_mw': served, 'all_survived': False},
                 'no action': {'load_served_mw': 0.0, 'all_survived': False}}
         if oracle is not None:
             runs['oracle'] = {'load_served_mw': oracle, 'all_survived': True}
-        event = {'what': 'request', 'at_s': 1.5, **({'from': origin} if origin else {})}
-        (tmp_path / folder / 'a' / 'result.json').write_text(json.dumps({'scenario': 'a', 'events': [event],
-                                                                         'runs': runs}))
+        write_result(tmp_path / folder, origin, runs)
 
     result('searched', None, 1.0, 500.0)
     result('monitor', 'stability monitor', 450.0, None)
@@ -146,11 +147,8 @@ def test_an_oracle_searched_under_another_trigger_fills_in_the_monitor_runs_orac
 
 
 def test_a_scenario_file_finds_only_its_own_closed_loop_where_a_bag_shares_its_name(tmp_path):
-    (tmp_path / 'a').mkdir()
-    (tmp_path / 'a' / 'result.json').write_text(json.dumps({
-        'scenario': 'a', 'path': str(tmp_path / 'bags' / 'a.yaml'),
-        'events': [{'what': 'request', 'at_s': 1.5, 'from': 'stability monitor'}],
-        'runs': {'dtw': {'load_served_mw': 10.0}, 'no action': {'load_served_mw': 5.0}}}))
+    write_result(tmp_path, 'stability monitor', {'dtw': {'load_served_mw': 10.0}, 'no action': {'load_served_mw': 5.0}},
+                 path=tmp_path / 'bags' / 'a.yaml')
     loops = read_testbed([tmp_path])
     bag, other = run(), run()
     bag.name = other.name = 'a'
@@ -294,15 +292,11 @@ def test_the_oracles_a_page_judged_against_are_recorded_and_lend_themselves_agai
     """The record stands in for the search's folder: the same oracle, its scenario file, and where it came from."""
     scenario = REPO / 'bags' / 'kundur_bus9_unstable.yaml'
 
-    def result(folder: str, origin: str | None, runs: dict) -> None:
-        (tmp_path / folder / 'a').mkdir(parents=True)
-        event = {'what': 'request', 'at_s': 1.5, **({'from': origin} if origin else {})}
-        (tmp_path / folder / 'a' / 'result.json').write_text(json.dumps({
-            'scenario': 'a', 'path': str(scenario), 'events': [event], 'runs': runs}))
-
-    result('searched', None, {'dtw': {'load_served_mw': 1.0}, 'oracle': {
-        'load_served_mw': 500.0, 'all_survived': True, 'request_s': 1.39, 'cut_branch_ids': ['7-8'], 'search': []}})
-    result('monitor', 'stability monitor', {'dtw': {'load_served_mw': 450.0, 'all_survived': False}})
+    write_result(tmp_path / 'searched', None, {'dtw': {'load_served_mw': 1.0}, 'oracle': {
+        'load_served_mw': 500.0, 'all_survived': True, 'request_s': 1.39, 'cut_branch_ids': ['7-8'], 'search': []}},
+        path=scenario)
+    write_result(tmp_path / 'monitor', 'stability monitor', {'dtw': {'load_served_mw': 450.0, 'all_survived': False}},
+                 path=scenario)
     loops = read_testbed([tmp_path / 'monitor', tmp_path / 'searched'])
     record = tmp_path / 'page' / 'oracles.json'  # beside a page written where nothing was before
     write_oracle_record(record, loops)
