@@ -326,8 +326,8 @@ def read_oracle_record(path: Path) -> dict[str, dict]:
 
     try:
         entries = json.loads(Path(path).read_text())['oracles']
-        return {str((share_dir() / e['path']).resolve()): {**e, 'path': str((share_dir() / e['path']).resolve())}
-                for e in entries}
+        resolved = [str((share_dir() / e['path']).resolve()) for e in entries]
+        return {where: {**e, 'path': where} for where, e in zip(resolved, entries, strict=True)}
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise MonitorStudyError(f'{path}: not an oracle record ({type(exc).__name__}: {exc}); one is a JSON '
                                 'object whose "oracles" list each scenario\'s "path", "load_served_mw" and '
