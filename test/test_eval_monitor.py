@@ -70,7 +70,17 @@ def test_a_closed_loop_short_of_the_oracle_is_listed_with_when_each_asked_after_
     write_page([short, met], loops, tmp_path / 'monitor.md', command='test')
     text = (tmp_path / 'monitor.md').read_text()
     assert ('- case: 0 MW against 70 MW; the best found (1-2, 1-5) asked at 1.250 s (+0.100 s), the monitor asked '
-            'at 1.350 s (+0.200 s)') in text
+            'at 1.350 s (+0.200 s)\n') in text
+
+    # With the search's figures per request time: how late a request could come, and a best of other groups.
+    oracle.update(sources=['milp of G2 alone'], served_by_request_s=[[1.15, 70.0], [1.2, 63.0], [1.25, None],
+                                                                      [1.3, 62.9], [1.35, 0.0]])
+    write_page([short], loops, tmp_path / 'monitor.md', command='test')
+    text = (tmp_path / 'monitor.md').read_text()
+    assert ("- case: 0 MW against 70 MW; the best found (1-2, 1-5: milp of G2 alone, not the final grouping's cut) "
+            'asked at 1.250 s (+0.100 s), the monitor asked at 1.350 s (+0.200 s); 90 % of the best needs a request '
+            'by 1.200 s (+0.050 s), the latest request time searched at which a run served that much (at 1.250 s: '
+            'a failed run)\n') in text
     assert '- other:' not in text, 'a closed loop within 90 % of the oracle is not short of it'
 
 
@@ -293,7 +303,8 @@ def test_the_oracles_a_page_judged_against_are_recorded_and_lend_themselves_agai
     scenario = REPO / 'bags' / 'kundur_bus9_unstable.yaml'
 
     write_result(tmp_path / 'searched', None, {'dtw': {'load_served_mw': 1.0}, 'oracle': {
-        'load_served_mw': 500.0, 'all_survived': True, 'request_s': 1.39, 'cut_branch_ids': ['7-8'], 'search': []}},
+        'load_served_mw': 500.0, 'all_survived': True, 'request_s': 1.39, 'cut_branch_ids': ['7-8'],
+        'sources': ['milp of truth'], 'search': {'served_by_request_s': [[1.3, 500.0], [1.39, None], [1.44, 0.0]]}}},
         path=scenario)
     write_result(tmp_path / 'monitor', 'stability monitor', {'dtw': {'load_served_mw': 450.0, 'all_survived': False}},
                  path=scenario)
@@ -303,6 +314,7 @@ def test_the_oracles_a_page_judged_against_are_recorded_and_lend_themselves_agai
     (entry,) = json.loads(record.read_text())['oracles']
     assert entry['path'] == 'bags/kundur_bus9_unstable.yaml' and entry['cut_branch_ids'] == ['7-8']
     assert 'search' not in entry and str(tmp_path / 'searched') in entry['from']
+    assert entry['sources'] == ['milp of truth'] and entry['served_by_request_s'][1] == [1.39, None]
     again = read_testbed([tmp_path / 'monitor', record])[str(scenario.resolve())]
     assert again.served_mw == 450.0 and again.oracle_mw == 500.0 and again.oracle_survived is True
     write_oracle_record(tmp_path / 'again.json', {'a': again})

@@ -177,6 +177,9 @@ def test_a_small_search_on_kundur_runs_every_candidate_to_one_end_and_reports_th
     assert summary['request_s'] == best.candidate.request_s
     assert summary['cut_branch_ids'] == list(best.cut_branch_ids)
     assert summary['search']['request_times'] == 2 and summary['search']['runs'] == 3
+    by_time = summary['search']['served_by_request_s']
+    assert [t for t, _ in by_time] == list(found.times_s)  # how late a request could come and serve as much
+    assert max(mw for _, mw in by_time if mw is not None) == pytest.approx(best.served_mw)
 
     again = search(scenario, config, OracleSettings(max_step_s=1.0, max_moves=0, max_alone=0), runs=runs,
                    say=said.append)

@@ -281,7 +281,8 @@ def read_testbed(sources: Sequence[Path]) -> dict[str, ClosedLoop]:
             scenario_file = str(Path(r['path']).resolve()) if r.get('path') else None
             if oracle is not None:  # by its scenario file where known: a file elsewhere may share the name
                 measured = time.strftime('%Y-%m-%d', time.gmtime(path.stat().st_mtime))
-                oracle = {**oracle, 'scenario': r['scenario'], 'path': scenario_file, 'from': f'{path} ({measured})'}
+                oracle = {**oracle, 'scenario': r['scenario'], 'path': scenario_file, 'from': f'{path} ({measured})',
+                          'served_by_request_s': (oracle.get('search') or {}).get('served_by_request_s')}
                 oracles.setdefault(scenario_file or r['scenario'], oracle)
             if asks and not from_monitor:
                 if oracle is not None or r['scenario'] in out:
@@ -309,6 +310,7 @@ def read_testbed(sources: Sequence[Path]) -> dict[str, ClosedLoop]:
 
 
 _RECORDED = ('scenario', 'load_served_mw', 'all_survived', 'request_s', 'cut_branch_ids', 'from')
+_RECORDED_WHEN_KNOWN = ('sources', 'served_by_request_s')  # not in the records bootstrapped from docs/testbed.md
 ORACLE_RECORD_ABOUT = (
     "The oracles (testbed --oracle, the best found) docs/monitor.md's closed loops are judged against, written by "
     "`controlled-islanding evaluate --monitor` from its --testbed sources; pass this file as one of them to build "
@@ -355,7 +357,8 @@ def write_oracle_record(path: Path, loops: dict[str, ClosedLoop]) -> None:
             continue
         scenario = Path(loop.oracle['path']).resolve()
         where = scenario.relative_to(root) if scenario.is_relative_to(root) else scenario
-        entries[str(where)] = {'path': str(where), **{k: loop.oracle.get(k) for k in _RECORDED}}
+        entries[str(where)] = {'path': str(where), **{k: loop.oracle.get(k) for k in _RECORDED},
+                               **{k: loop.oracle[k] for k in _RECORDED_WHEN_KNOWN if loop.oracle.get(k) is not None}}
     record = {'about': ORACLE_RECORD_ABOUT, 'oracles': [entries[k] for k in sorted(entries)]}
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     write_text(Path(path), json.dumps(record, indent=1) + '\n')
@@ -407,16 +410,30 @@ def _short_of_oracle(run: MonitorRun, loop: ClosedLoop | None) -> str | None:
             or loop.served_mw >= ORACLE_SHARE * loop.oracle_mw - 1e-6):
         return None
 
-    def asked(what: str, t_s) -> str:
-        if t_s is None:
-            return f'{what} did not ask'
+    def at(t_s: float) -> str:
         cleared = [c for c in run.clearings_s if c <= t_s + 1e-9]
-        return f'{what} asked at {t_s:.3f} s' + (f' ({t_s - cleared[-1]:+.3f} s)' if cleared else '')
+        return f'{t_s:.3f} s' + (f' ({t_s - cleared[-1]:+.3f} s)' if cleared else '')
+
+    def asked(what: str, t_s) -> str:
+        return f'{what} did not ask' if t_s is None else f'{what} asked at {at(t_s)}'
 
     oracle = loop.oracle or {}
     cut = ', '.join(oracle.get('cut_branch_ids') or []) or 'no cut'
-    return (f'- {run.name}: {loop.served_mw:.0f} MW against {loop.oracle_mw:.0f} MW; '
+    sources = oracle.get('sources') or []
+    if sources and not any(s == 'graph' or s.endswith('of truth') for s in sources):  # oracle.py's source names
+        cut += f": {' and '.join(sources)}, not the final grouping's cut"
+    line = (f'- {run.name}: {loop.served_mw:.0f} MW against {loop.oracle_mw:.0f} MW; '
             f"{asked(f'the best found ({cut})', oracle.get('request_s'))}, {asked('the monitor', loop.request_s)}")
+    by_time = oracle.get('served_by_request_s') or []
+    enough = [t for t, mw in by_time if mw is not None and mw >= ORACLE_SHARE * loop.oracle_mw - 1e-6]
+    if enough:
+        later = [(t, mw) for t, mw in by_time if t > max(enough)]
+        line += (f'; {100 * ORACLE_SHARE:.0f} % of the best needs a request by {at(max(enough))}, the latest '
+                 'request time searched at which a run served that much')
+        if later:
+            t, mw = later[0]
+            line += f" (at {t:.3f} s: {'a failed run' if mw is None else f'{mw:.0f} MW'})"
+    return line
 
 
 def report(runs: Sequence[MonitorRun], loops: dict[str, ClosedLoop], run_note: str = '') -> list[str]:

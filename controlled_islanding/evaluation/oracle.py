@@ -361,7 +361,21 @@ class OracleResult:
             'best_per_cut': [{'cut_branch_ids': list(c), 'load_served_mw': t.served_mw,
                               'request_s': t.candidate.request_s, 'sources': t.candidate.sources}
                              for c, t in sorted(per_cut.items(), key=lambda kv: -kv[1].served_mw)],
+            'served_by_request_s': self.served_by_request_s(),
             'wall_s': self.wall_s}
+
+    def served_by_request_s(self) -> list[list[float | None]]:
+        """Return [request time, s; the most load a run asked then served, MW (None: none known)] per time searched.
+
+        How late a request may come and still save what the best saves: a pruned candidate's load is unknown, so
+        at a time where some were pruned the figure is a lower bound.
+        """
+        most: dict[float, float] = {}
+        for t in self.tried:
+            when = t.candidate.request_s
+            if when is not None and t.served_mw is not None:
+                most[when] = max(most.get(when, t.served_mw), t.served_mw)
+        return [[when, most.get(when)] for when in self.times_s]
 
 
 def _grid_at(base: Grid, changes: Sequence[tuple[float, str, bool]], t_s: float) -> tuple[tuple[str, ...], Grid]:
