@@ -10,6 +10,8 @@ import pytest
 from controlled_islanding import cli
 from controlled_islanding.sim.scenario import ScenarioError, load_scenario
 
+REPO = Path(__file__).resolve().parents[1]
+
 GOOD = """\
 case: ieee39/ieee39_full.xlsx
 end_s: 2.0
@@ -148,6 +150,19 @@ islanding_request_s: 0.05
     assert 'GENROU_2' not in sim.generator_names and len(sim.generator_names) == 9
     assert 'GENROU_2' not in [g.name for g in sim.grid.generators]
     assert sim.delta_rad.shape[1] == 9
+
+
+def test_loading_cases_leaves_no_andes_log_folder_behind(monkeypatch: pytest.MonkeyPatch) -> None:
+    """ANDES' default logger made a new <tmp>/andes-XXXXXXXX folder at every load, never removed."""
+    import andes.main
+
+    from controlled_islanding.sim.andes_sim import load_power_flow, prepare_case
+
+    made = []
+    monkeypatch.setattr(andes.main, 'get_log_dir', lambda: made.append(1) or '/nonexistent')
+    load_power_flow('ieee14/ieee14_full.xlsx')
+    prepare_case(load_scenario(REPO / 'bags' / 'kundur_bus9_unstable.yaml'))
+    assert made == []
 
 
 def test_classical_machines_get_xd1_and_kept_case_events_become_branch_changes(tmp_path: Path) -> None:

@@ -34,6 +34,7 @@ it, as it refuses a run that stopped.
 from __future__ import annotations
 
 import logging
+import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -206,11 +207,23 @@ def _find_branch(where: str, ref: str, ids: list[str], pairs: list[tuple[int, in
     raise ScenarioError(f'{where}: unknown branch {ref!r}; no line joins buses {a} and {b} in the case')
 
 
+def _quiet_andes() -> None:
+    """Set ANDES' own logger before a case is loaded: nothing on the console, no log file.
+
+    ANDES logs 'Time step reduced to zero' at the end of runs that did reach it; real failures are raised by the
+    callers. Its log file is off because by default every call made a new <tmp>/andes-XXXXXXXX folder
+    (andes.utils.paths.get_log_dir), one per case loaded and never removed, the first of each process with a DEBUG
+    log of all its runs: 2,101 folders and 644 MB after four hours of testbed searches here, one log of 134 MB.
+    """
+    import andes
+
+    andes.config_logger(stream_level=logging.CRITICAL, file=False, log_path=tempfile.gettempdir())
+
+
 def _load_case(scenario: Scenario) -> Any:
     import andes
 
-    # ANDES logs 'Time step reduced to zero' at the end of runs that did reach it; real failures are raised below.
-    andes.config_logger(stream_level=logging.CRITICAL)
+    _quiet_andes()
     pycode = ensure_pycode()
     extra = {} if scenario.addfile is None else {'addfile': str(scenario.addfile)}
     field = 'case' if scenario.addfile is None else 'case/addfile'
@@ -568,7 +581,7 @@ def load_power_flow(case: str | Path, addfile: str | Path | None = None) -> Any:
     """
     import andes
 
-    andes.config_logger(stream_level=logging.CRITICAL)
+    _quiet_andes()
     path = Path(case) if Path(case).exists() else Path(andes.get_case(str(case)))
     pycode = ensure_pycode()
     extra = {'addfile': str(Path(path).parent / addfile)} if addfile else {}
