@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import logging
 from functools import cache
 from pathlib import Path
 
@@ -186,7 +185,7 @@ def test_branch_ids_match_in_either_orientation() -> None:
 def test_andes_toggles_open_the_cut_in_a_time_domain_run(tmp_path: Path) -> None:
     import andes
 
-    from controlled_islanding.sim.andes_sim import pycode_dir
+    from controlled_islanding.sim.andes_sim import pycode_dir, quiet_andes
 
     entry = SPLITS[0]
     summary = tmp_path / 'summary.json'
@@ -195,7 +194,7 @@ def test_andes_toggles_open_the_cut_in_a_time_domain_run(tmp_path: Path) -> None
     assert main(['export', str(summary), '--to', 'andes', '--at-s', '0.05', '-o', str(out)]) == 0
     rows = json.loads(out.read_text())
     assert len(rows) == len(entry['expected_decision']['cut_branches'])
-    andes.config_logger(stream_level=logging.CRITICAL)
+    quiet_andes()
     ss = andes.load(andes.get_case(case_of(entry)), setup=False, no_output=True, default_config=True,
                     pycode_path=str(pycode_dir()))
     for row in rows:

@@ -104,9 +104,9 @@ step="generate ANDES' numerical code"
 # andes.load would generate it in a forked multiprocessing pool, which can deadlock inside a node (grid_sim).
 echo "setup: generating ANDES' numerical code in build/andes_pycode (about 20 s)"
 "$VENV/bin/python" -c "
-import logging, andes
-andes.config_logger(stream_level=logging.WARNING)
-from controlled_islanding.sim.andes_sim import ensure_pycode
+import logging
+from controlled_islanding.sim.andes_sim import ensure_pycode, quiet_andes
+quiet_andes(logging.WARNING)
 print('setup: ANDES code in', ensure_pycode())
 "
 

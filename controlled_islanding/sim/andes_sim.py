@@ -207,8 +207,8 @@ def _find_branch(where: str, ref: str, ids: list[str], pairs: list[tuple[int, in
     raise ScenarioError(f'{where}: unknown branch {ref!r}; no line joins buses {a} and {b} in the case')
 
 
-def _quiet_andes() -> None:
-    """Set ANDES' own logger before a case is loaded: nothing on the console, no log file.
+def quiet_andes(stream_level: int = logging.CRITICAL) -> None:
+    """Set ANDES' own logger before a case is loaded: the console at stream_level only, no log file.
 
     ANDES logs 'Time step reduced to zero' at the end of runs that did reach it; real failures are raised by the
     callers. Its log file is off because by default every call made a new <tmp>/andes-XXXXXXXX folder
@@ -217,13 +217,13 @@ def _quiet_andes() -> None:
     """
     import andes
 
-    andes.config_logger(stream_level=logging.CRITICAL, file=False, log_path=tempfile.gettempdir())
+    andes.config_logger(stream_level=stream_level, file=False, log_path=tempfile.gettempdir())
 
 
 def _load_case(scenario: Scenario) -> Any:
     import andes
 
-    _quiet_andes()
+    quiet_andes()
     pycode = ensure_pycode()
     extra = {} if scenario.addfile is None else {'addfile': str(scenario.addfile)}
     field = 'case' if scenario.addfile is None else 'case/addfile'
@@ -581,7 +581,7 @@ def load_power_flow(case: str | Path, addfile: str | Path | None = None) -> Any:
     """
     import andes
 
-    _quiet_andes()
+    quiet_andes()
     path = Path(case) if Path(case).exists() else Path(andes.get_case(str(case)))
     pycode = ensure_pycode()
     extra = {'addfile': str(Path(path).parent / addfile)} if addfile else {}
