@@ -427,8 +427,9 @@ def _short_of_oracle(run: MonitorRun, loop: ClosedLoop | None) -> str | None:
     by_time = oracle.get('served_by_request_s') or []
     enough = [t for t, mw in by_time if mw is not None and mw >= ORACLE_SHARE * loop.oracle_mw - 1e-6]
     if enough:
-        later = [(t, mw) for t, mw in by_time if t > max(enough)]
-        line += (f'; {100 * ORACLE_SHARE:.0f} % of the best needs a request by {at(max(enough))}, the latest '
+        deadline = max(enough)
+        later = [(t, mw) for t, mw in by_time if t > deadline]
+        line += (f'; {100 * ORACLE_SHARE:.0f} % of the best needs a request by {at(deadline)}, the latest '
                  'request time searched at which a run served that much')
         if later:
             t, mw = later[0]
